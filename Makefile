@@ -1,0 +1,22 @@
+# The two commands a newcomer needs: `make serve` and `make test`.
+PORT ?= 8080
+CARGO ?= cargo
+PYTHON := .venv/bin/python
+
+.PHONY: serve test build runtime python rust-test python-test
+
+serve: build runtime
+	./target/release/cmr-agent serve --port $(PORT)
+
+test: build runtime python
+	$(CARGO) test --release
+	cd training && ../$(PYTHON) -m pytest -q tests
+
+build:
+	$(CARGO) build --release
+
+runtime:
+	bash scripts/install-onnxruntime.sh
+
+python:
+	bash scripts/setup-python.sh

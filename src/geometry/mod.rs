@@ -1,0 +1,20 @@
+//! The project's one home for geometry conventions.
+//!
+//! Every other part (generator, readers, server, evaluator) and the Python training pipeline
+//! follow what is written here; `fixtures/conventions.json` pins these functions across languages.
+//!
+//! Frames:
+//! - camera: OpenCV (x right, y down, z forward); pixel (u, v) = (fx x/z + cx, fy y/z + cy) with
+//!   pixel centres at integer coordinates;
+//! - map: the region's own frame, z up (a LiDAR frame such as KITTI's velodyne frame);
+//! - the estimated quantity is `camera_from_map`: p_cam = R p_map + t.
+
+pub mod actions;
+pub mod camera;
+pub mod metrics;
+pub mod pose;
+
+pub use actions::{ActionSet, AgentAction, Dof};
+pub use camera::{Intrinsics, PreprocessPlan};
+pub use metrics::{PoseError, p2p_distance, step_reward};
+pub use pose::Pose;

@@ -1,0 +1,164 @@
+//! Rigid poses (`camera_from_map`) and the conversions the API and file formats need.
+
+use nalgebra::{Isometry3, Matrix3, Matrix4, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// A rigid transform p_out = R p_in + t. Used for `camera_from_map`, KITTI's `Tr` and poses.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Pose(pub Isometry3<f64>);
+
+impl Pose {
+    pub fn identity() -> Self {
+        Pose(Isometry3::identity())
+    }
+
+    pub fn from_rt(rotation: Matrix3<f64>, translation: Vector3<f64>) -> Self {
+        let rotation = UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix(&rotation));
+        Pose(Isometry3::from_parts(Translation3::from(translation), rotation))
+    }
+
+    /// From a row-major 3x4 `[R | t]`, the layout KITTI's calib.txt and poses.txt use.
+    pub fn from_row_major_3x4(values: &[f64; 12]) -> Self {
+        let r = Matrix3::new(
+            values[0], values[1], values[2], values[4], values[5], values[6], values[8], values[9],
+            values[10],
+        );
+        Self::from_rt(r, Vector3::new(values[3], values[7], values[11]))
+    }
+
+    pub fn to_row_major_3x4(&self) -> [f64; 12] {
+        let m = self.matrix();
+        let mut out = [0.0; 12];
+        for row in 0..3 {
+            for col in 0..4 {
+                out[row * 4 + col] = m[(row, col)];
+            }
+        }
+        out
+    }
+
+    /// From a row-major 4x4 matrix; the last row must be (0, 0, 0, 1) and R orthonormal.
+    pub fn from_matrix(m: &[[f64; 4]; 4]) -> Result<Self, String> {
+        if m.iter().flatten().any(|v| !v.is_finite()) {
+            return Err("pose contains a non-finite value".into());
+        }
+        let last = m[3];
+        if (last[0].abs() + last[1].abs() + last[2].abs() + (last[3] - 1.0).abs()) > 1e-6 {
+            return Err("pose's last row must be [0, 0, 0, 1]".into());
+        }
+        let r = Matrix3::new(m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2]);
+        let orthonormality = (r.transpose() * r - Matrix3::identity()).abs().max();
+        if orthonormality > 1e-3 || r.determinant() < 0.0 {
+            return Err("pose's rotation block is not a rotation matrix".into());
+        }
+        Ok(Self::from_rt(r, Vector3::new(m[0][3], m[1][3], m[2][3])))
+    }
+
+    pub fn matrix(&self) -> Matrix4<f64> {
+        self.0.to_homogeneous()
+    }
+
+    pub fn to_rows(&self) -> [[f64; 4]; 4] {
+        let m = self.matrix();
+        std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
+    }
+
+    pub fn rotation(&self) -> Matrix3<f64> {
+        self.0.rotation.to_rotation_matrix().into_inner()
+    }
+
+    pub fn translation(&self) -> Vector3<f64> {
+        self.0.translation.vector
+    }
+
+    pub fn inverse(&self) -> Self {
+        Pose(self.0.inverse())
+    }
+
+    /// `self ∘ other`: first `other`, then `self`.
+    pub fn compose(&self, other: &Pose) -> Self {
+        Pose(self.0 * other.0)
+    }
+
+    pub fn transform(&self, p: &Point3<f64>) -> Point3<f64> {
+        self.0 * p
+    }
+
+    /// The camera centre in the map frame when `self` is camera_from_map: -Rᵀ t.
+    pub fn camera_position_in_map(&self) -> Vector3<f64> {
+        self.0.inverse().translation.vector
+    }
+
+    /// The heading of the camera's optical axis in the map's ground plane, in degrees,
+    /// counter-clockwise from the map's +x axis (0 = looking along +x, 90 = along +y).
+    pub fn camera_heading_in_map_deg(&self) -> f64 {
+        let forward_in_map = self.rotation().transpose() * Vector3::z();
+        forward_in_map.y.atan2(forward_in_map.x).to_degrees()
+    }
+
+    /// A rotation by `angle_rad` about the map's z axis followed by a translation: the
+    /// ground-plane perturbation of the paper's protocol.
+    pub fn ground_motion(yaw_rad: f64, dx: f64, dy: f64) -> Self {
+        Pose(Isometry3::from_parts(
+            Translation3::new(dx, dy, 0.0),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw_rad),
+        ))
+    }
+}
+
+/// The JSON shape of a pose in the API and in manifests: a row-major 4x4 matrix.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+pub struct PoseMatrix(pub [[f64; 4]; 4]);
+
+impl From<Pose> for PoseMatrix {
+    fn from(p: Pose) -> Self {
+        PoseMatrix(p.to_rows())
+    }
+}
+
+impl TryFrom<PoseMatrix> for Pose {
+    type Error = String;
+    fn try_from(m: PoseMatrix) -> Result<Self, String> {
+        Pose::from_matrix(&m.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn row_major_round_trip() {
+        let p = Pose::ground_motion(0.3, 1.0, -2.0).compose(&Pose::from_rt(
+            Rotation3::from_euler_angles(0.1, -0.2, 0.05).into_inner(),
+            Vector3::new(0.5, 0.25, -1.0),
+        ));
+        let back = Pose::from_row_major_3x4(&p.to_row_major_3x4());
+        assert!((back.matrix() - p.matrix()).abs().max() < 1e-12);
+        let back = Pose::from_matrix(&p.to_rows()).unwrap();
+        assert!((back.matrix() - p.matrix()).abs().max() < 1e-12);
+    }
+
+    #[test]
+    fn rejects_non_rigid_matrices() {
+        let mut m = Pose::identity().to_rows();
+        m[0][0] = 2.0;
+        assert!(Pose::from_matrix(&m).is_err());
+        let mut m = Pose::identity().to_rows();
+        m[3][0] = 1.0;
+        assert!(Pose::from_matrix(&m).is_err());
+        let mut m = Pose::identity().to_rows();
+        m[1][3] = f64::NAN;
+        assert!(Pose::from_matrix(&m).is_err());
+    }
+
+    #[test]
+    fn heading_of_a_kitti_like_rig() {
+        // Camera looking along the map's +x axis: camera z = map x, camera x = -map y, camera y = -map z.
+        let r = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
+        let rig = Pose::from_rt(r, Vector3::new(0.0, -0.08, -0.27));
+        assert!(rig.camera_heading_in_map_deg().abs() < 1e-9);
+        let turned = rig.compose(&Pose::ground_motion(-std::f64::consts::FRAC_PI_2, 0.0, 0.0));
+        assert!((turned.camera_heading_in_map_deg() - 90.0).abs() < 1e-9);
+    }
+}

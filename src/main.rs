@@ -1,0 +1,22 @@
+//! Command-line entry point: one binary, one subcommand per job.
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "cmr-agent", version, about = "Camera-in-LiDAR-map localization (CMR-Agent)")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {}
+
+fn main() -> anyhow::Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()))
+        .with_writer(std::io::stderr)
+        .init();
+    let cli = Cli::parse();
+    match cli.command {}
+}

@@ -1,0 +1,1 @@
+"""CMR-Agent training pipeline: data, models, losses, training loops and ONNX export."""

@@ -1,0 +1,177 @@
+"""Geometry conventions, mirrored from the Rust crate's `src/geometry/`.
+
+The Rust module is the reference; `fixtures/conventions.json` (written by the Rust tests) pins
+both implementations. Frames: camera is OpenCV (x right, y down, z forward), the map frame is
+z-up, and the estimated pose is camera_from_map (p_cam = R p_map + t), kept as 4x4 float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+MIN_DEPTH_M = 0.1
+RR_MAX_ROTATION_DEG = 10.0
+RR_MAX_TRANSLATION_M = 5.0
+REWARD_WORSE, REWARD_SAME, REWARD_BETTER = -0.5, 0.0, 0.5
+
+
+def _symmetric(unit: float, magnitudes: list[float]) -> np.ndarray:
+    return np.array([-m * unit for m in reversed(magnitudes)] + [0.0] + [m * unit for m in magnitudes])
+
+
+# Ascending steps; the middle index is the zero step. DoF order: yaw about camera y (deg),
+# translation along camera x (m), translation along camera z (m).
+ROTATION_STEPS_DEG = _symmetric(0.1, [1, 5, 25, 125, 625])
+TRANSLATION_STEPS_M = _symmetric(0.1, [1, 3, 9, 27, 81])
+DOFS = ("yaw_deg", "tx_m", "tz_m")
+
+
+def step_values(indices) -> tuple[float, float, float]:
+    """Action indices per DoF -> (yaw_deg, tx_m, tz_m)."""
+    return (float(ROTATION_STEPS_DEG[indices[0]]), float(TRANSLATION_STEPS_M[indices[1]]),
+            float(TRANSLATION_STEPS_M[indices[2]]))
+
+
+# ---------------------------------------------------------------------------------------------
+# Poses
+
+def rot_y(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def ground_motion(yaw_rad: float, dx: float, dy: float) -> np.ndarray:
+    """Rotation about the map's z axis followed by a ground-plane translation (4x4)."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[0, 3], m[1, 3] = dx, dy
+    return m
+
+
+def transform(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Applies a 4x4 pose to (..., 3) points."""
+    return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+def invert(pose: np.ndarray) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = pose[:3, :3].T
+    out[:3, 3] = -pose[:3, :3].T @ pose[:3, 3]
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# Camera
+
+def project(k: np.ndarray, points_cam: np.ndarray):
+    """k = (fx, fy, cx, cy). Returns (uv (n, 2), valid (n,)) where valid means in front of the camera."""
+    fx, fy, cx, cy = k
+    z = points_cam[..., 2]
+    valid = z >= MIN_DEPTH_M
+    safe_z = np.where(valid, z, 1.0)
+    uv = np.stack([fx * points_cam[..., 0] / safe_z + cx, fy * points_cam[..., 1] / safe_z + cy], axis=-1)
+    return uv, valid
+
+
+def in_frustum(k: np.ndarray, points_cam: np.ndarray, width: int, height: int) -> np.ndarray:
+    uv, valid = project(k, points_cam)
+    return (valid & (uv[..., 0] >= -0.5) & (uv[..., 1] >= -0.5)
+            & (uv[..., 0] < width - 0.5) & (uv[..., 1] < height - 0.5))
+
+
+def _round_half_away(x: float) -> int:
+    # Rust's f64::round; Python's round() would round half to even.
+    return int(math.floor(x + 0.5))
+
+
+def resized_size(in_w: int, in_h: int, nominal_scale: float, out_w: int, out_h: int) -> tuple[int, int]:
+    s = max(nominal_scale, out_h / in_h, out_w / in_w)
+    return max(_round_half_away(in_w * s), out_w), max(_round_half_away(in_h * s), out_h)
+
+
+def preprocess_plan(in_w, in_h, nominal_scale, out_w, out_h, crop_xy=None) -> dict:
+    """Resize-then-crop plan; centre crop unless `crop_xy` is given (random crops in training)."""
+    rw, rh = resized_size(in_w, in_h, nominal_scale, out_w, out_h)
+    cx, cy = crop_xy if crop_xy is not None else ((rw - out_w) // 2, (rh - out_h) // 2)
+    return dict(resized_width=rw, resized_height=rh, crop_x=cx, crop_y=cy, out_width=out_w, out_height=out_h)
+
+
+def adjust_intrinsics(plan: dict, k, in_w: int, in_h: int) -> np.ndarray:
+    sx = plan["resized_width"] / in_w
+    sy = plan["resized_height"] / in_h
+    fx, fy, cx, cy = k
+    return np.array([fx * sx, fy * sy, (cx + 0.5) * sx - 0.5 - plan["crop_x"], (cy + 0.5) * sy - 0.5 - plan["crop_y"]])
+
+
+# ---------------------------------------------------------------------------------------------
+# Actions (disentangled update) and the greedy expert
+
+def apply_action(pose: np.ndarray, pivot_map: np.ndarray, yaw_deg: float, tx: float, tz: float) -> np.ndarray:
+    """Rotate about camera y through the pivot (cloud centroid), then translate in the camera frame."""
+    pivot_cam = transform(pose, pivot_map)
+    turn = rot_y(yaw_deg)
+    out = np.eye(4)
+    out[:3, :3] = turn @ pose[:3, :3]
+    out[:3, 3] = turn @ (pose[:3, 3] - pivot_cam) + pivot_cam + np.array([tx, 0.0, tz])
+    return out
+
+
+def needed_motion(current: np.ndarray, target: np.ndarray, pivot_map: np.ndarray) -> tuple[float, float, float]:
+    delta_r = target[:3, :3] @ current[:3, :3].T
+    yaw = math.degrees(math.atan2(delta_r[0, 2], delta_r[2, 2]))
+    shift = transform(target, pivot_map) - transform(current, pivot_map)
+    return yaw, float(shift[0]), float(shift[2])
+
+
+def nearest_step(steps: np.ndarray, value: float) -> int:
+    """Closest step; ties go to the smaller magnitude."""
+    best = len(steps) // 2
+    for i, s in enumerate(steps):
+        d, d_best = abs(s - value), abs(steps[best] - value)
+        if d < d_best - 1e-12 or (abs(d - d_best) <= 1e-12 and abs(s) < abs(steps[best])):
+            best = i
+    return best
+
+
+def expert_indices(current: np.ndarray, target: np.ndarray, pivot_map: np.ndarray) -> tuple[int, int, int]:
+    yaw, tx, tz = needed_motion(current, target, pivot_map)
+    return (nearest_step(ROTATION_STEPS_DEG, yaw), nearest_step(TRANSLATION_STEPS_M, tx),
+            nearest_step(TRANSLATION_STEPS_M, tz))
+
+
+# ---------------------------------------------------------------------------------------------
+# Metrics and reward
+
+def euler_zyx(r: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) with R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    pitch = math.asin(max(-1.0, min(1.0, -r[2, 0])))
+    if abs(r[2, 0]) < 1.0 - 1e-9:
+        return math.atan2(r[2, 1], r[2, 2]), pitch, math.atan2(r[1, 0], r[0, 0])
+    return 0.0, pitch, math.atan2(-r[0, 1], r[1, 1])
+
+
+def pose_error(estimate: np.ndarray, truth: np.ndarray) -> dict:
+    delta = estimate[:3, :3].T @ truth[:3, :3]
+    roll, pitch, yaw = euler_zyx(delta)
+    cos = max(-1.0, min(1.0, (np.trace(delta) - 1.0) / 2.0))
+    return dict(rte_m=float(np.linalg.norm(estimate[:3, 3] - truth[:3, 3])),
+                rre_euler_deg=math.degrees(abs(roll) + abs(pitch) + abs(yaw)),
+                rre_geodesic_deg=math.degrees(math.acos(cos)))
+
+
+def p2p_distance(current: np.ndarray, truth: np.ndarray, points_map: np.ndarray) -> float:
+    if len(points_map) == 0:
+        return 0.0
+    return float(np.linalg.norm(transform(truth, points_map) - transform(current, points_map), axis=-1).mean())
+
+
+def step_reward(before: float, after: float) -> float:
+    if after < before - 1e-9:
+        return REWARD_BETTER
+    if after > before + 1e-9:
+        return REWARD_WORSE
+    return REWARD_SAME
