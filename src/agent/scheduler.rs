@@ -1,0 +1,1 @@
+//! The serving path: agent workers with iteration-level batching (see `Scheduler`).
