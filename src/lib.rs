@@ -7,3 +7,4 @@
 pub mod geometry;
 pub mod model;
 pub mod agent;
+pub mod maps;

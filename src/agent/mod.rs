@@ -156,6 +156,6 @@ pub fn finish(episode: Episode, map: &PreparedMap, layout: &StateLayout, timings
     }
 }
 
-pub(crate) fn ms(since: Instant) -> f64 {
+pub fn ms(since: Instant) -> f64 {
     since.elapsed().as_secs_f64() * 1000.0
 }
