@@ -10,7 +10,12 @@ struct Cli {
 }
 
 #[derive(Subcommand)]
-enum Command {}
+enum Command {
+    /// Serve the localization HTTP API.
+    Serve(cmr_agent::api::ServeArgs),
+    /// Print the OpenAPI document (the committed openapi/openapi.json).
+    PrintSchema,
+}
 
 fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
@@ -18,5 +23,11 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
-    match cli.command {}
+    match cli.command {
+        Command::Serve(args) => cmr_agent::api::run_serve(args),
+        Command::PrintSchema => {
+            print!("{}", cmr_agent::api::openapi::schema_json());
+            Ok(())
+        }
+    }
 }

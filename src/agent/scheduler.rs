@@ -89,7 +89,8 @@ impl Scheduler {
         });
         let mut workers = Vec::new();
         for index in 0..config.workers.max(1) {
-            let backend = models.backend()?;
+            let mut backend = models.backend()?;
+            backend.warm_up()?;
             let queue = queue.clone();
             let max_batch = config.max_batch.max(1);
             let handle = std::thread::Builder::new()

@@ -32,6 +32,7 @@ pub struct MapMetadata {
     pub description: Option<String>,
     /// The rig's initial camera_from_map (row-major 4x4): the default prior of a localize request.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<Vec<f64>>>)]
     pub initial_camera_from_map: Option<[[f64; 4]; 4]>,
     /// Free-form provenance (kept as given).
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -183,6 +183,25 @@ impl Backend {
         })
     }
 
+    /// Runs every graph once on synthetic inputs so the first real request does not pay for
+    /// ONNX Runtime's lazy initialisation.
+    pub fn warm_up(&mut self) -> Result<()> {
+        let m = self.manifest.points.num_state_points;
+        let points: Vec<[f32; 3]> = (0..m).map(|i| {
+            let t = i as f32 * 0.618_034;
+            [10.0 * (t.fract() - 0.5), 10.0 * ((t * 1.7).fract() - 0.5), 2.0 * ((t * 2.3).fract() - 0.5)]
+        }).collect();
+        let point_features = self.encode_points(&points)?;
+        let (w, h) = (self.manifest.image.width as usize, self.manifest.image.height as usize);
+        let image: Vec<f32> = (0..3 * w * h).map(|i| ((i % 251) as f32 / 251.0) - 0.5).collect();
+        let image_features = self.encode_image(&image)?;
+        self.frustum_logits(&point_features, &image_features)?;
+        let state_2d = vec![0f32; self.state_2d_len()];
+        let state_3d = vec![0.1f32; m * 5];
+        self.agent_step(&state_2d, &state_3d, 1)?;
+        Ok(())
+    }
+
     pub fn image_feature_len(&self) -> usize {
         let f = &self.manifest.features;
         f.dim * f.grid_height * f.grid_width
