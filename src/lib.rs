@@ -5,3 +5,4 @@
 //! generator, and the serving stack.
 
 pub mod geometry;
+pub mod maps;

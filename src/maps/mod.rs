@@ -1,0 +1,3 @@
+//! Map regions: point-cloud file formats (more to come: store, cache).
+
+pub mod formats;
