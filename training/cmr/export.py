@@ -1,0 +1,180 @@
+"""Export the four graphs to ONNX and write `models/manifest.json` (format cmr-agent-manifest/1).
+
+    python -m cmr.export --checkpoint runs/x/agent.pt --out ../models [--validation eval.json]
+
+Without --checkpoint the graphs carry their random initialisation (said so in the provenance).
+Every file is written atomically (temp file in the same directory, fsync, rename).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import hashlib
+import io
+import json
+import os
+import subprocess
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import geometry as g
+from .models import (FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, IMAGE_HEIGHT, IMAGE_WIDTH, NUM_DOFS, NUM_STEPS,
+                     STRIDE, build_all, parameter_counts)
+
+MANIFEST_FORMAT = "cmr-agent-manifest/1"
+OPSET = 18
+NUM_POINTS = 40960
+NUM_STATE_POINTS = 2048
+STATE_XYZ_SCALE_M = 10.0
+IMAGE_MEAN = (0.485, 0.456, 0.406)
+IMAGE_STD = (0.229, 0.224, 0.225)
+NOMINAL_SCALE = 0.5
+
+# name -> (input names, output names, dynamic axes)
+GRAPH_IO = {
+    "point_encoder": (["points"], ["point_features"], {"points": {1: "N"}, "point_features": {1: "N"}}),
+    "image_encoder": (["image"], ["image_features"], {}),
+    "frustum_head": (["point_features", "image_features"], ["frustum_logits"],
+                     {"point_features": {1: "N"}, "frustum_logits": {1: "N"}}),
+    "agent": (["state_2d", "state_3d"], ["policy_logits", "value"],
+              {"state_2d": {0: "B"}, "state_3d": {0: "B"}, "policy_logits": {0: "B"}, "value": {0: "B"}}),
+}
+
+CONTRACT_SHAPES = {
+    "point_encoder": ({"points": [1, "N", 3]}, {"point_features": [1, "N", FEATURE_DIM]}),
+    "image_encoder": ({"image": [1, 3, IMAGE_HEIGHT, IMAGE_WIDTH]},
+                      {"image_features": [1, FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH]}),
+    "frustum_head": ({"point_features": [1, "N", FEATURE_DIM],
+                      "image_features": [1, FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH]},
+                     {"frustum_logits": [1, "N"]}),
+    "agent": ({"state_2d": ["B", 2 * FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH], "state_3d": ["B", NUM_STATE_POINTS, 5]},
+              {"policy_logits": ["B", NUM_DOFS, NUM_STEPS], "value": ["B", 1]}),
+}
+
+
+def example_inputs(name: str, num_points: int = 4096, batch: int = 1, seed: int = 0) -> tuple[torch.Tensor, ...]:
+    """Random inputs with the contract's shapes (the points look like a street-sized cloud)."""
+    gen = torch.Generator().manual_seed(seed)
+    if name == "point_encoder":
+        pts = torch.randn(1, num_points, 3, generator=gen) * torch.tensor([15.0, 15.0, 1.5]) + torch.tensor([5.0, -3.0, 0.0])
+        return (pts,)
+    if name == "image_encoder":
+        return (torch.randn(1, 3, IMAGE_HEIGHT, IMAGE_WIDTH, generator=gen),)
+    if name == "frustum_head":
+        pf = torch.nn.functional.normalize(torch.randn(1, num_points, FEATURE_DIM, generator=gen), dim=-1)
+        im = torch.nn.functional.normalize(torch.randn(1, FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, generator=gen), dim=1)
+        return pf, im
+    if name == "agent":
+        s2 = torch.randn(batch, 2 * FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, generator=gen) * 0.1
+        s3 = torch.rand(batch, NUM_STATE_POINTS, 5, generator=gen)
+        return s2, s3
+    raise KeyError(name)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def onnx_bytes(name: str, module: torch.nn.Module) -> bytes:
+    inputs, outputs, dynamic = GRAPH_IO[name]
+    buf = io.BytesIO()
+    with torch.no_grad():
+        torch.onnx.export(module.eval(), example_inputs(name), buf, input_names=inputs, output_names=outputs,
+                          dynamic_axes=dynamic or None, opset_version=OPSET, dynamo=False, do_constant_folding=True)
+    return buf.getvalue()
+
+
+def git_commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
+                              cwd=Path(__file__).parent).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenance: dict, validation: dict) -> dict:
+    graphs = {}
+    for name, (file, sha) in files.items():
+        ins, outs = CONTRACT_SHAPES[name]
+        graphs[name] = dict(file=file, sha256=sha, inputs=ins, outputs=outs)
+    return {
+        "format": MANIFEST_FORMAT,
+        "image": dict(width=IMAGE_WIDTH, height=IMAGE_HEIGHT, nominal_scale=NOMINAL_SCALE, mean=list(IMAGE_MEAN),
+                      std=list(IMAGE_STD)),
+        "features": dict(dim=FEATURE_DIM, stride=STRIDE, grid_height=GRID_HEIGHT, grid_width=GRID_WIDTH),
+        "points": dict(num_points=NUM_POINTS, num_state_points=NUM_STATE_POINTS, state_xyz_scale_m=STATE_XYZ_SCALE_M),
+        "actions": dict(dofs=list(g.DOFS), rotation_deg=[float(x) for x in g.ROTATION_STEPS_DEG],
+                        translation_m=[float(x) for x in g.TRANSLATION_STEPS_M]),
+        "graphs": graphs,
+        "provenance": provenance,
+        "validation": validation,
+        "parameters": params,
+    }
+
+
+def export_models(models: dict[str, torch.nn.Module], out_dir: Path, provenance: dict, validation: dict | None = None) -> dict:
+    out_dir = Path(out_dir)
+    files = {}
+    for name, module in models.items():
+        data = onnx_bytes(name, module)
+        atomic_write_bytes(out_dir / f"{name}.onnx", data)
+        files[name] = (f"{name}.onnx", hashlib.sha256(data).hexdigest())
+    provenance = dict(provenance)
+    provenance.setdefault("git_commit", git_commit())
+    provenance.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
+    doc = manifest(files, parameter_counts(models), provenance, validation or {})
+    atomic_write_bytes(out_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
+    return doc
+
+
+def load_models(checkpoint: Path | None) -> tuple[dict[str, torch.nn.Module], dict]:
+    models = build_all()
+    meta: dict = {}
+    if checkpoint is not None:
+        state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        for name, module in models.items():
+            if name in state["models"]:
+                module.load_state_dict(state["models"][name])
+        meta = state.get("meta", {})
+    for m in models.values():
+        m.eval()
+    return models, meta
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", type=Path, help="training checkpoint (.pt); random init when absent")
+    ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[2] / "models")
+    ap.add_argument("--validation", type=Path, help="JSON file with validation figures to embed")
+    ap.add_argument("--seed", type=int, default=0, help="init seed when no checkpoint is given")
+    args = ap.parse_args(argv)
+    torch.manual_seed(args.seed)
+    models, meta = load_models(args.checkpoint)
+    if args.checkpoint is None:
+        provenance = dict(data="none: random initialisation (untrained; for integration only)",
+                          seeds=dict(init=args.seed))
+    else:
+        provenance = dict(data=meta.get("data", "unknown"), seeds=meta.get("seeds", {}),
+                          checkpoint=str(args.checkpoint), training=meta.get("training", {}))
+    validation = json.loads(args.validation.read_text()) if args.validation else {}
+    doc = export_models(models, args.out, provenance, validation)
+    print(json.dumps({k: doc[k] for k in ("parameters", "provenance")}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,165 @@
+"""The four networks of the model contract (see the common brief / models/manifest.json).
+
+Sized for a 2-core CPU: every graph is a handful of convolutions / per-point MLPs, exportable with
+standard ONNX operators (opset 18). Shapes and tensor names are fixed by the contract:
+
+- PointEncoder  points [B, N, 3]              -> point_features [B, N, 64] (L2-normalised per point)
+- ImageEncoder  image [B, 3, 160, 512]        -> image_features [B, 64, 40, 128] (L2 per cell)
+- FrustumHead   point_features, image_features -> frustum_logits [B, N]
+- Agent         state_2d [B, 128, 40, 128], state_3d [B, M, 5] -> policy_logits [B, 3, 11], value [B, 1]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+FEATURE_DIM = 64
+IMAGE_HEIGHT, IMAGE_WIDTH = 160, 512
+STRIDE = 4
+GRID_HEIGHT, GRID_WIDTH = IMAGE_HEIGHT // STRIDE, IMAGE_WIDTH // STRIDE
+NUM_DOFS, NUM_STEPS = 3, 11
+
+
+def l2_normalise(x: torch.Tensor, dim: int) -> torch.Tensor:
+    # Written out (not F.normalize) so the exported graph is plain ReduceSum/Sqrt/Div.
+    return x / torch.sqrt((x * x).sum(dim=dim, keepdim=True) + 1e-12)
+
+
+def conv_bn(cin: int, cout: int, k: int = 3, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, k, stride, k // 2, bias=False), nn.BatchNorm2d(cout),
+                         nn.ReLU(inplace=True))
+
+
+def point_mlp(cin: int, cout: int) -> nn.Sequential:
+    """A shared per-point layer on [B, C, N] tensors."""
+    return nn.Sequential(nn.Conv1d(cin, cout, 1, bias=False), nn.BatchNorm1d(cout), nn.ReLU(inplace=True))
+
+
+@dataclass(frozen=True)
+class PillarGrid:
+    """The bird's-eye-view grid the point encoder scatters into, centred on the cloud's mean."""
+    cells: int = 96
+    cell_m: float = 0.8
+
+
+class PointEncoder(nn.Module):
+    """Per-point MLP plus a BEV pillar context: scatter-max into a ground grid, a small 2D CNN,
+    gather back. The cloud arrives randomly yawed and shifted, so local context must come from the
+    neighbourhood rather than from absolute coordinates; centring on the mean removes the shift."""
+
+    def __init__(self, grid: PillarGrid = PillarGrid(), width: int = 32):
+        super().__init__()
+        self.grid = grid
+        self.local = nn.Sequential(point_mlp(4, width), point_mlp(width, width))
+        self.bev = nn.Sequential(conv_bn(width, 48, stride=2), conv_bn(48, 48), conv_bn(48, 48))
+        self.bev_out = conv_bn(48 + width, 48, k=1)
+        self.head = nn.Sequential(point_mlp(width + 48, 64), nn.Conv1d(64, FEATURE_DIM, 1))
+
+    def cell_index(self, centred: torch.Tensor) -> torch.Tensor:
+        g = self.grid
+        ij = torch.floor(centred[..., :2] / g.cell_m + g.cells / 2).clamp(0, g.cells - 1)
+        return (ij[..., 1] * g.cells + ij[..., 0]).long()  # [B, N], row = y, col = x
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        b, n, _ = points.shape
+        centred = points - points.mean(dim=1, keepdim=True)
+        g = self.grid
+        # Height and the in-cell offset are yaw-agnostic local cues; the CNN supplies the layout.
+        offset = centred[..., :2] / g.cell_m - torch.floor(centred[..., :2] / g.cell_m) - 0.5
+        radius = torch.sqrt((centred[..., :2] ** 2).sum(-1, keepdim=True)) / 40.0
+        x = torch.cat([centred[..., 2:3] / 3.0, offset, radius], dim=-1).transpose(1, 2)  # [B, 4, N]
+        local = self.local(x)  # [B, C, N], >= 0 after ReLU
+        c = local.shape[1]
+        idx = self.cell_index(centred).unsqueeze(1).expand(b, c, n)
+        # Zeros built from `local` so the exported graph keeps a static rank for the grid.
+        grid = (local[:, :, :1] * 0.0).expand(b, c, g.cells * g.cells)
+        grid = grid.scatter_reduce(2, idx, local, reduce="amax", include_self=True)
+        grid = grid.view(b, c, g.cells, g.cells)
+        ctx = self.bev(grid)
+        ctx = F.interpolate(ctx, scale_factor=2.0, mode="nearest")
+        ctx = self.bev_out(torch.cat([ctx, grid], dim=1)).flatten(2)
+        gathered = ctx.gather(2, idx[:, :1].expand(b, ctx.shape[1], n))
+        out = self.head(torch.cat([local, gathered], dim=1)).transpose(1, 2)
+        return l2_normalise(out, dim=-1)
+
+
+class ImageEncoder(nn.Module):
+    """Stride-4 feature map with a stride-8 context branch, in the point features' space."""
+
+    def __init__(self):
+        super().__init__()
+        self.stem = nn.Sequential(conv_bn(3, 24, stride=2), conv_bn(24, 48, stride=2), conv_bn(48, 64))
+        self.context = nn.Sequential(conv_bn(64, 64, stride=2), conv_bn(64, 64))
+        self.out = nn.Conv2d(128, FEATURE_DIM, 1)
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        x = self.stem(image)
+        ctx = F.interpolate(self.context(x), scale_factor=2.0, mode="nearest")
+        return l2_normalise(self.out(torch.cat([x, ctx], dim=1)), dim=1)
+
+
+class FrustumHead(nn.Module):
+    """Is each map point inside the camera's (true) frustum? A per-point MLP whose weights come
+    from the image's global context, plus each point's best similarity to a coarse image grid."""
+
+    HIDDEN = 16
+    POOL = (2, 8)
+
+    def __init__(self):
+        super().__init__()
+        h = self.HIDDEN
+        self.context = nn.Sequential(nn.Linear(2 * FEATURE_DIM, 128), nn.ReLU(inplace=True),
+                                     nn.Linear(128, FEATURE_DIM * h + h))
+        self.readout = nn.Linear(h + 1, 1)
+
+    def forward(self, point_features: torch.Tensor, image_features: torch.Tensor) -> torch.Tensor:
+        h = self.HIDDEN
+        pooled = torch.cat([image_features.mean(dim=(2, 3)), image_features.amax(dim=(2, 3))], dim=1)
+        ctx = self.context(pooled)
+        weight = ctx[:, : FEATURE_DIM * h].reshape(-1, FEATURE_DIM, h)
+        bias = ctx[:, FEATURE_DIM * h:].unsqueeze(1)
+        cells = l2_normalise(F.adaptive_avg_pool2d(image_features, self.POOL).flatten(2), dim=1)  # [B, 64, 16]
+        mixed = torch.bmm(point_features, torch.cat([weight, cells], dim=2))  # [B, N, h + 16]
+        hidden = torch.relu(mixed[..., :h] + bias)
+        best = mixed[..., h:].amax(dim=-1, keepdim=True)
+        return self.readout(torch.cat([hidden, best], dim=-1)).squeeze(-1)
+
+
+class Agent(nn.Module):
+    """Actor-critic on the hybrid state: a 2D CNN that reduces channels at once and pools early,
+    and a PointNet on the M state points; 128 features each, concatenated."""
+
+    def __init__(self, state_dim: int = 128):
+        super().__init__()
+        self.cnn = nn.Sequential(
+            nn.Conv2d(2 * FEATURE_DIM, 32, 1), nn.ReLU(inplace=True),
+            nn.Conv2d(32, 32, 3, 2, 1), nn.ReLU(inplace=True),   # 20 x 64
+            nn.Conv2d(32, 48, 3, 2, 1), nn.ReLU(inplace=True),   # 10 x 32
+            nn.Conv2d(48, 32, 3, 2, 1), nn.ReLU(inplace=True),   # 5 x 16
+        )
+        self.fc2d = nn.Sequential(nn.Linear(32 * 5 * 16, state_dim), nn.ReLU(inplace=True))
+        self.pointnet = nn.Sequential(nn.Conv1d(5, 64, 1), nn.ReLU(inplace=True),
+                                      nn.Conv1d(64, 128, 1), nn.ReLU(inplace=True))
+        self.fc3d = nn.Sequential(nn.Linear(128, state_dim), nn.ReLU(inplace=True))
+        self.trunk = nn.Sequential(nn.Linear(2 * state_dim, 256), nn.ReLU(inplace=True))
+        self.policy = nn.Linear(256, NUM_DOFS * NUM_STEPS)
+        self.value = nn.Linear(256, 1)
+
+    def forward(self, state_2d: torch.Tensor, state_3d: torch.Tensor):
+        f2 = self.fc2d(self.cnn(state_2d).flatten(1))
+        f3 = self.fc3d(self.pointnet(state_3d.transpose(1, 2)).amax(dim=2))
+        z = self.trunk(torch.cat([f2, f3], dim=1))
+        return self.policy(z).view(-1, NUM_DOFS, NUM_STEPS), self.value(z)
+
+
+def build_all() -> dict[str, nn.Module]:
+    return dict(point_encoder=PointEncoder(), image_encoder=ImageEncoder(), frustum_head=FrustumHead(),
+                agent=Agent())
+
+
+def parameter_counts(models: dict[str, nn.Module]) -> dict[str, int]:
+    return {name: sum(p.numel() for p in m.parameters()) for name, m in models.items()}
