@@ -282,7 +282,8 @@ impl Worker {
         self.state_2d.resize(b * l2, 0.0);
         self.state_3d.resize(b * l3, 0.0);
         for (slot, &i) in running.iter().enumerate() {
-            let a = &batch[i];
+            let ts = Instant::now();
+            let a = &mut batch[i];
             a.episode.write_state(
                 &a.job.map,
                 &self.layout,
@@ -290,6 +291,7 @@ impl Worker {
                 &mut self.state_2d[slot * l2..(slot + 1) * l2],
                 &mut self.state_3d[slot * l3..(slot + 1) * l3],
             );
+            a.timings.state_build_ms += ms(ts);
         }
         metrics::histogram!("cmr_batch_size").record(b as f64);
         self.queue.steps.fetch_add(1, Ordering::SeqCst);
