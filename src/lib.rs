@@ -5,3 +5,5 @@
 //! generator, and the serving stack.
 
 pub mod geometry;
+pub mod kitti;
+pub mod synth;
