@@ -155,7 +155,7 @@ fn lidar_points_agree_with_the_rendered_depth() {
     }
     let share = |n: usize| n as f64 / total as f64;
     println!(
-        "lidar/camera agreement over {total} in-image points: matched {:.4}, occluded {:.4}, in front {:.4} (tolerance {tolerance} m)",
+        "lidar/camera agreement over {total} in-image points: matched {:.4}, occluded {:.4}, in front {:.4} (tolerance {tolerance:.3} m)",
         share(matched),
         share(occluded),
         share(in_front)

@@ -453,6 +453,21 @@ impl Builder<'_> {
                     Material::Facade(Facade { door_bay: -10, ..upper_facade }),
                 );
             }
+            if self.rng.random_bool(0.5) {
+                // A second row behind, seen through gaps and above low fronts.
+                let back_facade = self.facade();
+                let back_depth = self.rng.random_range(8.0..16.0);
+                let back_height = self.rng.random_range(2.0..9.0) * back_facade.floor_height;
+                let back_y = side * (front_line + setback + depth + self.rng.random_range(3.0..12.0) + back_depth * 0.5);
+                let back_width = width * self.rng.random_range(0.6..1.2);
+                let back_x = x + width * 0.5 + self.rng.random_range(-3.0..3.0);
+                self.push_box(
+                    V3::new(back_x, back_y, back_height * 0.5),
+                    V3::new(back_width * 0.5, back_depth * 0.5, back_height * 0.5),
+                    0.0,
+                    Material::Facade(Facade { shop: None, ..back_facade }),
+                );
+            }
             if setback > 1.8 && self.rng.random_bool(0.7) {
                 // Hedge or bushes in the front yard.
                 let color = self.pick(self.colors.foliage);
