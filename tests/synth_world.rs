@@ -164,3 +164,45 @@ fn lidar_points_agree_with_the_rendered_depth() {
     assert!(share(matched) > 0.97, "only {:.4} of the points match the rendered depth", share(matched));
     assert!(share(in_front) < 0.002, "{:.4} of the points float in front of the rendered surfaces", share(in_front));
 }
+
+/// The shipped demo (maps/demo.*, examples/localize-demo*) is exactly what `synth demo`
+/// produces, and its ground truth follows the protocol: camera_from_map = camera_from_lidar · Q⁻¹.
+#[test]
+fn shipped_demo_is_reproducible_and_consistent() {
+    use cmr_agent::geometry::{pose::PoseMatrix, Pose};
+    use cmr_agent::synth::demo::{run, DemoArgs};
+    let repo = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let out = tempfile::tempdir().unwrap();
+    let args = DemoArgs {
+        maps_dir: out.path().join("maps"),
+        examples_dir: out.path().join("examples"),
+        seed: 90_001,
+        frame: 12,
+        motion_seed: 7,
+        image_size: (1241, 376),
+    };
+    run(&args).unwrap();
+    for file in ["maps/demo.bin", "maps/demo.json", "examples/localize-demo.json", "examples/localize-demo.truth.json"] {
+        let shipped = std::fs::read(repo.join(file)).unwrap();
+        let fresh = std::fs::read(out.path().join(file)).unwrap();
+        assert!(shipped == fresh, "{file} is stale: regenerate with `cmr-agent synth demo`");
+    }
+    let truth: serde_json::Value = serde_json::from_slice(&std::fs::read(repo.join("examples/localize-demo.truth.json")).unwrap()).unwrap();
+    let pose = |key: &str| -> Pose { serde_json::from_value::<PoseMatrix>(truth[key].clone()).unwrap().try_into().unwrap() };
+    let (gt, initial, q) = (pose("camera_from_map"), pose("initial_camera_from_map"), pose("map_from_lidar"));
+    assert!((gt.matrix() - initial.compose(&q.inverse()).matrix()).abs().max() < 1e-9);
+    // Q is a ground-plane motion within the protocol's ±10 m.
+    let t = q.translation();
+    assert!(t.z.abs() < 1e-12 && t.x.abs() <= 10.0 && t.y.abs() <= 10.0);
+    // Seen through the true pose, a good share of the map lies in the camera's frustum.
+    let points = read_velodyne(&repo.join("maps/demo.bin")).unwrap();
+    assert!(points.len() > 50_000 && points.len() * 16 < 3_000_000);
+    let request: serde_json::Value = serde_json::from_slice(&std::fs::read(repo.join("examples/localize-demo.json")).unwrap()).unwrap();
+    let k: cmr_agent::geometry::Intrinsics = serde_json::from_value(request["intrinsics"].clone()).unwrap();
+    let visible = points
+        .iter()
+        .filter(|p| k.in_frustum(&gt.transform(&Point3::new(p.x as f64, p.y as f64, p.z as f64)), 1241, 376))
+        .count();
+    assert!(visible > points.len() / 10, "only {visible} of {} map points in the true frustum", points.len());
+    assert_eq!(request["max_iterations"], 10);
+}

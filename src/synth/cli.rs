@@ -99,6 +99,25 @@ pub fn parse_size(text: &str) -> Result<(u32, u32), String> {
 }
 
 impl WorldArgs {
+    /// The defaults of the command line for a preset and seed.
+    pub fn preset(style: StylePreset, seed: u64) -> Self {
+        WorldArgs {
+            seed,
+            style,
+            palette: None,
+            clutter: None,
+            time_of_day: None,
+            sun_azimuth_deg: None,
+            exposure: None,
+            noise_sigma: None,
+            no_shadows: false,
+            image_size: (super::rig::KITTI_WIDTH, super::rig::KITTI_HEIGHT),
+            lidar_beams: 64,
+            lidar_columns: 2083,
+            spacing_m: 2.5,
+        }
+    }
+
     pub fn config(&self, sequences: usize, first_sequence: usize, frames: usize) -> GeneratorConfig {
         GeneratorConfig {
             seed: self.seed,

@@ -17,8 +17,8 @@ use crate::kitti::write_atomic;
 pub struct ContactSheetArgs {
     #[arg(long, default_value = "docs/synth-contact-sheet.png")]
     pub out: PathBuf,
-    /// Sequences per style (train and test rows).
-    #[arg(long, default_value_t = 2)]
+    /// Sequences per style (each gives two rows: two frames, image | image + LiDAR).
+    #[arg(long, default_value_t = 1)]
     pub per_style: usize,
     /// Tile scale relative to the rendered image.
     #[arg(long, default_value_t = 0.5)]
@@ -37,7 +37,10 @@ pub fn run(args: &ContactSheetArgs) -> Result<()> {
         for s in 0..args.per_style {
             let plan = SequencePlan::new(&config, s)?;
             for frame in [2usize, 7] {
-                tiles.push(tile(&plan, &config, frame, args.tile_scale)?);
+                // Each row: the camera image, then the same image with the LiDAR drawn on it.
+                let (plain, overlay) = tile(&plan, &config, frame, args.tile_scale)?;
+                tiles.push(plain);
+                tiles.push(overlay);
             }
         }
     }
@@ -58,14 +61,16 @@ pub fn run(args: &ContactSheetArgs) -> Result<()> {
     Ok(())
 }
 
-/// One frame, scaled, with every LiDAR point inside the image drawn as a depth-coloured dot.
-fn tile(plan: &SequencePlan, config: &super::GeneratorConfig, frame: usize, scale: f32) -> Result<RgbImage> {
+/// One frame, scaled: as rendered, and with every LiDAR point inside the image drawn as a
+/// depth-coloured dot.
+fn tile(plan: &SequencePlan, config: &super::GeneratorConfig, frame: usize, scale: f32) -> Result<(RgbImage, RgbImage)> {
     let output = plan.frame(config, frame)?;
     let camera_from_lidar = plan.calib.color_camera_from_lidar()?;
     let k = plan.calib.color_intrinsics()?;
     let (w, h) = output.rendered.image.dimensions();
     let (tw, th) = (((w as f32) * scale).round() as u32, ((h as f32) * scale).round() as u32);
-    let mut img = imageops::resize(&output.rendered.image, tw, th, imageops::FilterType::Triangle);
+    let plain = imageops::resize(&output.rendered.image, tw, th, imageops::FilterType::Triangle);
+    let mut img = plain.clone();
     // Far points first so near ones stay on top.
     let mut projected: Vec<(f64, f64, f64)> = output
         .points
@@ -87,7 +92,7 @@ fn tile(plan: &SequencePlan, config: &super::GeneratorConfig, frame: usize, scal
             img.put_pixel(x as u32, y as u32, depth_color(z));
         }
     }
-    Ok(img)
+    Ok((plain, img))
 }
 
 /// Near = red, through yellow and green, to far = blue (0..40 m).

@@ -26,28 +26,21 @@ pub struct DemoArgs {
     /// Where localize-demo.json and localize-demo.truth.json go.
     #[arg(long, default_value = "examples")]
     pub examples_dir: PathBuf,
-    /// Which frame of the held-out sequence to use.
+    /// Seed of the held-out, test-style street (far from the training and test sets' seeds).
+    #[arg(long, default_value_t = 90_001)]
+    pub seed: u64,
+    /// Which frame along the street to use.
     #[arg(long, default_value_t = 12)]
     pub frame: usize,
     /// Seed of the map-frame motion Q.
     #[arg(long, default_value_t = 7)]
     pub motion_seed: u64,
-    #[command(flatten)]
-    pub world: WorldArgs,
+    #[arg(long, default_value = "1241x376", value_parser = super::cli::parse_size)]
+    pub image_size: (u32, u32),
 }
 
-/// The seed used when `--seed` is left at 0: far from the training and test sets' seeds.
-const HELD_OUT_SEED: u64 = 90_001;
-
 pub fn run(args: &DemoArgs) -> Result<()> {
-    let mut world = args.world.clone();
-    if world.seed == 0 {
-        world.seed = HELD_OUT_SEED;
-    }
-    // The demo is test-style unless the user says otherwise.
-    if matches!(world.style, StylePreset::Train) && std::env::args().all(|a| a != "--style") {
-        world.style = StylePreset::Test;
-    }
+    let world = WorldArgs { image_size: args.image_size, ..WorldArgs::preset(StylePreset::Test, args.seed) };
     let config = world.config(1, 0, args.frame + 1);
     config.validate()?;
     let plan = SequencePlan::new(&config, 0)?;
