@@ -6,3 +6,5 @@
 
 pub mod geometry;
 pub mod maps;
+pub mod kitti;
+pub mod synth;

@@ -10,7 +10,10 @@ struct Cli {
 }
 
 #[derive(Subcommand)]
-enum Command {}
+enum Command {
+    /// Generate synthetic KITTI-odometry sequences, the demo map and request, or a contact sheet.
+    Synth(cmr_agent::synth::cli::Args),
+}
 
 fn main() -> anyhow::Result<()> {
     tracing_subscriber::fmt()
@@ -18,5 +21,7 @@ fn main() -> anyhow::Result<()> {
         .with_writer(std::io::stderr)
         .init();
     let cli = Cli::parse();
-    match cli.command {}
+    match cli.command {
+        Command::Synth(args) => cmr_agent::synth::cli::run(args),
+    }
 }
