@@ -14,7 +14,9 @@ use super::perturbations::Perturbation;
 /// One evaluated frame under its frozen perturbation, as every method sees it.
 pub struct EvalCase {
     pub perturbation: Perturbation,
-    /// The N sampled points of the map (Q·scan), map frame.
+    /// The whole map cloud (Q·scan, finite points), map frame: what a user would upload.
+    pub map_cloud: Vec<[f32; 3]>,
+    /// Its N sampled points (the contract's ChaCha8 seed-0 sampling), map frame.
     pub map_points: Vec<[f32; 3]>,
     /// The pivot of rotation steps: the mean of `map_points`.
     pub pivot: Point3<f64>,
@@ -133,6 +135,7 @@ pub(crate) mod tests {
         let sum = map_points.iter().fold(Vector3::zeros(), |acc, p| acc + Vector3::new(p[0] as f64, p[1] as f64, p[2] as f64));
         EvalCase {
             pivot: Point3::from(sum / n),
+            map_cloud: map_points.clone(),
             map_points,
             image: RgbImage::new(4, 4),
             intrinsics: Intrinsics { fx: 700.0, fy: 700.0, cx: 620.0, cy: 187.0 },

@@ -6,6 +6,7 @@
 //! - `pnp`: the one-shot baseline's ground-plane 2-point RANSAC solver;
 //! - `summary`: protocol A / B aggregation; `report`: per-case records and tables; `plots`: Fig. 5.
 
+pub mod matching;
 pub mod methods;
 pub mod perturbations;
 pub mod plots;

@@ -62,7 +62,7 @@ impl PerturbationFile {
             .map(|(sequence, frame)| Perturbation {
                 sequence: sequence.clone(),
                 frame: *frame,
-                yaw_deg: micro(rng.random_range(-MAX_YAW_DEG..MAX_YAW_DEG)).max(-MAX_YAW_DEG).min(MAX_YAW_DEG - 1e-6),
+                yaw_deg: micro(rng.random_range(-MAX_YAW_DEG..MAX_YAW_DEG)).clamp(-MAX_YAW_DEG, MAX_YAW_DEG - 1e-6),
                 dx_m: micro(rng.random_range(-MAX_SHIFT_M..=MAX_SHIFT_M)),
                 dy_m: micro(rng.random_range(-MAX_SHIFT_M..=MAX_SHIFT_M)),
             })
