@@ -4,6 +4,7 @@
 //! geometry conventions shared by everything, the KITTI-odometry layout, the synthetic world
 //! generator, and the serving stack.
 
+pub mod eval;
 pub mod geometry;
 pub mod maps;
 pub mod kitti;

@@ -1,0 +1,15 @@
+//! The evaluation harness: the paper's protocol on a KITTI-odometry directory, every method on
+//! the same frozen cases, tables and plots in the paper's layouts.
+//!
+//! - `perturbations`: the frozen random map motions (JSON file, seed-reproducible);
+//! - `methods`: the `Method` trait and the reference methods (no-op, greedy expert);
+//! - `pnp`: the one-shot baseline's ground-plane 2-point RANSAC solver;
+//! - `summary`: protocol A / B aggregation; `report`: per-case records and tables; `plots`: Fig. 5.
+
+pub mod matching;
+pub mod methods;
+pub mod perturbations;
+pub mod plots;
+pub mod pnp;
+pub mod report;
+pub mod summary;
