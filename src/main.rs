@@ -13,6 +13,10 @@ struct Cli {
 enum Command {
     /// Generate synthetic KITTI-odometry sequences, the demo map and request, or a contact sheet.
     Synth(cmr_agent::synth::cli::Args),
+    /// Serve the localization HTTP API.
+    Serve(cmr_agent::api::ServeArgs),
+    /// Print the OpenAPI document (the committed openapi/openapi.json).
+    PrintSchema,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -23,5 +27,10 @@ fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Synth(args) => cmr_agent::synth::cli::run(args),
+        Command::Serve(args) => cmr_agent::api::run_serve(args),
+        Command::PrintSchema => {
+            print!("{}", cmr_agent::api::openapi::schema_json());
+            Ok(())
+        }
     }
 }

@@ -1,3 +1,122 @@
-//! Map regions: point-cloud file formats (more to come: store, cache).
+//! Map regions: point-cloud formats, the on-disk store, the embedding cache, and `Maps`, which
+//! ties them to the point encoder.
 
+pub mod atomic;
+pub mod cache;
+pub mod embeddings;
 pub mod formats;
+pub mod store;
+
+use std::sync::{Arc, Mutex};
+use std::time::Instant;
+
+use crate::agent::{self, PreparedMap};
+use crate::model::Backend;
+
+pub use cache::MapCache;
+pub use store::{MapEntry, MapMetadata, MapStore, validate_id};
+
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum MapError {
+    #[error("invalid map id {0:?}: use 1-64 characters of a-z, 0-9, '_' or '-', starting with a letter or digit")]
+    InvalidId(String),
+    #[error("no map named {0:?}")]
+    NotFound(String),
+    #[error("cannot read the point cloud: {0}")]
+    BadCloud(String),
+    #[error("invalid map metadata: {0}")]
+    BadMetadata(String),
+    #[error("storage error: {0}")]
+    Io(String),
+    #[error("point encoder failed: {0}")]
+    Inference(String),
+}
+
+/// Phase times of one registration.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RegisterTimings {
+    pub parse_ms: f64,
+    pub encode_ms: f64,
+    pub store_ms: f64,
+}
+
+/// Stored regions plus their prepared embeddings.
+pub struct Maps {
+    pub store: MapStore,
+    pub cache: MapCache,
+    /// The point encoder used for registrations and cache misses (not the agent workers').
+    encoder: Mutex<Backend>,
+    model_sha: String,
+}
+
+impl Maps {
+    pub fn new(store: MapStore, cache: MapCache, encoder: Backend) -> Self {
+        let model_sha = encoder.manifest().point_encoder_sha256().to_string();
+        Self { store, cache, encoder: Mutex::new(encoder), model_sha }
+    }
+
+    /// The prepared map: from memory, else from `<id>.emb`, else computed (and persisted). Blocking.
+    pub fn prepared(&self, id: &str) -> Result<Arc<PreparedMap>, MapError> {
+        self.store.get(id)?;
+        self.cache
+            .get_or_load(id, || self.load_or_compute(id).map(Arc::new))
+            .map_err(|e| (*e).clone())
+    }
+
+    fn load_or_compute(&self, id: &str) -> Result<PreparedMap, MapError> {
+        let (cloud, source_sha, _) = self.store.read_cloud(id)?;
+        if let Some(map) = self.store.load_embeddings(id, &self.model_sha, &source_sha) {
+            metrics::counter!("cmr_embeddings_loaded_total").increment(1);
+            return Ok(map);
+        }
+        let map = self.encode(&cloud)?;
+        metrics::counter!("cmr_embeddings_computed_total").increment(1);
+        if let Err(e) = self.store.save_embeddings(id, &map, &self.model_sha, &source_sha) {
+            tracing::warn!("could not persist embeddings of {id:?}: {e}");
+        }
+        Ok(map)
+    }
+
+    fn encode(&self, cloud: &[[f32; 3]]) -> Result<PreparedMap, MapError> {
+        let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
+        agent::prepare_map(&mut encoder, cloud).map_err(|e| MapError::Inference(format!("{e:#}")))
+    }
+
+    /// Parses, encodes and stores an uploaded cloud, replacing any region with the same id only
+    /// once everything succeeded. Blocking.
+    pub fn register(
+        &self,
+        id: &str,
+        bytes: &[u8],
+        format: Option<formats::CloudFormat>,
+        metadata: Option<MapMetadata>,
+    ) -> Result<(MapEntry, RegisterTimings), MapError> {
+        validate_id(id)?;
+        if let Some(m) = &metadata {
+            m.validate()?;
+        }
+        let t = Instant::now();
+        let format = format
+            .or_else(|| formats::CloudFormat::sniff(bytes))
+            .ok_or_else(|| MapError::BadCloud("unrecognised point-cloud format; pass ?format=kitti_bin|pcd|ply".into()))?;
+        let cloud = formats::parse(bytes, format).map_err(|e| MapError::BadCloud(e.to_string()))?;
+        if cloud.xyz.is_empty() {
+            return Err(MapError::BadCloud("the cloud has no points".into()));
+        }
+        let parse_ms = agent::ms(t);
+        let t = Instant::now();
+        let prepared = self.encode(&cloud.xyz)?;
+        let encode_ms = agent::ms(t);
+        let t = Instant::now();
+        let entry = self.store.put(id, &cloud, metadata, &prepared, &self.model_sha)?;
+        self.cache.insert(id, Arc::new(prepared));
+        let store_ms = agent::ms(t);
+        Ok((entry, RegisterTimings { parse_ms, encode_ms, store_ms }))
+    }
+
+    pub fn delete(&self, id: &str) -> Result<(), MapError> {
+        self.store.delete(id)?;
+        self.cache.invalidate(id);
+        Ok(())
+    }
+}

@@ -1,0 +1,169 @@
+//! One localization in progress: the current pose, the steps taken so far, and how to build the
+//! next observation. Kept separate from the inference calls so the synchronous `localize` and
+//! the batching workers drive exactly the same logic.
+
+use crate::geometry::actions::apply_action;
+use crate::geometry::{ActionSet, AgentAction, Intrinsics, Pose};
+
+use super::state::{ScatterScratch, StateLayout, sigmoid, write_state};
+use super::PreparedMap;
+
+/// One policy step: the action chosen at the pose before it, and the pose after it.
+#[derive(Debug, Clone)]
+pub struct Step {
+    /// 1-based iteration number.
+    pub iteration: usize,
+    pub camera_from_map: Pose,
+    pub action: AgentAction,
+    /// Softmax of the policy per DoF (rows yaw, tx, tz; columns ascending steps).
+    pub probabilities: [Vec<f32>; 3],
+    /// The policy's certainty: the mean over DoF of the chosen step's probability.
+    pub confidence: f32,
+    pub value: f32,
+}
+
+/// How sure the result is, from two independent signals.
+#[derive(Debug, Clone, Copy)]
+pub struct Confidence {
+    /// Intersection-over-union between the points the frustum head predicts in view (sigmoid > 0.5)
+    /// and the points in view at the final pose: high when the pose explains what the image shows.
+    pub frustum_iou: f32,
+    /// The last step's policy certainty (mean over DoF of the argmax probability).
+    pub policy_certainty: f32,
+    /// sqrt(frustum_iou · policy_certainty), in [0, 1].
+    pub score: f32,
+}
+
+pub struct Episode {
+    pub image_features: Vec<f32>,
+    pub frustum_probs: Vec<f32>,
+    pub intrinsics: Intrinsics,
+    pub prior: Pose,
+    pub pose: Pose,
+    pub max_iterations: usize,
+    pub steps: Vec<Step>,
+    pub converged: bool,
+}
+
+impl Episode {
+    pub fn new(image_features: Vec<f32>, frustum_logits: &[f32], intrinsics: Intrinsics, prior: Pose, max_iterations: usize) -> Self {
+        Self {
+            image_features,
+            frustum_probs: frustum_logits.iter().map(|l| sigmoid(*l)).collect(),
+            intrinsics,
+            prior,
+            pose: prior,
+            max_iterations,
+            steps: Vec::new(),
+            converged: false,
+        }
+    }
+
+    /// Done when the agent chose all-zero steps or used its iteration budget.
+    pub fn is_done(&self) -> bool {
+        self.converged || self.steps.len() >= self.max_iterations
+    }
+
+    pub fn write_state(&self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch, state_2d: &mut [f32], state_3d: &mut [f32]) {
+        write_state(
+            layout,
+            &map.points,
+            &map.features,
+            &self.frustum_probs,
+            &self.image_features,
+            &self.intrinsics,
+            &self.pose,
+            scratch,
+            state_2d,
+            state_3d,
+        );
+    }
+
+    /// Applies the policy's choice: argmax per DoF, then the disentangled update about the pivot.
+    pub fn advance(&mut self, map: &PreparedMap, actions: &ActionSet, policy_logits: &[f32], value: f32) {
+        let a = actions.num_actions();
+        let probabilities: [Vec<f32>; 3] = std::array::from_fn(|dof| softmax(&policy_logits[dof * a..(dof + 1) * a]));
+        let indices: [usize; 3] = std::array::from_fn(|dof| argmax(&probabilities[dof]));
+        let confidence = (0..3).map(|dof| probabilities[dof][indices[dof]]).sum::<f32>() / 3.0;
+        let action = actions.action(indices);
+        if action.is_zero() {
+            self.converged = true;
+        } else {
+            self.pose = apply_action(&self.pose, &map.pivot, &action);
+        }
+        self.steps.push(Step {
+            iteration: self.steps.len() + 1,
+            camera_from_map: self.pose,
+            action,
+            probabilities,
+            confidence,
+            value,
+        });
+    }
+
+    pub fn confidence(&self, map: &PreparedMap, layout: &StateLayout) -> Confidence {
+        let iso = self.pose.0;
+        let (mut both, mut either) = (0usize, 0usize);
+        for (p, prob) in map.points.iter().zip(&self.frustum_probs) {
+            let p_cam = iso * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+            let in_view = self.intrinsics.in_frustum(&p_cam, layout.image_width, layout.image_height);
+            let predicted = *prob > 0.5;
+            both += (in_view && predicted) as usize;
+            either += (in_view || predicted) as usize;
+        }
+        let frustum_iou = if either == 0 { 0.0 } else { both as f32 / either as f32 };
+        let policy_certainty = self.steps.last().map(|s| s.confidence).unwrap_or(0.0);
+        Confidence { frustum_iou, policy_certainty, score: (frustum_iou * policy_certainty).sqrt() }
+    }
+}
+
+pub fn softmax(logits: &[f32]) -> Vec<f32> {
+    let max = logits.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    let exps: Vec<f32> = logits.iter().map(|l| (l - max).exp()).collect();
+    let total: f32 = exps.iter().sum();
+    exps.into_iter().map(|e| e / total).collect()
+}
+
+/// Index of the largest value; the first one on ties.
+pub fn argmax(values: &[f32]) -> usize {
+    let mut best = 0;
+    for (i, v) in values.iter().enumerate() {
+        if *v > values[best] {
+            best = i;
+        }
+    }
+    best
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Point3;
+
+    #[test]
+    fn zero_action_converges_and_keeps_the_pose() {
+        let map = PreparedMap {
+            points: vec![[0.0, 0.0, 5.0]],
+            features: vec![0.0; 64],
+            pivot: Point3::new(0.0, 0.0, 5.0),
+            source_points: 1,
+        };
+        let set = ActionSet::default();
+        let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 256.0, cy: 80.0 };
+        let mut ep = Episode::new(vec![], &[3.0], k, Pose::identity(), 5);
+        let mut logits = vec![0f32; 33];
+        logits[10] = 5.0; // yaw +62.5°
+        logits[11 + 5] = 5.0;
+        logits[22 + 5] = 5.0;
+        ep.advance(&map, &set, &logits, 0.0);
+        assert!(!ep.converged);
+        assert_eq!(ep.steps[0].action.yaw_deg, 62.5);
+        let moved = ep.pose;
+        logits[10] = 0.0;
+        logits[5] = 5.0;
+        ep.advance(&map, &set, &logits, 0.0);
+        assert!(ep.converged && ep.is_done());
+        assert_eq!(ep.pose, moved);
+        assert_eq!(ep.steps.len(), 2);
+    }
+}

@@ -1,0 +1,316 @@
+//! The serving path: a pool of agent workers behind one bounded queue, with iteration-level
+//! batching.
+//!
+//! Each worker owns one set of ONNX Runtime sessions. Between two policy steps it admits waiting
+//! requests (running their image encoder and frustum head), then makes ONE batched `agent` call
+//! for every request it holds, applies the actions, and answers the requests that are done. So
+//! requests join and leave the running batch at step boundaries, the way LLM routers batch decode
+//! steps, and a short request never waits for a long one to finish.
+
+use std::collections::VecDeque;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Arc, Condvar, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use tokio::sync::oneshot;
+
+use crate::geometry::{Intrinsics, Pose};
+use crate::model::{Backend, ModelSet};
+
+use super::episode::Episode;
+use super::state::{ScatterScratch, StateLayout};
+use super::{Localization, PreparedMap, Timings, finish, ms, start_episode};
+
+/// One localize request, ready for inference.
+pub struct Job {
+    pub map: Arc<PreparedMap>,
+    pub image_tensor: Vec<f32>,
+    pub intrinsics: Intrinsics,
+    pub prior: Pose,
+    pub max_iterations: usize,
+    pub deadline: Instant,
+    pub reply: oneshot::Sender<Result<Finished, JobError>>,
+}
+
+/// A finished localization and how long it waited for a worker.
+pub struct Finished {
+    pub localization: Localization,
+    pub queue_ms: f64,
+}
+
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum JobError {
+    #[error("the request's deadline passed before the agent finished")]
+    DeadlineExceeded,
+    #[error("inference failed: {0}")]
+    Inference(String),
+}
+
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum SubmitError {
+    #[error("the localization queue is full; retry later")]
+    QueueFull,
+    #[error("the server is shutting down")]
+    Draining,
+}
+
+#[derive(Debug, Clone)]
+pub struct SchedulerConfig {
+    pub workers: usize,
+    pub max_batch: usize,
+    pub queue_capacity: usize,
+}
+
+struct Queue {
+    jobs: Mutex<VecDeque<(Job, Instant)>>,
+    ready: Condvar,
+    capacity: usize,
+    closed: AtomicBool,
+    /// Requests admitted into some worker's running batch.
+    active: AtomicUsize,
+}
+
+/// Handle to the worker pool; cheap to share.
+pub struct Scheduler {
+    queue: Arc<Queue>,
+    workers: Mutex<Vec<JoinHandle<()>>>,
+}
+
+impl Scheduler {
+    /// Starts `config.workers` threads, each with its own backend. Fails if any backend fails.
+    pub fn start(models: &ModelSet, config: SchedulerConfig) -> anyhow::Result<Self> {
+        let queue = Arc::new(Queue {
+            jobs: Mutex::new(VecDeque::new()),
+            ready: Condvar::new(),
+            capacity: config.queue_capacity.max(1),
+            closed: AtomicBool::new(false),
+            active: AtomicUsize::new(0),
+        });
+        let mut workers = Vec::new();
+        for index in 0..config.workers.max(1) {
+            let mut backend = models.backend()?;
+            backend.warm_up()?;
+            let queue = queue.clone();
+            let max_batch = config.max_batch.max(1);
+            let handle = std::thread::Builder::new()
+                .name(format!("agent-worker-{index}"))
+                .spawn(move || Worker::new(backend, queue, max_batch).run())?;
+            workers.push(handle);
+        }
+        Ok(Self { queue, workers: Mutex::new(workers) })
+    }
+
+    /// Queues a job, or refuses at once when the queue is full or closed.
+    pub fn submit(&self, job: Job) -> Result<(), SubmitError> {
+        if self.queue.closed.load(Ordering::SeqCst) {
+            return Err(SubmitError::Draining);
+        }
+        let mut jobs = self.queue.jobs.lock().expect("queue lock");
+        if jobs.len() >= self.queue.capacity {
+            metrics::counter!("cmr_queue_rejections_total").increment(1);
+            return Err(SubmitError::QueueFull);
+        }
+        jobs.push_back((job, Instant::now()));
+        metrics::gauge!("cmr_queue_depth").set(jobs.len() as f64);
+        drop(jobs);
+        self.queue.ready.notify_one();
+        Ok(())
+    }
+
+    pub fn queue_depth(&self) -> usize {
+        self.queue.jobs.lock().map(|j| j.len()).unwrap_or(0)
+    }
+
+    pub fn active(&self) -> usize {
+        self.queue.active.load(Ordering::SeqCst)
+    }
+
+    /// Stops accepting jobs; workers finish what is queued and running, then exit.
+    pub fn close(&self) {
+        self.queue.closed.store(true, Ordering::SeqCst);
+        self.queue.ready.notify_all();
+    }
+
+    /// Closes and waits for the workers, at most `timeout`. Returns whether they all exited.
+    pub fn shutdown(&self, timeout: Duration) -> bool {
+        self.close();
+        let start = Instant::now();
+        let handles: Vec<JoinHandle<()>> = std::mem::take(&mut *self.workers.lock().expect("workers lock"));
+        for h in handles {
+            while !h.is_finished() && start.elapsed() < timeout {
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            if h.is_finished() {
+                let _ = h.join();
+            } else {
+                return false;
+            }
+        }
+        true
+    }
+}
+
+impl Drop for Scheduler {
+    fn drop(&mut self) {
+        self.close();
+    }
+}
+
+/// A request in a worker's running batch.
+struct Active {
+    job: Job,
+    episode: Episode,
+    timings: Timings,
+    queue_ms: f64,
+    steps_started: Instant,
+    /// Set when a batched policy call failed: the request is answered with this error.
+    failed: Option<String>,
+}
+
+struct Worker {
+    backend: Backend,
+    queue: Arc<Queue>,
+    max_batch: usize,
+    layout: StateLayout,
+    actions: crate::geometry::ActionSet,
+    scratch: ScatterScratch,
+    state_2d: Vec<f32>,
+    state_3d: Vec<f32>,
+}
+
+impl Worker {
+    fn new(backend: Backend, queue: Arc<Queue>, max_batch: usize) -> Self {
+        let layout = StateLayout::from_manifest(backend.manifest());
+        let actions = backend.manifest().action_set();
+        Self { backend, queue, max_batch, layout, actions, scratch: Default::default(), state_2d: vec![], state_3d: vec![] }
+    }
+
+    fn run(mut self) {
+        let mut batch: Vec<Active> = Vec::new();
+        loop {
+            let Some(admitted) = self.take_jobs(batch.is_empty(), self.max_batch - batch.len()) else {
+                return; // closed, nothing queued, nothing running
+            };
+            for (job, enqueued) in admitted {
+                if let Some(active) = self.admit(job, enqueued) {
+                    self.queue.active.fetch_add(1, Ordering::SeqCst);
+                    batch.push(active);
+                }
+            }
+            if batch.is_empty() {
+                continue;
+            }
+            self.step(&mut batch);
+            self.retire(&mut batch);
+        }
+    }
+
+    /// Takes up to `room` queued jobs; blocks for one when `wait` (the batch is empty).
+    /// `None` means: shut down.
+    fn take_jobs(&self, wait: bool, room: usize) -> Option<Vec<(Job, Instant)>> {
+        let mut jobs = self.queue.jobs.lock().expect("queue lock");
+        if wait {
+            while jobs.is_empty() {
+                if self.queue.closed.load(Ordering::SeqCst) {
+                    return None;
+                }
+                jobs = self.queue.ready.wait_timeout(jobs, Duration::from_millis(200)).expect("queue lock").0;
+            }
+        }
+        let n = room.min(jobs.len());
+        let taken: Vec<_> = jobs.drain(..n).collect();
+        metrics::gauge!("cmr_queue_depth").set(jobs.len() as f64);
+        Some(taken)
+    }
+
+    /// Runs the per-request models (image encoder, frustum head) so the request can join the batch.
+    fn admit(&mut self, job: Job, enqueued: Instant) -> Option<Active> {
+        let queue_ms = ms(enqueued);
+        metrics::histogram!("cmr_phase_seconds", "phase" => "queue").record(queue_ms / 1000.0);
+        if job.reply.is_closed() {
+            return None; // the client went away while queued
+        }
+        if Instant::now() >= job.deadline {
+            let _ = job.reply.send(Err(JobError::DeadlineExceeded));
+            return None;
+        }
+        match start_episode(&mut self.backend, &job.map, &job.image_tensor, job.intrinsics, job.prior, job.max_iterations) {
+            Ok((episode, timings)) => {
+                metrics::histogram!("cmr_phase_seconds", "phase" => "image_encoder").record(timings.image_encoder_ms / 1000.0);
+                metrics::histogram!("cmr_phase_seconds", "phase" => "frustum_head").record(timings.frustum_head_ms / 1000.0);
+                Some(Active { job, episode, timings, queue_ms, steps_started: Instant::now(), failed: None })
+            }
+            Err(e) => {
+                let _ = job.reply.send(Err(JobError::Inference(format!("{e:#}"))));
+                None
+            }
+        }
+    }
+
+    /// One batched policy call for every request in the batch that still has steps to take.
+    fn step(&mut self, batch: &mut [Active]) {
+        let running: Vec<usize> = (0..batch.len()).filter(|&i| !batch[i].episode.is_done()).collect();
+        if running.is_empty() {
+            return;
+        }
+        let b = running.len();
+        let (l2, l3) = (self.layout.state_2d_len(), self.layout.state_3d_len());
+        self.state_2d.resize(b * l2, 0.0);
+        self.state_3d.resize(b * l3, 0.0);
+        for (slot, &i) in running.iter().enumerate() {
+            let a = &batch[i];
+            a.episode.write_state(
+                &a.job.map,
+                &self.layout,
+                &mut self.scratch,
+                &mut self.state_2d[slot * l2..(slot + 1) * l2],
+                &mut self.state_3d[slot * l3..(slot + 1) * l3],
+            );
+        }
+        metrics::histogram!("cmr_batch_size").record(b as f64);
+        match self.backend.agent_step(&self.state_2d, &self.state_3d, b) {
+            Ok(out) => {
+                let per = 3 * self.actions.num_actions();
+                for (slot, &i) in running.iter().enumerate() {
+                    let a = &mut batch[i];
+                    a.episode.advance(&a.job.map, &self.actions, &out.policy_logits[slot * per..(slot + 1) * per], out.value[slot]);
+                }
+            }
+            Err(e) => {
+                let message = format!("{e:#}");
+                tracing::error!("agent step failed: {message}");
+                for &i in &running {
+                    batch[i].failed = Some(message.clone());
+                }
+            }
+        }
+    }
+
+    /// Answers and removes every request that is done, expired or abandoned.
+    fn retire(&mut self, batch: &mut Vec<Active>) {
+        let now = Instant::now();
+        let mut i = 0;
+        while i < batch.len() {
+            let a = &batch[i];
+            let expired = now >= a.job.deadline && !a.episode.is_done();
+            if !(a.episode.is_done() || expired || a.failed.is_some() || a.job.reply.is_closed()) {
+                i += 1;
+                continue;
+            }
+            let mut a = batch.swap_remove(i);
+            self.queue.active.fetch_sub(1, Ordering::SeqCst);
+            let result = if let Some(message) = a.failed.take() {
+                Err(JobError::Inference(message))
+            } else if expired {
+                Err(JobError::DeadlineExceeded)
+            } else {
+                a.timings.agent_steps_ms = ms(a.steps_started);
+                metrics::histogram!("cmr_phase_seconds", "phase" => "agent_steps").record(a.timings.agent_steps_ms / 1000.0);
+                let localization = finish(a.episode, &a.job.map, &self.layout, a.timings);
+                Ok(Finished { localization, queue_ms: a.queue_ms })
+            };
+            let _ = a.job.reply.send(result);
+        }
+    }
+}

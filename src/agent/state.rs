@@ -1,0 +1,186 @@
+//! The agent's observation, built in Rust exactly as the model contract describes.
+//!
+//! state_2d [2D, GH, GW]: the image features, then F_k = the scatter-MEAN of the point features of
+//! every sampled point that projects (current pose, crop intrinsics) into the model input, cell
+//! (row, col) = (floor((v+0.5)/stride), floor((u+0.5)/stride)); empty cells stay 0.
+//! state_3d [M, 5]: for the first M sampled points, xyz in the current camera frame divided by
+//! the manifest's scale, sigmoid(frustum logit), and 1/0 = inside the current frustum.
+
+use nalgebra::Point3;
+
+use crate::geometry::{Intrinsics, Pose};
+use crate::model::Manifest;
+
+/// The sizes the state builder needs, taken once from the manifest.
+#[derive(Debug, Clone, Copy)]
+pub struct StateLayout {
+    pub dim: usize,
+    pub stride: usize,
+    pub grid_height: usize,
+    pub grid_width: usize,
+    pub image_width: u32,
+    pub image_height: u32,
+    pub num_state_points: usize,
+    pub xyz_scale_m: f64,
+}
+
+impl StateLayout {
+    pub fn from_manifest(m: &Manifest) -> Self {
+        Self {
+            dim: m.features.dim,
+            stride: m.features.stride,
+            grid_height: m.features.grid_height,
+            grid_width: m.features.grid_width,
+            image_width: m.image.width,
+            image_height: m.image.height,
+            num_state_points: m.points.num_state_points,
+            xyz_scale_m: m.points.state_xyz_scale_m,
+        }
+    }
+
+    pub fn cells(&self) -> usize {
+        self.grid_height * self.grid_width
+    }
+
+    pub fn image_feature_len(&self) -> usize {
+        self.dim * self.cells()
+    }
+
+    pub fn state_2d_len(&self) -> usize {
+        2 * self.image_feature_len()
+    }
+
+    pub fn state_3d_len(&self) -> usize {
+        self.num_state_points * 5
+    }
+
+    /// The feature cell a camera-frame point falls into, or `None` outside the frustum.
+    #[inline]
+    pub fn cell_of(&self, k: &Intrinsics, p_cam: &Point3<f64>) -> Option<usize> {
+        if !k.in_frustum(p_cam, self.image_width, self.image_height) {
+            return None;
+        }
+        let (u, v) = k.project(p_cam)?;
+        let s = self.stride as f64;
+        let row = (((v + 0.5) / s).floor() as usize).min(self.grid_height - 1);
+        let col = (((u + 0.5) / s).floor() as usize).min(self.grid_width - 1);
+        Some(row * self.grid_width + col)
+    }
+}
+
+/// Reusable buffers so a step allocates nothing.
+#[derive(Default)]
+pub struct ScatterScratch {
+    sums: Vec<f32>,
+    counts: Vec<u32>,
+}
+
+/// Writes one state into `state_2d` (len `state_2d_len`) and `state_3d` (len `state_3d_len`).
+#[allow(clippy::too_many_arguments)]
+pub fn write_state(
+    layout: &StateLayout,
+    points: &[[f32; 3]],
+    point_features: &[f32],
+    frustum_probs: &[f32],
+    image_features: &[f32],
+    k: &Intrinsics,
+    camera_from_map: &Pose,
+    scratch: &mut ScatterScratch,
+    state_2d: &mut [f32],
+    state_3d: &mut [f32],
+) {
+    let (d, cells) = (layout.dim, layout.cells());
+    debug_assert_eq!(point_features.len(), points.len() * d);
+    scratch.sums.clear();
+    scratch.sums.resize(cells * d, 0.0);
+    scratch.counts.clear();
+    scratch.counts.resize(cells, 0);
+
+    let iso = camera_from_map.0;
+    for (i, p) in points.iter().enumerate() {
+        let p_cam = iso * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        if let Some(cell) = layout.cell_of(k, &p_cam) {
+            scratch.counts[cell] += 1;
+            let sum = &mut scratch.sums[cell * d..(cell + 1) * d];
+            for (s, f) in sum.iter_mut().zip(&point_features[i * d..(i + 1) * d]) {
+                *s += f;
+            }
+        }
+    }
+
+    let (image_part, points_part) = state_2d.split_at_mut(d * cells);
+    image_part.copy_from_slice(image_features);
+    for cell in 0..cells {
+        let count = scratch.counts[cell];
+        let inv = if count > 0 { 1.0 / count as f32 } else { 0.0 };
+        for c in 0..d {
+            points_part[c * cells + cell] = scratch.sums[cell * d + c] * inv;
+        }
+    }
+
+    let scale = layout.xyz_scale_m;
+    for (i, row) in state_3d.chunks_exact_mut(5).enumerate().take(layout.num_state_points) {
+        let p = points[i];
+        let p_cam = iso * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        row[0] = (p_cam.x / scale) as f32;
+        row[1] = (p_cam.y / scale) as f32;
+        row[2] = (p_cam.z / scale) as f32;
+        row[3] = frustum_probs[i];
+        row[4] = if k.in_frustum(&p_cam, layout.image_width, layout.image_height) { 1.0 } else { 0.0 };
+    }
+}
+
+pub fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn layout() -> StateLayout {
+        StateLayout {
+            dim: 2,
+            stride: 4,
+            grid_height: 2,
+            grid_width: 3,
+            image_width: 12,
+            image_height: 8,
+            num_state_points: 3,
+            xyz_scale_m: 10.0,
+        }
+    }
+
+    #[test]
+    fn scatter_mean_averages_features_per_cell_and_leaves_empty_cells_zero() {
+        let layout = layout();
+        let k = Intrinsics { fx: 10.0, fy: 10.0, cx: 0.0, cy: 0.0 };
+        // (u, v) = (10 x / z, 10 y / z) with z = 10: u = x, v = y.
+        let points = [[1.0f32, 1.0, 10.0], [2.0, 2.0, 10.0], [9.0, 5.0, 10.0], [50.0, 0.0, 10.0], [0.0, 0.0, -3.0]];
+        let features = [1.0f32, 2.0, 3.0, 4.0, 10.0, 20.0, 7.0, 7.0, 9.0, 9.0];
+        let probs = [0.1f32, 0.2, 0.3, 0.4, 0.5];
+        let image = vec![0.5f32; layout.image_feature_len()];
+        let mut s2 = vec![f32::NAN; layout.state_2d_len()];
+        let mut s3 = vec![f32::NAN; layout.state_3d_len()];
+        write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut Default::default(), &mut s2, &mut s3);
+        let cells = layout.cells();
+        assert!(s2[..2 * cells].iter().all(|v| *v == 0.5));
+        let f = &s2[2 * cells..];
+        // Points 0 and 1 share cell (0, 0); point 2 is at (u, v) = (9, 5): cell (1, 2).
+        assert_eq!((f[0], f[cells]), (2.0, 3.0));
+        assert_eq!((f[5], f[cells + 5]), (10.0, 20.0));
+        assert_eq!(f.iter().filter(|v| **v != 0.0).count(), 4);
+        assert_eq!(&s3[..5], &[0.1, 0.1, 1.0, 0.1, 1.0]);
+        assert_eq!(s3[14], 1.0);
+    }
+
+    #[test]
+    fn frustum_edges_follow_the_geometry_convention() {
+        let layout = layout();
+        let k = Intrinsics { fx: 10.0, fy: 10.0, cx: 0.0, cy: 0.0 };
+        assert_eq!(layout.cell_of(&k, &Point3::new(-0.5, -0.5, 10.0)), Some(0));
+        assert_eq!(layout.cell_of(&k, &Point3::new(11.49, 7.49, 10.0)), Some(5));
+        assert_eq!(layout.cell_of(&k, &Point3::new(11.5, 0.0, 10.0)), None);
+        assert_eq!(layout.cell_of(&k, &Point3::new(0.0, 0.0, 0.05)), None);
+    }
+}

@@ -1,0 +1,78 @@
+//! `cmr-agent serve` configuration: flags, each with an environment-variable fallback.
+
+use std::path::PathBuf;
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct ServeArgs {
+    /// Address to listen on.
+    #[arg(long, env = "CMR_HOST", default_value = "0.0.0.0")]
+    pub host: String,
+    #[arg(long, env = "CMR_PORT", default_value_t = 8080)]
+    pub port: u16,
+    /// Directory with manifest.json and the four ONNX graphs.
+    #[arg(long, env = "CMR_MODELS", default_value = "models")]
+    pub models: PathBuf,
+    /// Directory of map regions (<id>.bin + <id>.json [+ <id>.emb]); created if missing.
+    #[arg(long, env = "CMR_MAPS", default_value = "maps")]
+    pub maps: PathBuf,
+    /// libonnxruntime.so (default: ORT_DYLIB_PATH, then ./runtime/, then <exe>/../../runtime/).
+    #[arg(long)]
+    pub ort_lib: Option<PathBuf>,
+    /// Agent workers, each with its own ONNX Runtime sessions.
+    #[arg(long, env = "CMR_WORKERS", default_value_t = 1)]
+    pub workers: usize,
+    /// ONNX Runtime intra-op threads per session (0 = number of CPU cores).
+    #[arg(long, env = "CMR_INTRA_THREADS", default_value_t = 0)]
+    pub intra_threads: usize,
+    /// Most requests one worker steps together.
+    #[arg(long, env = "CMR_MAX_BATCH", default_value_t = 8)]
+    pub max_batch: usize,
+    /// Requests waiting for a worker before new ones get 429.
+    #[arg(long, env = "CMR_QUEUE_CAPACITY", default_value_t = 64)]
+    pub queue_capacity: usize,
+    /// Per-request deadline for a localization, milliseconds.
+    #[arg(long, env = "CMR_REQUEST_TIMEOUT_MS", default_value_t = 10_000)]
+    pub request_timeout_ms: u64,
+    /// Memory budget of the prepared-map cache, MiB.
+    #[arg(long, env = "CMR_CACHE_MB", default_value_t = 1024)]
+    pub cache_mb: u64,
+    /// Largest localize request body, bytes.
+    #[arg(long, env = "CMR_MAX_BODY_BYTES", default_value_t = 16 * 1024 * 1024)]
+    pub max_body_bytes: usize,
+    /// Largest map upload, bytes.
+    #[arg(long, env = "CMR_MAX_MAP_BYTES", default_value_t = 256 * 1024 * 1024)]
+    pub max_map_bytes: usize,
+    /// Largest accepted image width or height, pixels.
+    #[arg(long, env = "CMR_MAX_IMAGE_SIDE", default_value_t = 8192)]
+    pub max_image_side: u32,
+    /// Default for requests without max_iterations.
+    #[arg(long, env = "CMR_DEFAULT_ITERATIONS", default_value_t = 10)]
+    pub default_max_iterations: u32,
+    /// When set, map uploads/edits/deletes need `Authorization: Bearer <token>`.
+    #[arg(long, env = "CMR_ADMIN_TOKEN", hide_env_values = true)]
+    pub admin_token: Option<String>,
+    /// On SIGINT/SIGTERM, how long in-flight requests may take to finish, seconds.
+    #[arg(long, env = "CMR_SHUTDOWN_GRACE_S", default_value_t = 10)]
+    pub shutdown_grace_s: u64,
+}
+
+/// The hard upper bound of `max_iterations` in a request.
+pub const MAX_ITERATIONS: u32 = 50;
+
+impl ServeArgs {
+    /// Parses flags as `serve` would (environment fallbacks included); for tests and embedding.
+    pub fn from_flags<I: IntoIterator<Item = S>, S: Into<std::ffi::OsString> + Clone>(flags: I) -> Result<Self, clap::Error> {
+        use clap::{FromArgMatches, Args};
+        let cmd = ServeArgs::augment_args(clap::Command::new("serve").no_binary_name(true));
+        let matches = cmd.try_get_matches_from(flags)?;
+        ServeArgs::from_arg_matches(&matches)
+    }
+
+    pub fn intra_threads(&self) -> usize {
+        if self.intra_threads > 0 {
+            self.intra_threads
+        } else {
+            std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+        }
+    }
+}

@@ -1,0 +1,136 @@
+//! The one error type of the HTTP API: every failure becomes `{"error", "error_type"}` JSON with
+//! a status code that tells the client whether retrying can help.
+
+use axum::Json;
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use serde::Serialize;
+
+use crate::agent::scheduler::{JobError, SubmitError};
+use crate::maps::MapError;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ApiError {
+    #[error("{0}")]
+    BadRequest(String),
+    #[error("malformed JSON: {0}")]
+    MalformedJson(String),
+    #[error("{0}")]
+    CorruptImage(String),
+    #[error("missing or wrong bearer token")]
+    Unauthorized,
+    #[error("{0}")]
+    NotFound(String),
+    #[error("{0}")]
+    PayloadTooLarge(String),
+    #[error("{0}")]
+    UnsupportedMediaType(String),
+    #[error("{0}")]
+    Invalid(String),
+    #[error("the localization queue is full; retry later")]
+    QueueFull,
+    #[error("{0}")]
+    NotReady(String),
+    #[error("the server is shutting down")]
+    Draining,
+    #[error("the request's deadline passed before the agent finished")]
+    DeadlineExceeded,
+    #[error("{0}")]
+    Internal(String),
+}
+
+/// The JSON body of every error response.
+#[derive(Debug, Serialize, serde::Deserialize, utoipa::ToSchema)]
+pub struct ErrorBody {
+    /// Human-readable explanation.
+    pub error: String,
+    /// Stable machine-readable kind, e.g. `not_found`, `queue_full`, `invalid_input`.
+    pub error_type: String,
+}
+
+impl ApiError {
+    pub fn status(&self) -> StatusCode {
+        match self {
+            ApiError::BadRequest(_) | ApiError::MalformedJson(_) | ApiError::CorruptImage(_) => StatusCode::BAD_REQUEST,
+            ApiError::Unauthorized => StatusCode::UNAUTHORIZED,
+            ApiError::NotFound(_) => StatusCode::NOT_FOUND,
+            ApiError::PayloadTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
+            ApiError::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            ApiError::Invalid(_) => StatusCode::UNPROCESSABLE_ENTITY,
+            ApiError::QueueFull => StatusCode::TOO_MANY_REQUESTS,
+            ApiError::NotReady(_) | ApiError::Draining | ApiError::DeadlineExceeded => StatusCode::SERVICE_UNAVAILABLE,
+            ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+        }
+    }
+
+    pub fn error_type(&self) -> &'static str {
+        match self {
+            ApiError::BadRequest(_) => "bad_request",
+            ApiError::MalformedJson(_) => "malformed_json",
+            ApiError::CorruptImage(_) => "corrupt_image",
+            ApiError::Unauthorized => "unauthorized",
+            ApiError::NotFound(_) => "not_found",
+            ApiError::PayloadTooLarge(_) => "payload_too_large",
+            ApiError::UnsupportedMediaType(_) => "unsupported_media_type",
+            ApiError::Invalid(_) => "invalid_input",
+            ApiError::QueueFull => "queue_full",
+            ApiError::NotReady(_) => "not_ready",
+            ApiError::Draining => "draining",
+            ApiError::DeadlineExceeded => "deadline_exceeded",
+            ApiError::Internal(_) => "internal",
+        }
+    }
+
+    /// Maps a body-extraction failure (size limit, broken stream) to our error shape.
+    pub fn from_body(rejection: axum::extract::rejection::BytesRejection) -> Self {
+        if rejection.status() == StatusCode::PAYLOAD_TOO_LARGE {
+            ApiError::PayloadTooLarge(format!("request body is too large: {}", rejection.body_text()))
+        } else {
+            ApiError::BadRequest(format!("cannot read the request body: {}", rejection.body_text()))
+        }
+    }
+}
+
+impl From<MapError> for ApiError {
+    fn from(e: MapError) -> Self {
+        match &e {
+            MapError::InvalidId(_) => ApiError::BadRequest(e.to_string()),
+            MapError::NotFound(_) => ApiError::NotFound(e.to_string()),
+            MapError::BadCloud(_) | MapError::BadMetadata(_) => ApiError::Invalid(e.to_string()),
+            MapError::Io(_) | MapError::Inference(_) => ApiError::Internal(e.to_string()),
+        }
+    }
+}
+
+impl From<SubmitError> for ApiError {
+    fn from(e: SubmitError) -> Self {
+        match e {
+            SubmitError::QueueFull => ApiError::QueueFull,
+            SubmitError::Draining => ApiError::Draining,
+        }
+    }
+}
+
+impl From<JobError> for ApiError {
+    fn from(e: JobError) -> Self {
+        match e {
+            JobError::DeadlineExceeded => ApiError::DeadlineExceeded,
+            JobError::Inference(m) => ApiError::Internal(m),
+        }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let status = self.status();
+        if status.is_server_error() && !matches!(self, ApiError::NotReady(_) | ApiError::Draining) {
+            tracing::warn!(error_type = self.error_type(), "{self}");
+        }
+        let body = ErrorBody { error: self.to_string(), error_type: self.error_type().to_string() };
+        let mut response = (status, Json(body)).into_response();
+        if matches!(self, ApiError::QueueFull | ApiError::NotReady(_) | ApiError::Draining) {
+            response.headers_mut().insert(axum::http::header::RETRY_AFTER, axum::http::HeaderValue::from_static("1"));
+        }
+        response
+    }
+}

@@ -1,0 +1,209 @@
+//! The HTTP API: routes, errors, configuration and the server's lifecycle (start-up, warm-up,
+//! readiness, graceful shutdown).
+
+pub mod config;
+pub mod decode;
+pub mod error;
+pub mod openapi;
+pub mod routes;
+pub mod types;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, OnceLock};
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use axum::Router;
+use axum::extract::DefaultBodyLimit;
+use axum::http::HeaderMap;
+use axum::routing::{get, post, put};
+use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
+
+use crate::agent::scheduler::{Scheduler, SchedulerConfig};
+use crate::maps::{MapCache, MapStore, Maps};
+use crate::model::{BackendOptions, ModelSet};
+
+pub use config::ServeArgs;
+pub use error::ApiError;
+
+/// Everything a handler can reach.
+pub struct AppState {
+    pub config: ServeArgs,
+    pub models: ModelSet,
+    pub maps: Arc<Maps>,
+    pub scheduler: Arc<Scheduler>,
+    pub metrics: PrometheusHandle,
+    pub ready: AtomicBool,
+    pub draining: AtomicBool,
+}
+
+impl AppState {
+    pub fn is_ready(&self) -> bool {
+        self.ready.load(Ordering::SeqCst) && !self.draining.load(Ordering::SeqCst)
+    }
+
+    /// Map management needs the bearer token when one is configured.
+    pub fn authorize(&self, headers: &HeaderMap) -> Result<(), ApiError> {
+        let Some(token) = self.config.admin_token.as_deref().filter(|t| !t.is_empty()) else {
+            return Ok(());
+        };
+        let given = headers
+            .get(axum::http::header::AUTHORIZATION)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.strip_prefix("Bearer "));
+        match given {
+            Some(g) if constant_time_eq(g.as_bytes(), token.as_bytes()) => Ok(()),
+            _ => Err(ApiError::Unauthorized),
+        }
+    }
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// The process-wide Prometheus recorder (a process can install only one).
+pub fn metrics_handle() -> PrometheusHandle {
+    static HANDLE: OnceLock<PrometheusHandle> = OnceLock::new();
+    HANDLE
+        .get_or_init(|| {
+            let seconds = [0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0];
+            let builder = PrometheusBuilder::new()
+                .set_buckets_for_metric(metrics_exporter_prometheus::Matcher::Suffix("_seconds".into()), &seconds)
+                .and_then(|b| b.set_buckets_for_metric(metrics_exporter_prometheus::Matcher::Full("cmr_batch_size".into()), &[1.0, 2.0, 4.0, 8.0, 16.0, 32.0]))
+                .and_then(|b| b.set_buckets_for_metric(metrics_exporter_prometheus::Matcher::Full("cmr_iterations".into()), &[1.0, 2.0, 5.0, 10.0, 20.0, 50.0]))
+                .expect("valid buckets");
+            match builder.install_recorder() {
+                Ok(h) => h,
+                // Another recorder is installed (embedding): keep a private one so /metrics works.
+                Err(_) => PrometheusBuilder::new().build_recorder().handle(),
+            }
+        })
+        .clone()
+}
+
+/// Loads models and maps and starts the workers. Model problems fail here, with one message.
+pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
+    let options = BackendOptions { intra_threads: config.intra_threads(), ort_lib: config.ort_lib.clone() };
+    let models = ModelSet::load(&config.models, options).with_context(|| format!("cannot load the models in {}", config.models.display()))?;
+    let (store, warnings) = MapStore::open(&config.maps).map_err(|e| anyhow::anyhow!("{e}"))?;
+    for w in warnings {
+        tracing::warn!("map store: {w}");
+    }
+    let cache = MapCache::new(config.cache_mb.saturating_mul(1024 * 1024));
+    let maps = Arc::new(Maps::new(store, cache, models.backend()?));
+    let scheduler = Arc::new(Scheduler::start(
+        &models,
+        SchedulerConfig { workers: config.workers, max_batch: config.max_batch, queue_capacity: config.queue_capacity },
+    )?);
+    Ok(Arc::new(AppState {
+        config,
+        models,
+        maps,
+        scheduler,
+        metrics: metrics_handle(),
+        ready: AtomicBool::new(false),
+        draining: AtomicBool::new(false),
+    }))
+}
+
+pub fn router(state: Arc<AppState>) -> Router {
+    let body_limit = state.config.max_body_bytes;
+    let map_limit = state.config.max_map_bytes;
+    Router::new()
+        .route("/health", get(routes::health))
+        .route("/ready", get(routes::ready))
+        .route("/metrics", get(routes::metrics))
+        .route("/v1/info", get(routes::info))
+        .route("/v1/maps", get(routes::list_maps))
+        .route(
+            "/v1/maps/{id}",
+            get(routes::get_map).put(routes::put_map).delete(routes::delete_map).layer(DefaultBodyLimit::max(map_limit)),
+        )
+        .route("/v1/maps/{id}/metadata", put(routes::put_metadata).layer(DefaultBodyLimit::max(1024 * 1024)))
+        .route("/v1/maps/{id}/localize", post(routes::localize).layer(DefaultBodyLimit::max(body_limit)))
+        .fallback(routes::not_found)
+        .layer(tower_http::trace::TraceLayer::new_for_http())
+        .with_state(state)
+}
+
+/// Prepares every stored map (from `<id>.emb` when valid) and runs one inference per graph, then
+/// marks the server ready. Runs on the blocking pool while the listener already answers /health.
+pub fn warm_up(state: &AppState) -> Result<()> {
+    for entry in state.maps.store.list() {
+        match state.maps.prepared(&entry.id) {
+            Ok(_) => tracing::info!("map {:?} ready ({} points)", entry.id, entry.num_points),
+            Err(e) => tracing::warn!("map {:?} could not be prepared: {e}", entry.id),
+        }
+    }
+    state.ready.store(true, Ordering::SeqCst);
+    Ok(())
+}
+
+/// Serves on `listener` until `shutdown` resolves, then drains: /ready turns false, new
+/// localizations get 503, in-flight ones get up to `shutdown_grace_s` to finish.
+pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<()> {
+    let addr: SocketAddr = listener.local_addr()?;
+    tracing::info!("listening on http://{addr}");
+    let warm_state = state.clone();
+    tokio::task::spawn_blocking(move || {
+        let t = std::time::Instant::now();
+        match warm_up(&warm_state) {
+            Ok(()) => tracing::info!("ready after {:.0} ms of warm-up", t.elapsed().as_secs_f64() * 1000.0),
+            Err(e) => tracing::error!("warm-up failed, staying not ready: {e:#}"),
+        }
+    });
+    let grace = Duration::from_secs(state.config.shutdown_grace_s);
+    let drain_state = state.clone();
+    let signal = async move {
+        shutdown.await;
+        tracing::info!("shutting down: draining for at most {grace:?}");
+        drain_state.draining.store(true, Ordering::SeqCst);
+    };
+    let server = axum::serve(listener, router(state.clone())).with_graceful_shutdown(signal);
+    let draining = state.clone();
+    tokio::select! {
+        result = server => result?,
+        _ = async {
+            while !draining.draining.load(Ordering::SeqCst) { tokio::time::sleep(Duration::from_millis(50)).await; }
+            tokio::time::sleep(grace).await;
+        } => tracing::warn!("grace period over; closing remaining connections"),
+    }
+    let scheduler = state.scheduler.clone();
+    let finished = tokio::task::spawn_blocking(move || scheduler.shutdown(Duration::from_secs(2))).await.unwrap_or(false);
+    if !finished {
+        tracing::warn!("agent workers did not stop in time");
+    }
+    Ok(())
+}
+
+/// `cmr-agent serve`: binds, serves, stops on SIGINT/SIGTERM.
+pub fn run_serve(config: ServeArgs) -> Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    runtime.block_on(async move {
+        let addr = format!("{}:{}", config.host, config.port);
+        let state = build_state(config)?;
+        let listener = tokio::net::TcpListener::bind(&addr).await.with_context(|| format!("cannot listen on {addr}"))?;
+        serve(state, listener, shutdown_signal()).await
+    })
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let terminate = std::future::pending::<()>();
+    tokio::select! { _ = ctrl_c => {}, _ = terminate => {} }
+}

@@ -1,0 +1,306 @@
+//! HTTP handlers. Blocking work (decoding, point encoding, file I/O) runs on tokio's blocking
+//! pool; model inference runs on the agent workers.
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::rejection::BytesRejection;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use tokio::sync::oneshot;
+
+use crate::agent::{self, scheduler::Job};
+use crate::geometry::pose::PoseMatrix;
+use crate::geometry::{Intrinsics, Pose};
+use crate::maps::formats::CloudFormat;
+use crate::maps::{MapMetadata, validate_id};
+
+use super::AppState;
+use super::config::MAX_ITERATIONS;
+use super::decode::decode_image;
+use super::error::{ApiError, ErrorBody};
+use super::types::*;
+
+type Shared = State<Arc<AppState>>;
+
+/// Liveness: the process is up.
+#[utoipa::path(get, path = "/health", responses((status = 200, body = Health)))]
+pub async fn health() -> Json<Health> {
+    Json(Health { status: "ok".into() })
+}
+
+/// Readiness: models loaded and warmed, maps prepared, not draining.
+#[utoipa::path(get, path = "/ready", responses((status = 200, body = Readiness), (status = 503, body = Readiness)))]
+pub async fn ready(State(st): Shared) -> Response {
+    let ready = st.is_ready();
+    let body = Readiness { ready, draining: st.draining.load(Ordering::SeqCst), workers: st.config.workers.max(1) };
+    let status = if ready { StatusCode::OK } else { StatusCode::SERVICE_UNAVAILABLE };
+    (status, Json(body)).into_response()
+}
+
+/// Prometheus metrics (text exposition format).
+#[utoipa::path(get, path = "/metrics", responses((status = 200, body = String, content_type = "text/plain")))]
+pub async fn metrics(State(st): Shared) -> Response {
+    metrics::gauge!("cmr_queue_depth").set(st.scheduler.queue_depth() as f64);
+    metrics::gauge!("cmr_active_requests").set(st.scheduler.active() as f64);
+    metrics::gauge!("cmr_cache_bytes").set(st.maps.cache.weighted_bytes() as f64);
+    ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], st.metrics.render()).into_response()
+}
+
+/// Model manifest, limits and version.
+#[utoipa::path(get, path = "/v1/info", responses((status = 200, body = Info)))]
+pub async fn info(State(st): Shared) -> Json<Info> {
+    let c = &st.config;
+    Json(Info {
+        name: env!("CARGO_PKG_NAME").into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        manifest: serde_json::to_value(&*st.models.manifest).unwrap_or_default(),
+        limits: Limits {
+            max_body_bytes: c.max_body_bytes,
+            max_map_bytes: c.max_map_bytes,
+            max_image_side: c.max_image_side,
+            max_iterations: MAX_ITERATIONS,
+            default_max_iterations: c.default_max_iterations,
+            queue_capacity: c.queue_capacity,
+            max_batch: c.max_batch,
+            request_timeout_ms: c.request_timeout_ms,
+            cache_budget_bytes: st.maps.cache.budget_bytes(),
+        },
+        workers: c.workers.max(1),
+        onnxruntime_library: crate::model::runtime::loaded_library().map(|p| p.display().to_string()),
+    })
+}
+
+/// Lists the stored map regions.
+#[utoipa::path(get, path = "/v1/maps", responses((status = 200, body = MapList)))]
+pub async fn list_maps(State(st): Shared) -> Json<MapList> {
+    let maps = st.maps.store.list().into_iter().map(|e| {
+        let cached = st.maps.cache.contains(&e.id);
+        MapSummary::new(e, cached)
+    });
+    Json(MapList { maps: maps.collect() })
+}
+
+/// One map region.
+#[utoipa::path(get, path = "/v1/maps/{id}", params(("id" = String, Path, description = "map id")),
+    responses((status = 200, body = MapSummary), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody)))]
+pub async fn get_map(State(st): Shared, Path(id): Path<String>) -> Result<Json<MapSummary>, ApiError> {
+    let entry = st.maps.store.get(&id)?;
+    let cached = st.maps.cache.contains(&id);
+    Ok(Json(MapSummary::new(entry, cached)))
+}
+
+/// Uploads (or replaces) a map region from raw point-cloud bytes: KITTI .bin, PCD or PLY.
+/// The previous region stays intact unless the new one parses and encodes.
+#[utoipa::path(put, path = "/v1/maps/{id}", params(("id" = String, Path, description = "map id"), UploadParams),
+    request_body(content = Vec<u8>, content_type = "application/octet-stream"),
+    responses((status = 201, body = RegisterResponse), (status = 200, body = RegisterResponse),
+        (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 413, body = ErrorBody), (status = 422, body = ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn put_map(
+    State(st): Shared,
+    Path(id): Path<String>,
+    Query(params): Query<UploadParams>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> Result<Response, ApiError> {
+    st.authorize(&headers)?;
+    validate_id(&id)?;
+    let body = body.map_err(ApiError::from_body)?;
+    let format = match params.format.as_deref() {
+        None | Some("") => None,
+        Some("kitti_bin" | "bin" | "kitti") => Some(CloudFormat::KittiBin),
+        Some("pcd") => Some(CloudFormat::Pcd),
+        Some("ply") => Some(CloudFormat::Ply),
+        Some(other) => return Err(ApiError::Invalid(format!("unknown format {other:?}; use kitti_bin, pcd or ply"))),
+    };
+    let replaced = st.maps.store.get(&id).is_ok();
+    let metadata = params.description.map(|d| {
+        let mut m = st.maps.store.get(&id).map(|e| e.metadata).unwrap_or_default();
+        m.description = Some(d);
+        m
+    });
+    let t = Instant::now();
+    let maps = st.maps.clone();
+    let id2 = id.clone();
+    let (entry, timings) = tokio::task::spawn_blocking(move || maps.register(&id2, &body, format, metadata))
+        .await
+        .map_err(|e| ApiError::Internal(e.to_string()))??;
+    let total = agent::ms(t);
+    metrics::histogram!("cmr_map_register_seconds").record(total / 1000.0);
+    let status = if replaced { StatusCode::OK } else { StatusCode::CREATED };
+    let body = RegisterResponse {
+        map: MapSummary::new(entry, true),
+        replaced,
+        timings_ms: RegisterTimingsMs { parse: timings.parse_ms, point_encoder: timings.encode_ms, store: timings.store_ms, total },
+    };
+    Ok((status, Json(body)).into_response())
+}
+
+/// Replaces a region's metadata (description, initial_camera_from_map).
+#[utoipa::path(put, path = "/v1/maps/{id}/metadata", params(("id" = String, Path, description = "map id")),
+    request_body = MapMetadata,
+    responses((status = 200, body = MapSummary), (status = 400, body = ErrorBody), (status = 401, body = ErrorBody),
+        (status = 404, body = ErrorBody), (status = 422, body = ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn put_metadata(
+    State(st): Shared,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> Result<Json<MapSummary>, ApiError> {
+    st.authorize(&headers)?;
+    let body = body.map_err(ApiError::from_body)?;
+    let metadata: MapMetadata = parse_json(&body)?;
+    let maps = st.maps.clone();
+    let id2 = id.clone();
+    let entry = tokio::task::spawn_blocking(move || maps.store.set_metadata(&id2, metadata))
+        .await
+        .map_err(|e| ApiError::Internal(e.to_string()))??;
+    let cached = st.maps.cache.contains(&id);
+    Ok(Json(MapSummary::new(entry, cached)))
+}
+
+/// Deletes a region and its cached embeddings.
+#[utoipa::path(delete, path = "/v1/maps/{id}", params(("id" = String, Path, description = "map id")),
+    responses((status = 204), (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 404, body = ErrorBody)),
+    security(("bearer" = [])))]
+pub async fn delete_map(State(st): Shared, Path(id): Path<String>, headers: HeaderMap) -> Result<StatusCode, ApiError> {
+    st.authorize(&headers)?;
+    let maps = st.maps.clone();
+    tokio::task::spawn_blocking(move || maps.delete(&id)).await.map_err(|e| ApiError::Internal(e.to_string()))??;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+/// Localizes a camera image in a map region: the pose, the agent's trajectory, a confidence
+/// signal and per-phase timings (also in the `Server-Timing` header).
+#[utoipa::path(post, path = "/v1/maps/{id}/localize", params(("id" = String, Path, description = "map id")),
+    request_body = LocalizeRequest,
+    responses((status = 200, body = LocalizeResponse), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody),
+        (status = 413, body = ErrorBody), (status = 415, body = ErrorBody), (status = 422, body = ErrorBody),
+        (status = 429, body = ErrorBody), (status = 503, body = ErrorBody)))]
+pub async fn localize(
+    State(st): Shared,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+) -> Response {
+    let started = Instant::now();
+    let result = localize_inner(&st, &id, &headers, body, started).await;
+    let outcome = match &result {
+        Ok(_) => "ok",
+        Err(e) => e.error_type(),
+    };
+    metrics::counter!("cmr_requests_total", "endpoint" => "localize", "outcome" => outcome).increment(1);
+    metrics::histogram!("cmr_phase_seconds", "phase" => "total").record(started.elapsed().as_secs_f64());
+    match result {
+        Ok(r) => r,
+        Err(e) => e.into_response(),
+    }
+}
+
+async fn localize_inner(
+    st: &Arc<AppState>,
+    id: &str,
+    headers: &HeaderMap,
+    body: Result<Bytes, BytesRejection>,
+    started: Instant,
+) -> Result<Response, ApiError> {
+    if st.draining.load(Ordering::SeqCst) {
+        return Err(ApiError::Draining);
+    }
+    if !st.is_ready() {
+        return Err(ApiError::NotReady("models are still loading; retry shortly".into()));
+    }
+    if let Some(ct) = headers.get(header::CONTENT_TYPE) {
+        let ct = ct.to_str().unwrap_or("");
+        if !ct.starts_with("application/json") {
+            return Err(ApiError::UnsupportedMediaType(format!("content-type must be application/json, got {ct:?}")));
+        }
+    }
+    let body = body.map_err(ApiError::from_body)?;
+    let request: LocalizeRequest = parse_json(&body)?;
+    validate_id(id)?;
+    let entry = st.maps.store.get(id)?;
+
+    let k = request.intrinsics;
+    let intrinsics = Intrinsics { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy };
+    intrinsics.validate().map_err(|e| ApiError::Invalid(format!("intrinsics: {e}")))?;
+    let max_iterations = request.max_iterations.unwrap_or(st.config.default_max_iterations);
+    if !(1..=MAX_ITERATIONS).contains(&max_iterations) {
+        return Err(ApiError::Invalid(format!("max_iterations must be in 1..={MAX_ITERATIONS}, got {max_iterations}")));
+    }
+    let prior = match request.prior_camera_from_map {
+        Some(m) => Pose::try_from(PoseMatrix(m)).map_err(|e| ApiError::Invalid(format!("prior_camera_from_map: {e}")))?,
+        None => entry.metadata.initial_pose().unwrap_or_else(Pose::identity),
+    };
+
+    let t = Instant::now();
+    let manifest = st.models.manifest.clone();
+    let max_side = st.config.max_image_side;
+    let image_b64 = request.image;
+    let (tensor, crop_k) = tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
+        let image = decode_image(&image_b64, max_side)?;
+        agent::prepare_image(&image, &intrinsics, &manifest).map_err(|e| ApiError::Invalid(format!("{e:#}")))
+    })
+    .await
+    .map_err(|e| ApiError::Internal(e.to_string()))??;
+    let decode_ms = agent::ms(t);
+    metrics::histogram!("cmr_phase_seconds", "phase" => "decode").record(decode_ms / 1000.0);
+
+    let maps = st.maps.clone();
+    let id_owned = id.to_string();
+    let map = tokio::task::spawn_blocking(move || maps.prepared(&id_owned))
+        .await
+        .map_err(|e| ApiError::Internal(e.to_string()))??;
+
+    let timeout = Duration::from_millis(st.config.request_timeout_ms);
+    let (reply, answer) = oneshot::channel();
+    st.scheduler.submit(Job {
+        map,
+        image_tensor: tensor,
+        intrinsics: crop_k,
+        prior,
+        max_iterations: max_iterations as usize,
+        deadline: started + timeout,
+        reply,
+    })?;
+    let finished = match tokio::time::timeout(timeout + Duration::from_millis(500), answer).await {
+        Ok(Ok(result)) => result?,
+        Ok(Err(_)) => return Err(ApiError::Internal("the worker dropped the request".into())),
+        Err(_) => return Err(ApiError::DeadlineExceeded),
+    };
+    let loc = &finished.localization;
+    let timings = TimingsMs {
+        queue: finished.queue_ms,
+        decode: decode_ms,
+        image_encoder: loc.timings.image_encoder_ms,
+        frustum_head: loc.timings.frustum_head_ms,
+        agent_steps: loc.timings.agent_steps_ms,
+        total: agent::ms(started),
+    };
+    metrics::histogram!("cmr_iterations").record(loc.iterations() as f64);
+    let body = LocalizeResponse::new(id, loc, timings);
+    let mut response = Json(body).into_response();
+    if let Ok(v) = HeaderValue::from_str(&timings.header()) {
+        response.headers_mut().insert("server-timing", v);
+    }
+    Ok(response)
+}
+
+/// JSON syntax errors are 400; well-formed JSON with wrong fields or types is 422.
+fn parse_json<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> {
+    serde_json::from_slice(body).map_err(|e| match e.classify() {
+        serde_json::error::Category::Data => ApiError::Invalid(format!("invalid request: {e}")),
+        _ => ApiError::MalformedJson(e.to_string()),
+    })
+}
+
+/// Fallback for unknown routes.
+pub async fn not_found() -> ApiError {
+    ApiError::NotFound("no such endpoint".into())
+}

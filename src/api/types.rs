@@ -1,0 +1,253 @@
+//! Request and response bodies of the HTTP API (their JSON schema is generated from these).
+
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use crate::agent::{Localization, Step};
+use crate::geometry::Pose;
+use crate::maps::{MapEntry, MapMetadata};
+
+/// A row-major 4x4 rigid transform.
+pub type Matrix4x4 = [[f64; 4]; 4];
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, ToSchema)]
+pub struct IntrinsicsBody {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LocalizeRequest {
+    /// Base64 (standard alphabet) JPEG or PNG bytes.
+    pub image: String,
+    /// Pinhole intrinsics of `image` in pixels (OpenCV convention, pixel centres at integers).
+    pub intrinsics: IntrinsicsBody,
+    /// Starting pose (camera_from_map, row-major 4x4); defaults to the map's
+    /// `initial_camera_from_map`, then to identity.
+    #[serde(default)]
+    #[schema(value_type = Option<Vec<Vec<f64>>>)]
+    pub prior_camera_from_map: Option<Matrix4x4>,
+    /// 1..=50; default 10.
+    #[serde(default)]
+    pub max_iterations: Option<u32>,
+}
+
+/// A pose and what a person wants to read off it.
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct PoseBody {
+    /// p_cam = R p_map + t, row-major 4x4.
+    #[schema(value_type = Vec<Vec<f64>>)]
+    pub camera_from_map: Matrix4x4,
+    /// The camera centre in the map frame, metres.
+    #[schema(value_type = Vec<f64>)]
+    pub position_m: [f64; 3],
+    /// Optical axis in the map's ground plane, degrees counter-clockwise from the map's +x axis.
+    pub heading_deg: f64,
+}
+
+impl From<Pose> for PoseBody {
+    fn from(p: Pose) -> Self {
+        let c = p.camera_position_in_map();
+        PoseBody { camera_from_map: p.to_rows(), position_m: [c.x, c.y, c.z], heading_deg: p.camera_heading_in_map_deg() }
+    }
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct ActionBody {
+    /// Rotation about the camera's y axis, degrees.
+    pub yaw_deg: f64,
+    /// Translation along the camera's x axis, metres.
+    pub tx_m: f64,
+    /// Translation along the camera's z axis, metres.
+    pub tz_m: f64,
+    /// Chosen step index per DoF (yaw, tx, tz) in the manifest's ascending action lists.
+    #[schema(value_type = Vec<usize>)]
+    pub indices: [usize; 3],
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct PolicyProbabilities {
+    pub yaw_deg: Vec<f32>,
+    pub tx_m: Vec<f32>,
+    pub tz_m: Vec<f32>,
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct StepBody {
+    pub iteration: usize,
+    /// The action chosen at the previous pose.
+    pub action: ActionBody,
+    /// The pose after the action.
+    #[schema(value_type = Vec<Vec<f64>>)]
+    pub camera_from_map: Matrix4x4,
+    /// Softmax of the policy per DoF over the ascending steps.
+    pub probabilities: PolicyProbabilities,
+    /// Mean over DoF of the chosen step's probability.
+    pub policy_certainty: f32,
+}
+
+impl From<&Step> for StepBody {
+    fn from(s: &Step) -> Self {
+        StepBody {
+            iteration: s.iteration,
+            action: ActionBody { yaw_deg: s.action.yaw_deg, tx_m: s.action.tx_m, tz_m: s.action.tz_m, indices: s.action.indices },
+            camera_from_map: s.camera_from_map.to_rows(),
+            probabilities: PolicyProbabilities {
+                yaw_deg: s.probabilities[0].clone(),
+                tx_m: s.probabilities[1].clone(),
+                tz_m: s.probabilities[2].clone(),
+            },
+            policy_certainty: s.confidence,
+        }
+    }
+}
+
+/// score = sqrt(frustum_iou · policy_certainty).
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct ConfidenceBody {
+    pub score: f32,
+    /// IoU of the points the frustum head predicts in view and the points in view at the final pose.
+    pub frustum_iou: f32,
+    /// The last step's mean (over DoF) probability of the chosen step.
+    pub policy_certainty: f32,
+}
+
+#[derive(Debug, Default, Clone, Copy, Serialize, Deserialize, ToSchema)]
+pub struct TimingsMs {
+    pub queue: f64,
+    pub decode: f64,
+    pub image_encoder: f64,
+    pub frustum_head: f64,
+    pub agent_steps: f64,
+    pub total: f64,
+}
+
+impl TimingsMs {
+    /// The `Server-Timing` header value.
+    pub fn header(&self) -> String {
+        format!(
+            "queue;dur={:.2}, decode;dur={:.2}, image_encoder;dur={:.2}, frustum_head;dur={:.2}, agent_steps;dur={:.2}, total;dur={:.2}",
+            self.queue, self.decode, self.image_encoder, self.frustum_head, self.agent_steps, self.total
+        )
+    }
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct LocalizeResponse {
+    pub map_id: String,
+    pub pose: PoseBody,
+    /// The starting pose.
+    #[schema(value_type = Vec<Vec<f64>>)]
+    pub prior_camera_from_map: Matrix4x4,
+    pub trajectory: Vec<StepBody>,
+    pub confidence: ConfidenceBody,
+    /// True when the agent chose all-zero steps before running out of iterations.
+    pub converged: bool,
+    pub iterations: usize,
+    pub timings_ms: TimingsMs,
+}
+
+impl LocalizeResponse {
+    pub fn new(map_id: &str, loc: &Localization, timings_ms: TimingsMs) -> Self {
+        LocalizeResponse {
+            map_id: map_id.to_string(),
+            pose: loc.camera_from_map.into(),
+            prior_camera_from_map: loc.prior.to_rows(),
+            trajectory: loc.steps.iter().map(StepBody::from).collect(),
+            confidence: ConfidenceBody {
+                score: loc.confidence.score,
+                frustum_iou: loc.confidence.frustum_iou,
+                policy_certainty: loc.confidence.policy_certainty,
+            },
+            converged: loc.converged,
+            iterations: loc.iterations(),
+            timings_ms,
+        }
+    }
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct MapList {
+    pub maps: Vec<MapSummary>,
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct MapSummary {
+    pub id: String,
+    pub num_points: usize,
+    pub file_bytes: u64,
+    pub source_sha256: String,
+    /// Whether the prepared embeddings are in memory now.
+    pub cached: bool,
+    pub metadata: MapMetadata,
+}
+
+impl MapSummary {
+    pub fn new(e: MapEntry, cached: bool) -> Self {
+        MapSummary { id: e.id, num_points: e.num_points, file_bytes: e.file_bytes, source_sha256: e.source_sha256, cached, metadata: e.metadata }
+    }
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct RegisterResponse {
+    pub map: MapSummary,
+    /// Whether an existing region was replaced.
+    pub replaced: bool,
+    pub timings_ms: RegisterTimingsMs,
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct RegisterTimingsMs {
+    pub parse: f64,
+    pub point_encoder: f64,
+    pub store: f64,
+    pub total: f64,
+}
+
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+pub struct UploadParams {
+    /// `kitti_bin`, `pcd` or `ply`; sniffed from the bytes when absent.
+    pub format: Option<String>,
+    /// Optional description stored in the sidecar (metadata can also be set with PUT .../metadata).
+    pub description: Option<String>,
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct Health {
+    pub status: String,
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct Readiness {
+    pub ready: bool,
+    pub draining: bool,
+    pub workers: usize,
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct Limits {
+    pub max_body_bytes: usize,
+    pub max_map_bytes: usize,
+    pub max_image_side: u32,
+    pub max_iterations: u32,
+    pub default_max_iterations: u32,
+    pub queue_capacity: usize,
+    pub max_batch: usize,
+    pub request_timeout_ms: u64,
+    pub cache_budget_bytes: u64,
+}
+
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct Info {
+    pub name: String,
+    pub version: String,
+    /// The model manifest as loaded.
+    #[schema(value_type = Object)]
+    pub manifest: serde_json::Value,
+    pub limits: Limits,
+    pub workers: usize,
+    pub onnxruntime_library: Option<String>,
+}

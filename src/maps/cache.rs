@@ -1,0 +1,78 @@
+//! Prepared maps in memory, bounded by bytes with LRU-style eviction (moka's TinyLFU window).
+
+use std::sync::Arc;
+
+use moka::notification::RemovalCause;
+use moka::sync::Cache;
+
+use crate::agent::PreparedMap;
+
+pub struct MapCache {
+    inner: Cache<String, Arc<PreparedMap>>,
+    budget_bytes: u64,
+}
+
+impl MapCache {
+    pub fn new(budget_bytes: u64) -> Self {
+        // The weigher counts KiB so a single large map fits moka's u32 weights.
+        let inner = Cache::builder()
+            .max_capacity((budget_bytes / 1024).max(1))
+            .weigher(|_id: &String, map: &Arc<PreparedMap>| (map.size_bytes() / 1024).clamp(1, u32::MAX as usize) as u32)
+            .eviction_listener(|_id, _map, cause| {
+                if matches!(cause, RemovalCause::Size | RemovalCause::Expired) {
+                    metrics::counter!("cmr_cache_evictions_total").increment(1);
+                }
+            })
+            .build();
+        Self { inner, budget_bytes }
+    }
+
+    pub fn get(&self, id: &str) -> Option<Arc<PreparedMap>> {
+        let hit = self.inner.get(id);
+        metrics::counter!(if hit.is_some() { "cmr_cache_hits_total" } else { "cmr_cache_misses_total" }).increment(1);
+        hit
+    }
+
+    /// Returns the cached map or loads it once, even when many requests miss at the same time.
+    pub fn get_or_load<E: Send + Sync + 'static>(
+        &self,
+        id: &str,
+        load: impl FnOnce() -> Result<Arc<PreparedMap>, E>,
+    ) -> Result<Arc<PreparedMap>, Arc<E>> {
+        if let Some(hit) = self.get(id) {
+            return Ok(hit);
+        }
+        let result = self.inner.try_get_with(id.to_string(), load);
+        self.publish();
+        result
+    }
+
+    pub fn insert(&self, id: &str, map: Arc<PreparedMap>) {
+        self.inner.insert(id.to_string(), map);
+        self.publish();
+    }
+
+    pub fn invalidate(&self, id: &str) {
+        self.inner.invalidate(id);
+        self.publish();
+    }
+
+    pub fn contains(&self, id: &str) -> bool {
+        self.inner.contains_key(id)
+    }
+
+    /// Bytes held (approximate: KiB granularity).
+    pub fn weighted_bytes(&self) -> u64 {
+        self.inner.run_pending_tasks();
+        self.inner.weighted_size() * 1024
+    }
+
+    pub fn budget_bytes(&self) -> u64 {
+        self.budget_bytes
+    }
+
+    fn publish(&self) {
+        metrics::gauge!("cmr_cache_bytes").set(self.weighted_bytes() as f64);
+        metrics::gauge!("cmr_cache_entries").set(self.inner.entry_count() as f64);
+    }
+}

@@ -1,0 +1,236 @@
+//! Map regions on disk: `<id>.bin` (KITTI float32 x, y, z, intensity: the one canonical format
+//! whatever was uploaded), `<id>.json` (metadata sidecar) and `<id>.emb` (cached embeddings).
+//! Every write is atomic, so a failed upload leaves the previous region intact.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, RwLock};
+
+use serde::{Deserialize, Serialize};
+
+use crate::agent::PreparedMap;
+use crate::geometry::pose::PoseMatrix;
+use crate::geometry::Pose;
+use crate::model::manifest::sha256_hex;
+
+use super::atomic::write_atomic;
+use super::formats::{CloudFormat, PointCloud, parse};
+use super::{MapError, embeddings};
+
+/// Map ids: `^[a-z0-9][a-z0-9_-]{0,63}$`, so they are safe as file names and URL segments.
+pub fn validate_id(id: &str) -> Result<(), MapError> {
+    let ok = !id.is_empty()
+        && id.len() <= 64
+        && id.bytes().enumerate().all(|(i, b)| b.is_ascii_lowercase() || b.is_ascii_digit() || (i > 0 && (b == b'_' || b == b'-')));
+    if ok { Ok(()) } else { Err(MapError::InvalidId(id.to_string())) }
+}
+
+/// What a user may attach to a region.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct MapMetadata {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub description: Option<String>,
+    /// The rig's initial camera_from_map (row-major 4x4): the default prior of a localize request.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Vec<Vec<f64>>>)]
+    pub initial_camera_from_map: Option<[[f64; 4]; 4]>,
+    /// Free-form provenance (kept as given).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Object>)]
+    pub source: Option<serde_json::Value>,
+}
+
+impl MapMetadata {
+    pub fn validate(&self) -> Result<(), MapError> {
+        if let Some(m) = self.initial_camera_from_map {
+            Pose::try_from(PoseMatrix(m)).map_err(|e| MapError::BadMetadata(format!("initial_camera_from_map: {e}")))?;
+        }
+        if self.description.as_ref().is_some_and(|d| d.len() > 4096) {
+            return Err(MapError::BadMetadata("description is longer than 4096 bytes".into()));
+        }
+        Ok(())
+    }
+
+    pub fn initial_pose(&self) -> Option<Pose> {
+        self.initial_camera_from_map.and_then(|m| Pose::try_from(PoseMatrix(m)).ok())
+    }
+}
+
+/// One stored region, as listed by the API.
+#[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
+pub struct MapEntry {
+    pub id: String,
+    /// Finite points in the stored cloud.
+    pub num_points: usize,
+    pub file_bytes: u64,
+    /// sha256 of `<id>.bin`.
+    pub source_sha256: String,
+    pub metadata: MapMetadata,
+}
+
+pub struct MapStore {
+    dir: PathBuf,
+    registry: RwLock<BTreeMap<String, MapEntry>>,
+    /// Serialises writers so two uploads of one id cannot interleave their files.
+    writes: Mutex<()>,
+}
+
+impl MapStore {
+    /// Opens (creating if needed) a map directory and registers every valid `<id>.bin` in it.
+    /// Files that cannot be read are reported in the returned warnings and skipped.
+    pub fn open(dir: &Path) -> Result<(Self, Vec<String>), MapError> {
+        std::fs::create_dir_all(dir).map_err(|e| MapError::Io(format!("cannot create {}: {e}", dir.display())))?;
+        let store = MapStore { dir: dir.to_path_buf(), registry: RwLock::new(BTreeMap::new()), writes: Mutex::new(()) };
+        let mut warnings = Vec::new();
+        let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
+            .map_err(|e| MapError::Io(format!("cannot list {}: {e}", dir.display())))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "bin"))
+            .collect();
+        entries.sort();
+        for path in entries {
+            let Some(id) = path.file_stem().and_then(|s| s.to_str()).map(str::to_string) else { continue };
+            if validate_id(&id).is_err() {
+                warnings.push(format!("{}: not a valid map id, skipped", path.display()));
+                continue;
+            }
+            match store.load_entry(&id) {
+                Ok(entry) => {
+                    store.registry.write().expect("registry").insert(id, entry);
+                }
+                Err(e) => warnings.push(format!("{}: {e}; skipped", path.display())),
+            }
+        }
+        Ok((store, warnings))
+    }
+
+    fn path(&self, id: &str, ext: &str) -> PathBuf {
+        self.dir.join(format!("{id}.{ext}"))
+    }
+
+    fn load_entry(&self, id: &str) -> Result<MapEntry, MapError> {
+        let (cloud, sha, bytes) = self.read_cloud(id)?;
+        let metadata = match std::fs::read(self.path(id, "json")) {
+            Ok(text) => {
+                let m: MapMetadata = serde_json::from_slice(&text).map_err(|e| MapError::BadMetadata(format!("{id}.json: {e}")))?;
+                m.validate()?;
+                m
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => MapMetadata::default(),
+            Err(e) => return Err(MapError::Io(format!("{id}.json: {e}"))),
+        };
+        Ok(MapEntry { id: id.to_string(), num_points: cloud.len(), file_bytes: bytes, source_sha256: sha, metadata })
+    }
+
+    /// The stored cloud's points and the sha256 of its file.
+    pub fn read_cloud(&self, id: &str) -> Result<(Vec<[f32; 3]>, String, u64), MapError> {
+        let path = self.path(id, "bin");
+        let bytes = std::fs::read(&path).map_err(|e| match e.kind() {
+            std::io::ErrorKind::NotFound => MapError::NotFound(id.to_string()),
+            _ => MapError::Io(format!("{}: {e}", path.display())),
+        })?;
+        let cloud = parse(&bytes, CloudFormat::KittiBin).map_err(|e| MapError::BadCloud(format!("{}: {e}", path.display())))?;
+        Ok((cloud.xyz, sha256_hex(&bytes), bytes.len() as u64))
+    }
+
+    pub fn list(&self) -> Vec<MapEntry> {
+        self.registry.read().expect("registry").values().cloned().collect()
+    }
+
+    pub fn get(&self, id: &str) -> Result<MapEntry, MapError> {
+        validate_id(id)?;
+        self.registry.read().expect("registry").get(id).cloned().ok_or_else(|| MapError::NotFound(id.to_string()))
+    }
+
+    /// Stores a region: cloud, embeddings, then metadata (each atomically), then registers it.
+    /// `metadata: None` keeps an existing region's metadata.
+    pub fn put(
+        &self,
+        id: &str,
+        cloud: &PointCloud,
+        metadata: Option<MapMetadata>,
+        prepared: &PreparedMap,
+        model_sha: &str,
+    ) -> Result<MapEntry, MapError> {
+        validate_id(id)?;
+        let _guard = self.writes.lock().expect("writes");
+        let bin = kitti_bin_bytes(cloud);
+        let sha = sha256_hex(&bin);
+        let metadata = match metadata {
+            Some(m) => m,
+            None => self.get(id).map(|e| e.metadata).unwrap_or_default(),
+        };
+        let io = |e: std::io::Error| MapError::Io(e.to_string());
+        write_atomic(&self.path(id, "bin"), &bin).map_err(io)?;
+        write_atomic(&self.path(id, "emb"), &embeddings::encode(prepared, model_sha, &sha)).map_err(io)?;
+        write_atomic(&self.path(id, "json"), &serde_json::to_vec_pretty(&metadata).expect("metadata serialises")).map_err(io)?;
+        let entry = MapEntry { id: id.to_string(), num_points: cloud.xyz.len(), file_bytes: bin.len() as u64, source_sha256: sha, metadata };
+        self.registry.write().expect("registry").insert(id.to_string(), entry.clone());
+        Ok(entry)
+    }
+
+    pub fn set_metadata(&self, id: &str, metadata: MapMetadata) -> Result<MapEntry, MapError> {
+        metadata.validate()?;
+        let _guard = self.writes.lock().expect("writes");
+        let mut entry = self.get(id)?;
+        write_atomic(&self.path(id, "json"), &serde_json::to_vec_pretty(&metadata).expect("metadata serialises"))
+            .map_err(|e| MapError::Io(e.to_string()))?;
+        entry.metadata = metadata;
+        self.registry.write().expect("registry").insert(id.to_string(), entry.clone());
+        Ok(entry)
+    }
+
+    pub fn delete(&self, id: &str) -> Result<(), MapError> {
+        validate_id(id)?;
+        let _guard = self.writes.lock().expect("writes");
+        if self.registry.write().expect("registry").remove(id).is_none() {
+            return Err(MapError::NotFound(id.to_string()));
+        }
+        for ext in ["bin", "emb", "json"] {
+            match std::fs::remove_file(self.path(id, ext)) {
+                Ok(()) => {}
+                Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+                Err(e) => return Err(MapError::Io(e.to_string())),
+            }
+        }
+        Ok(())
+    }
+
+    /// The persisted embeddings, when they match this model and the stored cloud.
+    pub fn load_embeddings(&self, id: &str, model_sha: &str, source_sha: &str) -> Option<PreparedMap> {
+        let bytes = std::fs::read(self.path(id, "emb")).ok()?;
+        embeddings::decode(&bytes, model_sha, source_sha)
+    }
+
+    pub fn save_embeddings(&self, id: &str, prepared: &PreparedMap, model_sha: &str, source_sha: &str) -> Result<(), MapError> {
+        let _guard = self.writes.lock().expect("writes");
+        write_atomic(&self.path(id, "emb"), &embeddings::encode(prepared, model_sha, source_sha)).map_err(|e| MapError::Io(e.to_string()))
+    }
+}
+
+/// KITTI `.bin` bytes: float32 x, y, z, intensity (0 when the source had none).
+pub fn kitti_bin_bytes(cloud: &PointCloud) -> Vec<u8> {
+    let mut out = Vec::with_capacity(cloud.xyz.len() * 16);
+    for (i, p) in cloud.xyz.iter().enumerate() {
+        let intensity = cloud.intensity.as_ref().and_then(|v| v.get(i)).copied().unwrap_or(0.0);
+        for v in [p[0], p[1], p[2], intensity] {
+            out.extend_from_slice(&v.to_le_bytes());
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ids() {
+        for ok in ["demo", "a", "kitti_00-12", &"a".repeat(64)] {
+            assert!(validate_id(ok).is_ok(), "{ok}");
+        }
+        for bad in ["", "-a", "_a", "A", "a/b", "..", "a.b", &"a".repeat(65), "é"] {
+            assert!(validate_id(bad).is_err(), "{bad}");
+        }
+    }
+}

@@ -1,0 +1,224 @@
+//! The synchronous inference backend: one ONNX Runtime session per graph.
+//!
+//! `Session::run` needs `&mut self`, so a `Backend` belongs to one thread at a time: every worker
+//! creates its own from the shared, validated `ModelSet`.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{Context, Result, anyhow, bail};
+use ort::session::Session;
+use ort::session::builder::GraphOptimizationLevel;
+use ort::value::TensorRef;
+
+use super::manifest::{Manifest, dims_from_onnx, format_shape, shapes_compatible, GRAPH_NAMES};
+use super::runtime;
+
+/// How sessions are created.
+#[derive(Debug, Clone)]
+pub struct BackendOptions {
+    /// ONNX Runtime intra-op threads per session.
+    pub intra_threads: usize,
+    /// Explicit path of `libonnxruntime.so` (otherwise the search order of `runtime::candidate_paths`).
+    pub ort_lib: Option<PathBuf>,
+}
+
+impl Default for BackendOptions {
+    fn default() -> Self {
+        Self { intra_threads: 1, ort_lib: None }
+    }
+}
+
+/// A validated model directory; cheap to clone, shared by every worker.
+#[derive(Debug, Clone)]
+pub struct ModelSet {
+    pub dir: PathBuf,
+    pub manifest: Arc<Manifest>,
+    pub options: BackendOptions,
+}
+
+impl ModelSet {
+    /// Loads ONNX Runtime and the manifest, then builds one backend to check that every graph's
+    /// real inputs and outputs match the contract. Any problem becomes one start-up error.
+    pub fn load(dir: &Path, options: BackendOptions) -> Result<Self> {
+        let manifest = Arc::new(Manifest::load(dir)?);
+        runtime::environment(options.ort_lib.as_deref())?;
+        let set = ModelSet { dir: dir.to_path_buf(), manifest, options };
+        set.backend()?;
+        Ok(set)
+    }
+
+    /// A fresh set of sessions for one thread.
+    pub fn backend(&self) -> Result<Backend> {
+        let env = runtime::environment(self.options.ort_lib.as_deref())?;
+        let mut sessions = Vec::with_capacity(4);
+        for name in GRAPH_NAMES {
+            let path = self.manifest.graph_path(&self.dir, name);
+            let session = Session::builder(env)
+                .map_err(|e| anyhow!("{e}"))?
+                .with_optimization_level(GraphOptimizationLevel::Level3)
+                .map_err(|e| anyhow!("{e}"))?
+                .with_intra_threads(self.options.intra_threads.max(1))
+                .map_err(|e| anyhow!("{e}"))?
+                .commit_from_file(&path)
+                .map_err(|e| anyhow!("graph {name:?}: ONNX Runtime cannot load {}: {e}", path.display()))?;
+            check_session(&self.manifest, name, &session)?;
+            sessions.push(session);
+        }
+        let mut it = sessions.into_iter();
+        let mut next = || it.next().expect("four sessions");
+        Ok(Backend {
+            manifest: self.manifest.clone(),
+            point_encoder: next(),
+            image_encoder: next(),
+            frustum_head: next(),
+            agent: next(),
+        })
+    }
+}
+
+/// Compares a loaded graph's real inputs/outputs (names, element type, shapes) with the contract.
+fn check_session(manifest: &Manifest, name: &str, session: &Session) -> Result<()> {
+    let contract = manifest.contract(name);
+    let check = |kind: &str, outlets: &[ort::value::Outlet], expected: &[(&'static str, Vec<super::manifest::Dim>)]| -> Result<()> {
+        for (tensor, shape) in expected {
+            let outlet = outlets
+                .iter()
+                .find(|o| o.name() == *tensor)
+                .with_context(|| format!("graph {name:?}: the ONNX file has no {kind} named {tensor:?}"))?;
+            let dtype = outlet.dtype();
+            if dtype.tensor_type() != Some(ort::value::TensorElementType::Float32) {
+                bail!("graph {name:?}: {kind} {tensor:?} must be float32, the ONNX file says {dtype}");
+            }
+            let dims = dims_from_onnx(dtype.tensor_shape().map(|s| &s[..]).unwrap_or(&[]));
+            if !shapes_compatible(&dims, shape) {
+                bail!(
+                    "graph {name:?}: {kind} {tensor:?} has shape {} in the ONNX file; the contract needs {}",
+                    format_shape(&dims),
+                    format_shape(shape)
+                );
+            }
+        }
+        if outlets.len() != expected.len() {
+            bail!("graph {name:?}: the ONNX file has {} {kind}s, the contract {}", outlets.len(), expected.len());
+        }
+        Ok(())
+    };
+    check("input", session.inputs(), &contract.inputs)?;
+    check("output", session.outputs(), &contract.outputs)
+}
+
+/// The agent's raw outputs for a batch of B states.
+#[derive(Debug, Clone)]
+pub struct AgentOutput {
+    /// [B, 3, A] row-major: DoF rows, ascending-step columns.
+    pub policy_logits: Vec<f32>,
+    /// [B].
+    pub value: Vec<f32>,
+}
+
+/// One thread's sessions. Inputs and outputs are flat row-major f32 buffers in contract layout.
+pub struct Backend {
+    manifest: Arc<Manifest>,
+    point_encoder: Session,
+    image_encoder: Session,
+    frustum_head: Session,
+    agent: Session,
+}
+
+impl Backend {
+    pub fn manifest(&self) -> &Arc<Manifest> {
+        &self.manifest
+    }
+
+    /// `points` [N, 3] map-frame xyz → `point_features` [N, D].
+    pub fn encode_points(&mut self, points: &[[f32; 3]]) -> Result<Vec<f32>> {
+        let n = points.len();
+        let dim = self.manifest.features.dim;
+        let flat: &[f32] = bytemuck::cast_slice(points);
+        let input = TensorRef::from_array_view(([1usize, n, 3], flat))?;
+        let outputs = self.point_encoder.run(ort::inputs!["points" => input])?;
+        let features = extract(&outputs["point_features"], n * dim, "point_features")?;
+        Ok(features)
+    }
+
+    /// `image` [3, H, W] normalised → `image_features` [D, H/stride, W/stride].
+    pub fn encode_image(&mut self, image: &[f32]) -> Result<Vec<f32>> {
+        let spec = &self.manifest.image;
+        let (h, w) = (spec.height as usize, spec.width as usize);
+        if image.len() != 3 * h * w {
+            bail!("image tensor has {} values, expected 3x{h}x{w}", image.len());
+        }
+        let expected = self.image_feature_len();
+        let input = TensorRef::from_array_view(([1usize, 3, h, w], image))?;
+        let outputs = self.image_encoder.run(ort::inputs!["image" => input])?;
+        extract(&outputs["image_features"], expected, "image_features")
+    }
+
+    /// In-frustum logits [N] for the map's point features [N, D] given one image's features.
+    pub fn frustum_logits(&mut self, point_features: &[f32], image_features: &[f32]) -> Result<Vec<f32>> {
+        let d = self.manifest.features.dim;
+        let n = point_features.len() / d;
+        let f = self.manifest.features.clone();
+        let pf = TensorRef::from_array_view(([1usize, n, d], point_features))?;
+        let imf = TensorRef::from_array_view(([1usize, d, f.grid_height, f.grid_width], image_features))?;
+        let outputs = self.frustum_head.run(ort::inputs!["point_features" => pf, "image_features" => imf])?;
+        extract(&outputs["frustum_logits"], n, "frustum_logits")
+    }
+
+    /// One batched policy step: `state_2d` [B, 2D, GH, GW] and `state_3d` [B, M, 5].
+    pub fn agent_step(&mut self, state_2d: &[f32], state_3d: &[f32], batch: usize) -> Result<AgentOutput> {
+        let f = self.manifest.features.clone();
+        let m = self.manifest.points.num_state_points;
+        let a = self.manifest.num_actions();
+        if state_2d.len() != batch * self.state_2d_len() || state_3d.len() != batch * m * 5 {
+            bail!("agent inputs do not hold {batch} states");
+        }
+        let s2 = TensorRef::from_array_view(([batch, 2 * f.dim, f.grid_height, f.grid_width], state_2d))?;
+        let s3 = TensorRef::from_array_view(([batch, m, 5usize], state_3d))?;
+        let outputs = self.agent.run(ort::inputs!["state_2d" => s2, "state_3d" => s3])?;
+        Ok(AgentOutput {
+            policy_logits: extract(&outputs["policy_logits"], batch * 3 * a, "policy_logits")?,
+            value: extract(&outputs["value"], batch, "value")?,
+        })
+    }
+
+    /// Runs every graph once on synthetic inputs so the first real request does not pay for
+    /// ONNX Runtime's lazy initialisation.
+    pub fn warm_up(&mut self) -> Result<()> {
+        let m = self.manifest.points.num_state_points;
+        let points: Vec<[f32; 3]> = (0..m).map(|i| {
+            let t = i as f32 * 0.618_034;
+            [10.0 * (t.fract() - 0.5), 10.0 * ((t * 1.7).fract() - 0.5), 2.0 * ((t * 2.3).fract() - 0.5)]
+        }).collect();
+        let point_features = self.encode_points(&points)?;
+        let (w, h) = (self.manifest.image.width as usize, self.manifest.image.height as usize);
+        let image: Vec<f32> = (0..3 * w * h).map(|i| ((i % 251) as f32 / 251.0) - 0.5).collect();
+        let image_features = self.encode_image(&image)?;
+        self.frustum_logits(&point_features, &image_features)?;
+        let state_2d = vec![0f32; self.state_2d_len()];
+        let state_3d = vec![0.1f32; m * 5];
+        self.agent_step(&state_2d, &state_3d, 1)?;
+        Ok(())
+    }
+
+    pub fn image_feature_len(&self) -> usize {
+        let f = &self.manifest.features;
+        f.dim * f.grid_height * f.grid_width
+    }
+
+    pub fn state_2d_len(&self) -> usize {
+        2 * self.image_feature_len()
+    }
+}
+
+fn extract(value: &ort::value::DynValue, expected_len: usize, name: &str) -> Result<Vec<f32>> {
+    let (_, data) = value.try_extract_tensor::<f32>().with_context(|| format!("output {name:?}"))?;
+    if data.len() != expected_len {
+        bail!("output {name:?} has {} values, expected {expected_len}", data.len());
+    }
+    if data.iter().any(|v| !v.is_finite()) {
+        bail!("output {name:?} contains non-finite values");
+    }
+    Ok(data.to_vec())
+}

@@ -1,0 +1,332 @@
+//! `models/manifest.json`: every convention a model set was trained with, checked before any
+//! graph is loaded so that a mismatched model fails at start-up with one clear message instead of
+//! producing nonsense poses.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use crate::geometry::ActionSet;
+
+/// The only manifest format this build understands.
+pub const MANIFEST_FORMAT: &str = "cmr-agent-manifest/1";
+
+/// The graph names of the contract, in load order.
+pub const GRAPH_NAMES: [&str; 4] = ["point_encoder", "image_encoder", "frustum_head", "agent"];
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Manifest {
+    pub format: String,
+    pub image: ImageSpec,
+    pub features: FeatureSpec,
+    pub points: PointSpec,
+    pub actions: ActionSpec,
+    pub graphs: BTreeMap<String, GraphSpec>,
+    #[serde(default)]
+    pub provenance: serde_json::Value,
+    #[serde(default)]
+    pub validation: serde_json::Value,
+    #[serde(default)]
+    pub parameters: serde_json::Value,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ImageSpec {
+    pub width: u32,
+    pub height: u32,
+    pub nominal_scale: f64,
+    pub mean: [f32; 3],
+    pub std: [f32; 3],
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct FeatureSpec {
+    pub dim: usize,
+    pub stride: usize,
+    pub grid_height: usize,
+    pub grid_width: usize,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct PointSpec {
+    pub num_points: usize,
+    pub num_state_points: usize,
+    pub state_xyz_scale_m: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ActionSpec {
+    pub dofs: Vec<String>,
+    pub rotation_deg: Vec<f64>,
+    pub translation_m: Vec<f64>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct GraphSpec {
+    pub file: String,
+    pub sha256: String,
+    pub inputs: BTreeMap<String, Vec<serde_json::Value>>,
+    pub outputs: BTreeMap<String, Vec<serde_json::Value>>,
+}
+
+/// One expected dimension: a fixed size, or any size (a dynamic axis such as N or B).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Dim {
+    Fixed(i64),
+    Any,
+}
+
+impl Dim {
+    /// A declared dimension from a manifest (integer = fixed; string or null = dynamic) or from
+    /// ONNX Runtime (negative = dynamic).
+    fn from_declared(v: i64) -> Self {
+        if v < 0 { Dim::Any } else { Dim::Fixed(v) }
+    }
+
+    fn from_json(v: &serde_json::Value) -> Self {
+        v.as_i64().map(Dim::from_declared).unwrap_or(Dim::Any)
+    }
+
+    fn compatible(self, other: Dim) -> bool {
+        match (self, other) {
+            (Dim::Fixed(a), Dim::Fixed(b)) => a == b,
+            _ => true,
+        }
+    }
+}
+
+/// Whether a declared shape can hold the tensors the contract says we will feed or read.
+pub fn shapes_compatible(declared: &[Dim], expected: &[Dim]) -> bool {
+    declared.len() == expected.len() && declared.iter().zip(expected).all(|(a, b)| a.compatible(*b))
+}
+
+pub fn format_shape(shape: &[Dim]) -> String {
+    let parts: Vec<String> = shape
+        .iter()
+        .map(|d| match d {
+            Dim::Fixed(v) => v.to_string(),
+            Dim::Any => "?".into(),
+        })
+        .collect();
+    format!("[{}]", parts.join(", "))
+}
+
+/// The inputs and outputs (name, expected shape) the contract prescribes for one graph.
+pub struct GraphContract {
+    pub inputs: Vec<(&'static str, Vec<Dim>)>,
+    pub outputs: Vec<(&'static str, Vec<Dim>)>,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("model manifest {path}: {message}")]
+pub struct ManifestError {
+    pub path: PathBuf,
+    pub message: String,
+}
+
+impl Manifest {
+    /// Reads and fully validates `dir/manifest.json`, including the sha256 of every graph file.
+    pub fn load(dir: &Path) -> Result<Self, ManifestError> {
+        let path = dir.join("manifest.json");
+        let fail = |message: String| ManifestError { path: path.clone(), message };
+        let text = std::fs::read_to_string(&path).map_err(|e| fail(format!("cannot read: {e}")))?;
+        let raw: serde_json::Value = serde_json::from_str(&text).map_err(|e| fail(format!("not valid JSON: {e}")))?;
+        // Check the format before the structure, so a future format gets the helpful message.
+        match raw.get("format").and_then(|f| f.as_str()) {
+            Some(MANIFEST_FORMAT) => {}
+            Some(other) => {
+                return Err(fail(format!("unknown format {other:?}; this build understands {MANIFEST_FORMAT:?}")));
+            }
+            None => return Err(fail(format!("missing \"format\" (expected {MANIFEST_FORMAT:?})"))),
+        }
+        let manifest: Manifest = serde_json::from_value(raw).map_err(|e| fail(format!("malformed: {e}")))?;
+        manifest.validate(dir).map_err(fail)?;
+        Ok(manifest)
+    }
+
+    fn validate(&self, dir: &Path) -> Result<(), String> {
+        let f = &self.features;
+        let img = &self.image;
+        if f.dim == 0 || f.stride == 0 || img.width == 0 || img.height == 0 {
+            return Err("image size, feature dim and stride must be positive".into());
+        }
+        if f.grid_height * f.stride != img.height as usize || f.grid_width * f.stride != img.width as usize {
+            return Err(format!(
+                "feature grid {}x{} at stride {} does not cover the {}x{} image",
+                f.grid_width, f.grid_height, f.stride, img.width, img.height
+            ));
+        }
+        if !(img.nominal_scale > 0.0) || img.std.iter().any(|s| !(*s > 0.0)) {
+            return Err("image.nominal_scale and image.std must be positive".into());
+        }
+        let p = &self.points;
+        if p.num_points == 0 || p.num_state_points == 0 || p.num_state_points > p.num_points {
+            return Err("points.num_state_points must be in 1..=num_points".into());
+        }
+        if !(p.state_xyz_scale_m > 0.0) {
+            return Err("points.state_xyz_scale_m must be positive".into());
+        }
+        if self.actions.dofs != ["yaw_deg", "tx_m", "tz_m"] {
+            return Err(format!("actions.dofs must be [\"yaw_deg\", \"tx_m\", \"tz_m\"], got {:?}", self.actions.dofs));
+        }
+        self.action_set().validate().map_err(|e| format!("actions: {e}"))?;
+        for name in GRAPH_NAMES {
+            let spec = self.graphs.get(name).ok_or_else(|| format!("graph {name:?} is missing"))?;
+            let contract = self.contract(name);
+            check_declared(name, "input", &spec.inputs, &contract.inputs)?;
+            check_declared(name, "output", &spec.outputs, &contract.outputs)?;
+            let file = self.graph_path(dir, name);
+            let bytes = std::fs::read(&file).map_err(|e| format!("graph {name:?}: cannot read {}: {e}", file.display()))?;
+            let actual = hex(&Sha256::digest(&bytes));
+            if !actual.eq_ignore_ascii_case(&spec.sha256) {
+                return Err(format!(
+                    "graph {name:?}: sha256 of {} is {actual}, manifest says {}",
+                    file.display(),
+                    spec.sha256
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    pub fn graph_path(&self, dir: &Path, name: &str) -> PathBuf {
+        dir.join(&self.graphs[name].file)
+    }
+
+    pub fn action_set(&self) -> ActionSet {
+        ActionSet { rotation_deg: self.actions.rotation_deg.clone(), translation_m: self.actions.translation_m.clone() }
+    }
+
+    pub fn num_actions(&self) -> usize {
+        self.actions.rotation_deg.len()
+    }
+
+    /// The sha256 of the point encoder: cached map embeddings are valid only for this value.
+    pub fn point_encoder_sha256(&self) -> &str {
+        &self.graphs["point_encoder"].sha256
+    }
+
+    /// Names and shapes of one graph's tensors as the contract defines them for this manifest.
+    pub fn contract(&self, graph: &str) -> GraphContract {
+        use Dim::{Any, Fixed};
+        let d = self.features.dim as i64;
+        let (gh, gw) = (self.features.grid_height as i64, self.features.grid_width as i64);
+        let (h, w) = (self.image.height as i64, self.image.width as i64);
+        let m = self.points.num_state_points as i64;
+        let a = self.num_actions() as i64;
+        match graph {
+            "point_encoder" => GraphContract {
+                inputs: vec![("points", vec![Fixed(1), Any, Fixed(3)])],
+                outputs: vec![("point_features", vec![Fixed(1), Any, Fixed(d)])],
+            },
+            "image_encoder" => GraphContract {
+                inputs: vec![("image", vec![Fixed(1), Fixed(3), Fixed(h), Fixed(w)])],
+                outputs: vec![("image_features", vec![Fixed(1), Fixed(d), Fixed(gh), Fixed(gw)])],
+            },
+            "frustum_head" => GraphContract {
+                inputs: vec![
+                    ("point_features", vec![Fixed(1), Any, Fixed(d)]),
+                    ("image_features", vec![Fixed(1), Fixed(d), Fixed(gh), Fixed(gw)]),
+                ],
+                outputs: vec![("frustum_logits", vec![Fixed(1), Any])],
+            },
+            "agent" => GraphContract {
+                inputs: vec![
+                    ("state_2d", vec![Any, Fixed(2 * d), Fixed(gh), Fixed(gw)]),
+                    ("state_3d", vec![Any, Fixed(m), Fixed(5)]),
+                ],
+                outputs: vec![("policy_logits", vec![Any, Fixed(3), Fixed(a)]), ("value", vec![Any, Fixed(1)])],
+            },
+            other => panic!("no contract for graph {other:?}"),
+        }
+    }
+}
+
+fn check_declared(
+    graph: &str,
+    kind: &str,
+    declared: &BTreeMap<String, Vec<serde_json::Value>>,
+    expected: &[(&'static str, Vec<Dim>)],
+) -> Result<(), String> {
+    for (name, shape) in expected {
+        let got = declared
+            .get(*name)
+            .ok_or_else(|| format!("graph {graph:?}: {kind} {name:?} is not declared"))?;
+        let got: Vec<Dim> = got.iter().map(Dim::from_json).collect();
+        if !shapes_compatible(&got, shape) {
+            return Err(format!(
+                "graph {graph:?}: {kind} {name:?} is declared {} but the contract needs {}",
+                format_shape(&got),
+                format_shape(shape)
+            ));
+        }
+    }
+    if declared.len() != expected.len() {
+        let extra: Vec<&String> = declared.keys().filter(|k| !expected.iter().any(|(n, _)| n == k)).collect();
+        return Err(format!("graph {graph:?}: unexpected {kind}s {extra:?}"));
+    }
+    Ok(())
+}
+
+/// Converts ONNX Runtime's declared dims (negative = dynamic) to contract dims.
+pub fn dims_from_onnx(dims: &[i64]) -> Vec<Dim> {
+    dims.iter().map(|d| Dim::from_declared(*d)).collect()
+}
+
+pub fn hex(bytes: &[u8]) -> String {
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex(&Sha256::digest(bytes))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn fixture_dir() -> PathBuf {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model")
+    }
+
+    fn copy_fixture(to: &Path) {
+        for entry in std::fs::read_dir(fixture_dir()).unwrap() {
+            let entry = entry.unwrap();
+            std::fs::copy(entry.path(), to.join(entry.file_name())).unwrap();
+        }
+    }
+
+    fn edit_manifest(dir: &Path, edit: impl FnOnce(&mut serde_json::Value)) {
+        let path = dir.join("manifest.json");
+        let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        edit(&mut v);
+        std::fs::write(path, serde_json::to_string(&v).unwrap()).unwrap();
+    }
+
+    #[test]
+    fn fixture_manifest_is_valid() {
+        let m = Manifest::load(&fixture_dir()).unwrap();
+        assert_eq!(m.points.num_points, 40960);
+        assert_eq!(m.num_actions(), 11);
+    }
+
+    #[test]
+    fn refuses_unknown_format_missing_graph_bad_sha_and_bad_shape() {
+        let cases: Vec<(Box<dyn FnOnce(&mut serde_json::Value)>, &str)> = vec![
+            (Box::new(|v| v["format"] = "cmr-agent-manifest/2".into()), "unknown format"),
+            (Box::new(|v| { v["graphs"].as_object_mut().unwrap().remove("agent"); }), "\"agent\" is missing"),
+            (Box::new(|v| v["graphs"]["image_encoder"]["sha256"] = "00".into()), "sha256"),
+            (Box::new(|v| v["graphs"]["agent"]["inputs"]["state_3d"] = serde_json::json!(["B", 2048, 4])), "contract needs"),
+            (Box::new(|v| v["actions"]["dofs"] = serde_json::json!(["tx_m", "yaw_deg", "tz_m"])), "actions.dofs"),
+        ];
+        for (edit, needle) in cases {
+            let dir = tempfile::tempdir().unwrap();
+            copy_fixture(dir.path());
+            edit_manifest(dir.path(), edit);
+            let err = Manifest::load(dir.path()).unwrap_err().to_string();
+            assert!(err.contains(needle), "{err} should mention {needle}");
+        }
+    }
+}

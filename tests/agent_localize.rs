@@ -1,0 +1,83 @@
+//! The synchronous library API (`agent::prepare_map` / `prepare_image` / `localize`) on real
+//! ONNX graphs: the committed tiny contract-following fixture model.
+
+use std::path::PathBuf;
+
+use cmr_agent::agent::{self, PreparedMap};
+use cmr_agent::geometry::actions::apply_action;
+use cmr_agent::geometry::{Intrinsics, Pose};
+use cmr_agent::model::{BackendOptions, ModelSet};
+use nalgebra::{Matrix3, Vector3};
+
+fn models() -> ModelSet {
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model");
+    ModelSet::load(&dir, BackendOptions::default()).expect("tiny model loads")
+}
+
+/// A street-like cloud in a z-up map frame: ground plane plus two walls.
+fn cloud() -> Vec<[f32; 3]> {
+    let mut pts = Vec::new();
+    for i in 0..120 {
+        for j in 0..60 {
+            let x = i as f32 * 0.5 - 10.0;
+            let y = j as f32 * 0.3 - 9.0;
+            pts.push([x, y, -1.7]);
+        }
+        for h in 0..15 {
+            pts.push([i as f32 * 0.5 - 10.0, 6.0, -1.7 + h as f32 * 0.3]);
+            pts.push([i as f32 * 0.5 - 10.0, -8.0, -1.7 + h as f32 * 0.3]);
+        }
+    }
+    pts
+}
+
+fn rig() -> Pose {
+    let r = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
+    Pose::from_rt(r, Vector3::new(0.0, -0.08, -0.27))
+}
+
+#[test]
+fn localize_follows_the_disentangled_update_and_is_deterministic() {
+    let set = models();
+    let mut backend = set.backend().unwrap();
+    let map: PreparedMap = agent::prepare_map(&mut backend, &cloud()).unwrap();
+    assert_eq!(map.points.len(), 40960);
+    assert_eq!(map.features.len(), 40960 * 64);
+    let norms_ok = map.features.chunks(64).all(|f| (f.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-3);
+    assert!(norms_ok, "point features are L2-normalised");
+
+    let image = image::RgbImage::from_fn(1241, 376, |x, y| image::Rgb([(x % 251) as u8, (y % 253) as u8, ((x + y) % 7) as u8]));
+    let k = Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 };
+    let (tensor, crop_k) = agent::prepare_image(&image, &k, &set.manifest).unwrap();
+    assert_eq!(tensor.len(), 3 * 160 * 512);
+    assert!((crop_k.fx - 718.856 * 621.0 / 1241.0).abs() < 1e-9);
+
+    let prior = rig().compose(&Pose::ground_motion(0.4, 2.0, -1.0));
+    let a = agent::localize(&mut backend, &map, &tensor, crop_k, prior, 6).unwrap();
+    let b = agent::localize(&mut backend, &map, &tensor, crop_k, prior, 6).unwrap();
+    assert_eq!(a.camera_from_map, b.camera_from_map);
+    assert!(a.iterations() >= 1 && a.iterations() <= 6);
+    assert_eq!(a.converged, a.steps.last().unwrap().action.is_zero());
+    let mut pose = prior;
+    for step in &a.steps {
+        pose = apply_action(&pose, &map.pivot, &step.action);
+        assert_eq!(pose, step.camera_from_map);
+        for row in &step.probabilities {
+            assert!((row.iter().sum::<f32>() - 1.0).abs() < 1e-4);
+        }
+    }
+    assert_eq!(pose, a.camera_from_map);
+    assert!((0.0..=1.0).contains(&a.confidence.score));
+}
+
+#[test]
+fn bad_inputs_are_refused() {
+    let set = models();
+    let mut backend = set.backend().unwrap();
+    assert!(agent::prepare_map(&mut backend, &[]).is_err());
+    let image = image::RgbImage::new(64, 32);
+    let bad = Intrinsics { fx: -1.0, fy: 1.0, cx: 0.0, cy: 0.0 };
+    assert!(agent::prepare_image(&image, &bad, &set.manifest).is_err());
+    let nan = Intrinsics { fx: f64::NAN, fy: 1.0, cx: 0.0, cy: 0.0 };
+    assert!(agent::prepare_image(&image, &nan, &set.manifest).is_err());
+}
