@@ -20,6 +20,8 @@ pub use velodyne::{read_velodyne, velodyne_to_bytes, write_velodyne, LidarPoint}
 
 /// Formats a number the way KITTI's text files do: `7.215377000000e+02`.
 pub fn format_kitti_number(value: f64) -> String {
+    // No "-0.000000000000e+00": negative zero prints as zero.
+    let value = if value == 0.0 { 0.0 } else { value };
     let formatted = format!("{value:.12e}");
     match formatted.split_once('e') {
         Some((mantissa, exponent)) => {
@@ -40,6 +42,7 @@ mod tests {
         assert_eq!(format_kitti_number(721.5377), "7.215377000000e+02");
         assert_eq!(format_kitti_number(-0.0027), "-2.700000000000e-03");
         assert_eq!(format_kitti_number(0.0), "0.000000000000e+00");
+        assert_eq!(format_kitti_number(-0.0), "0.000000000000e+00");
         assert_eq!("7.215377000000e+02".parse::<f64>().unwrap(), 721.5377);
     }
 }

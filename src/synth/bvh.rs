@@ -37,16 +37,15 @@ impl Bvh {
 
     /// The closest hit with t < `t_max`: (shape index, hit).
     pub fn closest(&self, shapes: &[Shape], origin: &V3, dir: &V3, t_max: f32) -> Option<(u32, ShapeHit)> {
+        if self.order.is_empty() {
+            return None;
+        }
         let inv = V3::new(1.0 / dir.x, 1.0 / dir.y, 1.0 / dir.z);
         let mut best: Option<(u32, ShapeHit)> = None;
         let mut limit = t_max;
+        self.nodes[0].bounds.hit(origin, &inv, limit)?;
         let mut stack = [0u32; 64];
-        let mut top = 0usize;
-        if self.nodes[0].bounds.hit(origin, &inv, limit).is_none() {
-            return None;
-        }
-        stack[top] = 0;
-        top += 1;
+        let mut top = 1usize;
         while top > 0 {
             top -= 1;
             let node = &self.nodes[stack[top] as usize];
@@ -86,6 +85,9 @@ impl Bvh {
 
     /// Whether anything blocks the segment (0, t_max): shadow rays stop at the first blocker.
     pub fn any_hit(&self, shapes: &[Shape], origin: &V3, dir: &V3, t_max: f32) -> bool {
+        if self.order.is_empty() {
+            return false;
+        }
         let inv = V3::new(1.0 / dir.x, 1.0 / dir.y, 1.0 / dir.z);
         let mut stack = [0u32; 64];
         let mut top = 1usize;
@@ -175,5 +177,8 @@ mod tests {
             assert_eq!(brute.map(|b| b.0), fast.map(|f| f.0));
             assert_eq!(brute.is_some(), bvh.any_hit(&shapes, &o, &d, 200.0));
         }
+        let empty = Bvh::build(&[]);
+        assert!(empty.closest(&[], &V3::zeros(), &V3::x(), 10.0).is_none());
+        assert!(!empty.any_hit(&[], &V3::zeros(), &V3::x(), 10.0));
     }
 }

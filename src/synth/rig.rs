@@ -18,8 +18,10 @@ const KITTI_CY: f64 = 185.2157;
 /// cam0's centre in the LiDAR frame: 27 cm forward, 8 cm below.
 const CAM0_IN_LIDAR: [f64; 3] = [0.27, 0.0, -0.08];
 /// image_2's offset from cam0 in cam0's (rectified) frame, as `P2`'s 4th column encodes it:
-/// ~6 cm to the left (p_cam2 = p_cam0 + t2, so t2.x > 0) plus KITTI-sized small y, z terms.
-const CAM2_OFFSET: [f64; 3] = [0.06, -0.00016, 0.0038];
+/// 6 cm to the left (p_cam2 = p_cam0 + t2, so t2.x > 0) and a KITTI-sized small y term. The z
+/// term is 0 so that reading P2 as a full projection matrix (K [I | t2]) and the project's
+/// convention t2 = (P2[0,3]/fx, P2[1,3]/fy, P2[2,3]) give exactly the same camera.
+const CAM2_OFFSET: [f64; 3] = [0.06, -0.00016, 0.0];
 
 /// Intrinsics for an image of `width` × `height`: KITTI's, scaled with the image width (the
 /// principal point keeps its relative position; pixels stay square).
@@ -55,7 +57,7 @@ pub fn calibration(width: u32, height: u32) -> Calib {
             Some(projection([0.0, 0.0, 0.0])),
             Some(projection([-0.537, 0.0, 0.0])),
             Some(projection(CAM2_OFFSET)),
-            Some(projection([-0.4727, 0.0033, 0.0049])),
+            Some(projection([-0.4727, 0.0033, 0.0])),
         ],
         velo_to_cam0: velo_to_cam0(),
         r0_rect: None,
@@ -102,12 +104,30 @@ mod tests {
         let calib = calibration(1241, 376);
         assert!((calib.color_intrinsics().unwrap().fx - 718.856).abs() < 1e-12);
         let cam2 = calib.color_camera_from_lidar().unwrap();
-        // image_2's centre in the LiDAR frame: forward 0.27 m, below by ~8 cm, 6 cm to the left (+y).
+        // image_2's centre in the LiDAR frame: forward 0.27 m, ~8 cm below, 6 cm to the left (+y).
         let centre = cam2.camera_position_in_map();
-        assert!((centre.y - 0.06).abs() < 1e-9 && (centre.x - (0.27 - 0.0038)).abs() < 1e-9, "{centre:?}");
+        assert!((centre.y - 0.06).abs() < 1e-9 && (centre.x - 0.27).abs() < 1e-9, "{centre:?}");
         // A point straight ahead of the LiDAR projects near the principal point.
         let p = cam2.transform(&Point3::new(30.0, 0.06, -0.08));
         let (u, _) = k.project(&p).unwrap();
         assert!((u - k.cx).abs() < 0.1);
+    }
+
+    #[test]
+    fn full_p2_projection_and_the_convention_agree() {
+        let calib = calibration(1241, 376);
+        let p2 = calib.projections[2].unwrap();
+        let cam2 = calib.color_camera_from_lidar().unwrap();
+        let k = calib.color_intrinsics().unwrap();
+        for lidar_point in [Point3::new(4.0, 1.0, -1.5), Point3::new(30.0, -6.0, 2.0), Point3::new(70.0, 20.0, -1.7)] {
+            let c0 = calib.velo_to_cam0.transform(&lidar_point);
+            let h = [
+                p2[0] * c0.x + p2[1] * c0.y + p2[2] * c0.z + p2[3],
+                p2[4] * c0.x + p2[5] * c0.y + p2[6] * c0.z + p2[7],
+                p2[8] * c0.x + p2[9] * c0.y + p2[10] * c0.z + p2[11],
+            ];
+            let (u, v) = k.project(&cam2.transform(&lidar_point)).unwrap();
+            assert!((u - h[0] / h[2]).abs() < 1e-9 && (v - h[1] / h[2]).abs() < 1e-9);
+        }
     }
 }

@@ -152,7 +152,7 @@ impl Scene {
             }
             Material::Car { color } => {
                 // The car body's uv: v is height above the shape's bottom.
-                if hit.normal.z.abs() < 0.5 && v > 0.05 && v < 0.5 && is_cabin(hit, &self.shapes[hit.primitive as usize]) {
+                if hit.normal.z.abs() < 0.5 && v > 0.05 && v < 0.5 && is_cabin(&self.shapes[hit.primitive as usize]) {
                     Surface { albedo: [0.03, 0.035, 0.045], reflectivity: 0.05 }
                 } else {
                     Surface { albedo: color, reflectivity: 0.22 }
@@ -164,7 +164,7 @@ impl Scene {
     }
 }
 
-fn is_cabin(_hit: &Hit, shape: &Shape) -> bool {
+fn is_cabin(shape: &Shape) -> bool {
     // Cabins are the boxes whose bottom is above 0.9 m.
     matches!(shape, Shape::Box { center, half, .. } if center.z - half.z > 0.9)
 }
