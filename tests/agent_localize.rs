@@ -81,3 +81,46 @@ fn bad_inputs_are_refused() {
     let nan = Intrinsics { fx: f64::NAN, fy: 1.0, cx: 0.0, cy: 0.0 };
     assert!(agent::prepare_image(&image, &nan, &set.manifest).is_err());
 }
+
+/// Requests stepped together in one batched policy call get exactly the answers they get alone.
+#[test]
+fn batched_workers_match_the_synchronous_loop() {
+    use cmr_agent::agent::scheduler::{Job, Scheduler, SchedulerConfig};
+    use std::sync::Arc;
+    use std::time::{Duration, Instant};
+
+    let set = models();
+    let mut backend = set.backend().unwrap();
+    let map = Arc::new(agent::prepare_map(&mut backend, &cloud()).unwrap());
+    let k = Intrinsics { fx: 500.0, fy: 500.0, cx: 319.5, cy: 99.5 };
+    let cases: Vec<(Vec<f32>, Intrinsics, Pose, usize)> = (0..6)
+        .map(|i| {
+            let image = image::RgbImage::from_fn(640, 200, |x, y| image::Rgb([(x * (i + 1)) as u8, (y * 3) as u8, (i * 40) as u8]));
+            let (tensor, crop_k) = agent::prepare_image(&image, &k, &set.manifest).unwrap();
+            let prior = rig().compose(&Pose::ground_motion(0.3 * i as f64, i as f64, -1.0));
+            (tensor, crop_k, prior, 3 + i as usize)
+        })
+        .collect();
+    let expected: Vec<_> = cases
+        .iter()
+        .map(|(t, ck, prior, n)| agent::localize(&mut backend, &map, t, *ck, *prior, *n).unwrap())
+        .collect();
+
+    let scheduler = Scheduler::start(&set, SchedulerConfig { workers: 1, max_batch: 8, queue_capacity: 16 }).unwrap();
+    let mut answers = Vec::new();
+    for (tensor, crop_k, prior, n) in cases {
+        let (reply, answer) = tokio::sync::oneshot::channel();
+        let job = Job { map: map.clone(), image_tensor: tensor, intrinsics: crop_k, prior, max_iterations: n, deadline: Instant::now() + Duration::from_secs(30), reply };
+        scheduler.submit(job).ok().expect("queued");
+        answers.push(answer);
+    }
+    for (answer, want) in answers.into_iter().zip(&expected) {
+        let got = answer.blocking_recv().unwrap().ok().expect("localized").localization;
+        assert_eq!(got.steps.len(), want.steps.len());
+        let diff = (got.camera_from_map.matrix() - want.camera_from_map.matrix()).abs().max();
+        assert!(diff < 1e-9, "batched result differs by {diff}");
+    }
+    let stats = scheduler.batch_stats();
+    assert!(stats.largest_batch > 1, "requests were stepped together: {stats:?}");
+    assert!(scheduler.shutdown(Duration::from_secs(5)));
+}

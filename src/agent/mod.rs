@@ -70,6 +70,8 @@ pub struct Timings {
     pub frustum_head_ms: f64,
     /// State building + policy calls + pose updates, all steps.
     pub agent_steps_ms: f64,
+    /// The part of `agent_steps_ms` spent building this request's observations (Rust).
+    pub state_build_ms: f64,
 }
 
 /// The result of one localization.
@@ -113,7 +115,7 @@ pub fn start_episode(
     let logits = backend.frustum_logits(&map.features, &image_features)?;
     let frustum_head_ms = ms(t);
     let episode = Episode::new(image_features, &logits, intrinsics, prior, max_iterations);
-    Ok((episode, Timings { image_encoder_ms, frustum_head_ms, agent_steps_ms: 0.0 }))
+    Ok((episode, Timings { image_encoder_ms, frustum_head_ms, ..Default::default() }))
 }
 
 /// Localizes one image in a prepared map, synchronously, starting from `prior`.
@@ -135,7 +137,9 @@ pub fn localize(
     let mut state_3d = vec![0f32; layout.state_3d_len()];
     let t = Instant::now();
     while !episode.is_done() {
+        let ts = Instant::now();
         episode.write_state(map, &layout, &mut scratch, &mut state_2d, &mut state_3d);
+        timings.state_build_ms += ms(ts);
         let out = backend.agent_step(&state_2d, &state_3d, 1)?;
         episode.advance(map, &actions, &out.policy_logits, out.value[0]);
     }

@@ -69,6 +69,18 @@ struct Queue {
     closed: AtomicBool,
     /// Requests admitted into some worker's running batch.
     active: AtomicUsize,
+    /// Batched policy calls made, and the requests they stepped (mean batch = ratio).
+    steps: AtomicUsize,
+    stepped_requests: AtomicUsize,
+    largest_batch: AtomicUsize,
+}
+
+/// Counters of the batching behaviour since start.
+#[derive(Debug, Clone, Copy)]
+pub struct BatchStats {
+    pub policy_calls: usize,
+    pub stepped_requests: usize,
+    pub largest_batch: usize,
 }
 
 /// Handle to the worker pool; cheap to share.
@@ -86,6 +98,9 @@ impl Scheduler {
             capacity: config.queue_capacity.max(1),
             closed: AtomicBool::new(false),
             active: AtomicUsize::new(0),
+            steps: AtomicUsize::new(0),
+            stepped_requests: AtomicUsize::new(0),
+            largest_batch: AtomicUsize::new(0),
         });
         let mut workers = Vec::new();
         for index in 0..config.workers.max(1) {
@@ -124,6 +139,14 @@ impl Scheduler {
 
     pub fn active(&self) -> usize {
         self.queue.active.load(Ordering::SeqCst)
+    }
+
+    pub fn batch_stats(&self) -> BatchStats {
+        BatchStats {
+            policy_calls: self.queue.steps.load(Ordering::SeqCst),
+            stepped_requests: self.queue.stepped_requests.load(Ordering::SeqCst),
+            largest_batch: self.queue.largest_batch.load(Ordering::SeqCst),
+        }
     }
 
     /// Stops accepting jobs; workers finish what is queued and running, then exit.
@@ -259,7 +282,8 @@ impl Worker {
         self.state_2d.resize(b * l2, 0.0);
         self.state_3d.resize(b * l3, 0.0);
         for (slot, &i) in running.iter().enumerate() {
-            let a = &batch[i];
+            let ts = Instant::now();
+            let a = &mut batch[i];
             a.episode.write_state(
                 &a.job.map,
                 &self.layout,
@@ -267,8 +291,12 @@ impl Worker {
                 &mut self.state_2d[slot * l2..(slot + 1) * l2],
                 &mut self.state_3d[slot * l3..(slot + 1) * l3],
             );
+            a.timings.state_build_ms += ms(ts);
         }
         metrics::histogram!("cmr_batch_size").record(b as f64);
+        self.queue.steps.fetch_add(1, Ordering::SeqCst);
+        self.queue.stepped_requests.fetch_add(b, Ordering::SeqCst);
+        self.queue.largest_batch.fetch_max(b, Ordering::SeqCst);
         match self.backend.agent_step(&self.state_2d, &self.state_3d, b) {
             Ok(out) => {
                 let per = 3 * self.actions.num_actions();

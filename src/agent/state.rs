@@ -57,10 +57,11 @@ impl StateLayout {
     /// The feature cell a camera-frame point falls into, or `None` outside the frustum.
     #[inline]
     pub fn cell_of(&self, k: &Intrinsics, p_cam: &Point3<f64>) -> Option<usize> {
-        if !k.in_frustum(p_cam, self.image_width, self.image_height) {
+        // Same test as `Intrinsics::in_frustum`, with the projection computed once.
+        let (u, v) = k.project(p_cam)?;
+        if !(u >= -0.5 && v >= -0.5 && u < self.image_width as f64 - 0.5 && v < self.image_height as f64 - 0.5) {
             return None;
         }
-        let (u, v) = k.project(p_cam)?;
         let s = self.stride as f64;
         let row = (((v + 0.5) / s).floor() as usize).min(self.grid_height - 1);
         let col = (((u + 0.5) / s).floor() as usize).min(self.grid_width - 1);
@@ -96,15 +97,34 @@ pub fn write_state(
     scratch.counts.clear();
     scratch.counts.resize(cells, 0);
 
-    let iso = camera_from_map.0;
+    // One pass over the points: transform with a plain matrix (cheaper than the quaternion),
+    // project once, accumulate features, and fill the state rows of the first M points.
+    let r = camera_from_map.rotation();
+    let t = camera_from_map.translation();
+    let scale = layout.xyz_scale_m;
+    let m = layout.num_state_points.min(points.len());
     for (i, p) in points.iter().enumerate() {
-        let p_cam = iso * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-        if let Some(cell) = layout.cell_of(k, &p_cam) {
+        let (x, y, z) = (p[0] as f64, p[1] as f64, p[2] as f64);
+        let p_cam = Point3::new(
+            r[(0, 0)] * x + r[(0, 1)] * y + r[(0, 2)] * z + t.x,
+            r[(1, 0)] * x + r[(1, 1)] * y + r[(1, 2)] * z + t.y,
+            r[(2, 0)] * x + r[(2, 1)] * y + r[(2, 2)] * z + t.z,
+        );
+        let cell = layout.cell_of(k, &p_cam);
+        if let Some(cell) = cell {
             scratch.counts[cell] += 1;
             let sum = &mut scratch.sums[cell * d..(cell + 1) * d];
             for (s, f) in sum.iter_mut().zip(&point_features[i * d..(i + 1) * d]) {
                 *s += f;
             }
+        }
+        if i < m {
+            let row = &mut state_3d[i * 5..(i + 1) * 5];
+            row[0] = (p_cam.x / scale) as f32;
+            row[1] = (p_cam.y / scale) as f32;
+            row[2] = (p_cam.z / scale) as f32;
+            row[3] = frustum_probs[i];
+            row[4] = if cell.is_some() { 1.0 } else { 0.0 };
         }
     }
 
@@ -112,21 +132,17 @@ pub fn write_state(
     image_part.copy_from_slice(image_features);
     for cell in 0..cells {
         let count = scratch.counts[cell];
-        let inv = if count > 0 { 1.0 / count as f32 } else { 0.0 };
-        for c in 0..d {
-            points_part[c * cells + cell] = scratch.sums[cell * d + c] * inv;
+        if count == 0 {
+            for c in 0..d {
+                points_part[c * cells + cell] = 0.0;
+            }
+            continue;
         }
-    }
-
-    let scale = layout.xyz_scale_m;
-    for (i, row) in state_3d.chunks_exact_mut(5).enumerate().take(layout.num_state_points) {
-        let p = points[i];
-        let p_cam = iso * Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-        row[0] = (p_cam.x / scale) as f32;
-        row[1] = (p_cam.y / scale) as f32;
-        row[2] = (p_cam.z / scale) as f32;
-        row[3] = frustum_probs[i];
-        row[4] = if k.in_frustum(&p_cam, layout.image_width, layout.image_height) { 1.0 } else { 0.0 };
+        let inv = 1.0 / count as f32;
+        let sum = &scratch.sums[cell * d..(cell + 1) * d];
+        for c in 0..d {
+            points_part[c * cells + cell] = sum[c] * inv;
+        }
     }
 }
 
@@ -172,6 +188,18 @@ mod tests {
         assert_eq!(f.iter().filter(|v| **v != 0.0).count(), 4);
         assert_eq!(&s3[..5], &[0.1, 0.1, 1.0, 0.1, 1.0]);
         assert_eq!(s3[14], 1.0);
+    }
+
+    #[test]
+    fn cell_test_agrees_with_the_geometry_frustum() {
+        use rand::{Rng, SeedableRng};
+        let layout = StateLayout { grid_height: 40, grid_width: 128, image_width: 512, image_height: 160, ..layout() };
+        let k = Intrinsics { fx: 359.4, fy: 359.4, cx: 249.8, cy: 78.1 };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..20000 {
+            let p = Point3::new(rng.random_range(-30.0..30.0), rng.random_range(-5.0..5.0), rng.random_range(-2.0..40.0));
+            assert_eq!(layout.cell_of(&k, &p).is_some(), k.in_frustum(&p, 512, 160), "{p:?}");
+        }
     }
 
     #[test]

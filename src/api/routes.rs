@@ -281,6 +281,7 @@ async fn localize_inner(
         image_encoder: loc.timings.image_encoder_ms,
         frustum_head: loc.timings.frustum_head_ms,
         agent_steps: loc.timings.agent_steps_ms,
+        agent_state_build: loc.timings.state_build_ms,
         total: agent::ms(started),
     };
     metrics::histogram!("cmr_iterations").record(loc.iterations() as f64);

@@ -122,6 +122,8 @@ pub struct TimingsMs {
     pub image_encoder: f64,
     pub frustum_head: f64,
     pub agent_steps: f64,
+    /// Part of agent_steps: building the observations in Rust.
+    pub agent_state_build: f64,
     pub total: f64,
 }
 

@@ -14,7 +14,7 @@ use crate::geometry::Pose;
 use crate::model::manifest::sha256_hex;
 
 use super::atomic::write_atomic;
-use super::formats::{CloudFormat, PointCloud, parse};
+use super::formats::{CloudFormat, PointCloud, parse, write_kitti_bin};
 use super::{MapError, embeddings};
 
 /// Map ids: `^[a-z0-9][a-z0-9_-]{0,63}$`, so they are safe as file names and URL segments.
@@ -154,7 +154,7 @@ impl MapStore {
     ) -> Result<MapEntry, MapError> {
         validate_id(id)?;
         let _guard = self.writes.lock().expect("writes");
-        let bin = kitti_bin_bytes(cloud);
+        let bin = write_kitti_bin(cloud);
         let sha = sha256_hex(&bin);
         let metadata = match metadata {
             Some(m) => m,
@@ -206,18 +206,6 @@ impl MapStore {
         let _guard = self.writes.lock().expect("writes");
         write_atomic(&self.path(id, "emb"), &embeddings::encode(prepared, model_sha, source_sha)).map_err(|e| MapError::Io(e.to_string()))
     }
-}
-
-/// KITTI `.bin` bytes: float32 x, y, z, intensity (0 when the source had none).
-pub fn kitti_bin_bytes(cloud: &PointCloud) -> Vec<u8> {
-    let mut out = Vec::with_capacity(cloud.xyz.len() * 16);
-    for (i, p) in cloud.xyz.iter().enumerate() {
-        let intensity = cloud.intensity.as_ref().and_then(|v| v.get(i)).copied().unwrap_or(0.0);
-        for v in [p[0], p[1], p[2], intensity] {
-            out.extend_from_slice(&v.to_le_bytes());
-        }
-    }
-    out
 }
 
 #[cfg(test)]

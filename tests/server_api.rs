@@ -1,0 +1,264 @@
+//! Every endpoint of the real server over loopback HTTP, good and bad input.
+
+mod common;
+
+use common::*;
+use serde_json::json;
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn service_endpoints_and_a_localization() {
+    let maps = maps_dir_with_street();
+    let server = TestServer::start(&tiny_model(), maps.path(), &[]).await;
+    let c = &server.client;
+
+    let health: serde_json::Value = c.get(server.url("/health")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(health["status"], "ok");
+    let ready: serde_json::Value = c.get(server.url("/ready")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(ready["ready"], true);
+    let info: serde_json::Value = c.get(server.url("/v1/info")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(info["manifest"]["format"], "cmr-agent-manifest/1");
+    assert_eq!(info["limits"]["max_iterations"], 50);
+
+    let list: serde_json::Value = c.get(server.url("/v1/maps")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(list["maps"][0]["id"], "street");
+    assert_eq!(list["maps"][0]["num_points"], 200 * 90);
+    assert_eq!(list["maps"][0]["cached"], true, "maps are prepared during warm-up");
+    let one: serde_json::Value = c.get(server.url("/v1/maps/street")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(one["metadata"]["description"], "test street");
+
+    let (status, body, headers) = server.localize("street", &kitti_request(7)).await;
+    assert_eq!(status, 200, "{body}");
+    let iterations = body["iterations"].as_u64().unwrap();
+    assert!((1..=7).contains(&iterations));
+    assert_eq!(body["trajectory"].as_array().unwrap().len() as u64, iterations);
+    assert_close(&body["prior_camera_from_map"], rig_matrix(), "the prior defaults to the map's initial pose");
+    let last = &body["trajectory"][iterations as usize - 1];
+    assert_eq!(last["camera_from_map"], body["pose"]["camera_from_map"]);
+    assert_eq!(body["converged"], last["action"]["yaw_deg"] == 0.0 && last["action"]["tx_m"] == 0.0 && last["action"]["tz_m"] == 0.0);
+    assert_eq!(last["probabilities"]["yaw_deg"].as_array().unwrap().len(), 11);
+    for key in ["queue", "decode", "image_encoder", "frustum_head", "agent_steps", "total"] {
+        assert!(body["timings_ms"][key].as_f64().unwrap() >= 0.0, "{key}");
+    }
+    let timing = headers.get("server-timing").unwrap().to_str().unwrap();
+    assert!(timing.contains("image_encoder;dur=") && timing.contains("total;dur="));
+    let score = body["confidence"]["score"].as_f64().unwrap();
+    assert!((0.0..=1.0).contains(&score));
+
+    // A JPEG and an explicit prior work too.
+    let img = test_image(800, 300);
+    let prior = [[0.0, -1.0, 0.0, 1.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 2.0], [0.0, 0.0, 0.0, 1.0]];
+    let req = json!({"image": b64(&jpeg_bytes(&img)), "intrinsics": {"fx": 500.0, "fy": 500.0, "cx": 399.5, "cy": 149.5},
+        "prior_camera_from_map": prior, "max_iterations": 2});
+    let (status, body, _) = server.localize("street", &req).await;
+    assert_eq!(status, 200, "{body}");
+    assert_close(&body["prior_camera_from_map"], prior, "explicit prior");
+
+    let metrics = c.get(server.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    for name in ["cmr_requests_total", "cmr_phase_seconds", "cmr_batch_size", "cmr_queue_depth", "cmr_cache_hits_total", "cmr_cache_bytes"] {
+        assert!(metrics.contains(name), "/metrics lacks {name}");
+    }
+    assert!(metrics.contains("outcome=\"ok\""));
+
+    let missing = c.get(server.url("/no/such/thing")).send().await.unwrap();
+    assert_eq!(missing.status(), 404);
+    server.stop().await;
+}
+
+fn assert_close(got: &serde_json::Value, want: [[f64; 4]; 4], what: &str) {
+    for r in 0..4 {
+        for c in 0..4 {
+            let g = got[r][c].as_f64().unwrap();
+            assert!((g - want[r][c]).abs() < 1e-9, "{what}: [{r}][{c}] = {g}, want {}", want[r][c]);
+        }
+    }
+}
+
+/// A PNG header claiming `width` x `height` (valid CRC), followed by nothing.
+fn png_header_only(width: u32, height: u32) -> Vec<u8> {
+    let mut ihdr = b"IHDR".to_vec();
+    ihdr.extend_from_slice(&width.to_be_bytes());
+    ihdr.extend_from_slice(&height.to_be_bytes());
+    ihdr.extend_from_slice(&[8, 2, 0, 0, 0]);
+    let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
+    out.extend_from_slice(&13u32.to_be_bytes());
+    out.extend_from_slice(&ihdr);
+    out.extend_from_slice(&crc32(&ihdr).to_be_bytes());
+    out
+}
+
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut crc = 0xffff_ffffu32;
+    for b in bytes {
+        crc ^= *b as u32;
+        for _ in 0..8 {
+            crc = if crc & 1 != 0 { (crc >> 1) ^ 0xedb8_8320 } else { crc >> 1 };
+        }
+    }
+    !crc
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_localize_requests_get_clear_errors() {
+    let maps = maps_dir_with_street();
+    let server = TestServer::start(&tiny_model(), maps.path(), &["--max-body-bytes", "400000"]).await;
+    let good = kitti_request(2);
+    let png = png_bytes(&test_image(640, 200));
+    let k = json!({"fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 99.5});
+    let with = |patch: serde_json::Value| {
+        let mut v = json!({"image": b64(&png), "intrinsics": k, "max_iterations": 2});
+        for (key, value) in patch.as_object().unwrap() {
+            v[key] = value.clone();
+        }
+        v
+    };
+    let cases: Vec<(&str, serde_json::Value, u16, &str)> = vec![
+        ("unknown map", good.clone(), 404, "not_found"),
+        ("truncated png", with(json!({"image": b64(&png[..png.len() / 2])})), 400, "corrupt_image"),
+        ("garbage image", with(json!({"image": b64(b"\x89PNG\r\n\x1a\nthis is not a png at all")})), 400, "corrupt_image"),
+        ("not base64", with(json!({"image": "%%% not base64 %%%"})), 400, "bad_request"),
+        ("gif", with(json!({"image": b64(b"GIF89a\x01\x00\x01\x00\x00\x00\x00;")})), 415, "unsupported_media_type"),
+        ("zero width", with(json!({"image": b64(&png_header_only(0, 100))})), 400, "corrupt_image"),
+        ("huge dimensions", with(json!({"image": b64(&png_header_only(100_000, 100_000))})), 413, "payload_too_large"),
+        ("negative fx", with(json!({"intrinsics": {"fx": -500.0, "fy": 500.0, "cx": 1.0, "cy": 1.0}})), 422, "invalid_input"),
+        ("null fy", with(json!({"intrinsics": {"fx": 500.0, "fy": null, "cx": 1.0, "cy": 1.0}})), 422, "invalid_input"),
+        ("zero iterations", with(json!({"max_iterations": 0})), 422, "invalid_input"),
+        ("too many iterations", with(json!({"max_iterations": 51})), 422, "invalid_input"),
+        ("non-rigid prior", with(json!({"prior_camera_from_map": [[2.0,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]})), 422, "invalid_input"),
+        ("missing image", json!({"intrinsics": k}), 422, "invalid_input"),
+        ("unknown field", with(json!({"imgae": "x"})), 422, "invalid_input"),
+    ];
+    for (name, body, status, error_type) in cases {
+        let map = if name == "unknown map" { "nowhere" } else { "street" };
+        let (got, json, _) = server.localize(map, &body).await;
+        assert_eq!(got, status, "{name}: {json}");
+        assert_eq!(json["error_type"], error_type, "{name}: {json}");
+        assert!(!json["error"].as_str().unwrap().is_empty(), "{name}");
+    }
+
+    let raw = |body: &'static str, ct: &'static str| {
+        server.client.post(server.url("/v1/maps/street/localize")).header("content-type", ct).body(body).send()
+    };
+    let r = raw("{\"image\": ", "application/json").await.unwrap();
+    assert_eq!(r.status(), 400);
+    assert_eq!(r.json::<serde_json::Value>().await.unwrap()["error_type"], "malformed_json");
+    // NaN is not JSON: the request is malformed, not a number.
+    let r = raw("{\"image\": \"\", \"intrinsics\": {\"fx\": NaN, \"fy\": 1, \"cx\": 1, \"cy\": 1}}", "application/json").await.unwrap();
+    assert_eq!(r.status(), 400);
+    let r = raw("hello", "text/plain").await.unwrap();
+    assert_eq!(r.status(), 415);
+    let r = server.client.post(server.url("/v1/maps/Bad.Id/localize")).json(&with(json!({}))).send().await.unwrap();
+    assert_eq!(r.status(), 400);
+    assert_eq!(r.json::<serde_json::Value>().await.unwrap()["error_type"], "bad_request");
+
+    let big = with(json!({"image": "A".repeat(500_000)}));
+    let (status, json, _) = server.localize("street", &big).await;
+    assert_eq!(status, 413, "{json}");
+    assert_eq!(json["error_type"], "payload_too_large");
+
+    // Nothing above disturbed the stored map.
+    let (status, _, _) = server.localize("street", &with(json!({}))).await;
+    assert_eq!(status, 200);
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn map_management_is_atomic_and_persistent() {
+    let maps = maps_dir_with_street();
+    let server = TestServer::start(&tiny_model(), maps.path(), &["--admin-token", "s3cret"]).await;
+    let c = &server.client;
+    let auth = "Bearer s3cret";
+
+    // An ASCII PLY upload (sniffed) registers a new region.
+    let mut ply = String::from("ply\nformat ascii 1.0\nelement vertex 3000\nproperty float x\nproperty float y\nproperty float z\nend_header\n");
+    for i in 0..3000 {
+        ply.push_str(&format!("{} {} {}\n", (i % 100) as f32 * 0.3, (i / 100) as f32 * 0.5 - 7.0, -1.7 + (i % 7) as f32 * 0.2));
+    }
+    let r = c.put(server.url("/v1/maps/yard")).body(ply.clone()).send().await.unwrap();
+    assert_eq!(r.status(), 401, "map management needs the token");
+    let r = c.put(server.url("/v1/maps/yard?description=a%20yard")).header("authorization", auth).body(ply.clone()).send().await.unwrap();
+    assert_eq!(r.status(), 201);
+    let reg: serde_json::Value = r.json().await.unwrap();
+    assert_eq!(reg["map"]["num_points"], 3000);
+    assert_eq!(reg["map"]["metadata"]["description"], "a yard");
+    assert_eq!(reg["replaced"], false);
+    assert!(maps.path().join("yard.bin").exists() && maps.path().join("yard.emb").exists());
+
+    // A corrupt upload is refused and leaves the stored region as it was.
+    let before = std::fs::read(maps.path().join("yard.bin")).unwrap();
+    let corrupt = "ply\nformat ascii 1.0\nelement vertex 3000\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 three\n";
+    for (body, query) in [(corrupt.as_bytes().to_vec(), ""), (vec![1u8, 2, 3], ""), (vec![0u8; 32], "?format=pcd"), (vec![0u8; 32], "?format=xyz")] {
+        let r = c.put(server.url(&format!("/v1/maps/yard{query}"))).header("authorization", auth).body(body).send().await.unwrap();
+        assert_eq!(r.status(), 422, "{query}");
+        let e: serde_json::Value = r.json().await.unwrap();
+        assert!(!e["error"].as_str().unwrap().is_empty());
+    }
+    assert_eq!(std::fs::read(maps.path().join("yard.bin")).unwrap(), before);
+    let (status, _, _) = server.localize("yard", &kitti_request(1)).await;
+    assert_eq!(status, 200, "the previous region still localizes");
+
+    // Replacing with a KITTI .bin answers 200 and keeps the metadata.
+    let r = c.put(server.url("/v1/maps/yard?format=kitti_bin")).header("authorization", auth)
+        .body(cmr_agent::maps::formats::write_kitti_bin(&street_cloud())).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let reg: serde_json::Value = r.json().await.unwrap();
+    assert_eq!(reg["replaced"], true);
+    assert_eq!(reg["map"]["metadata"]["description"], "a yard");
+
+    // Metadata: valid and invalid.
+    let r = c.put(server.url("/v1/maps/yard/metadata")).header("authorization", auth)
+        .json(&serde_json::json!({"description": "moved", "initial_camera_from_map": rig_matrix()})).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    let r = c.put(server.url("/v1/maps/yard/metadata")).header("authorization", auth)
+        .json(&serde_json::json!({"initial_camera_from_map": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[1,0,0,1]]})).send().await.unwrap();
+    assert_eq!(r.status(), 422);
+    let r = c.put(server.url("/v1/maps/Bad!/metadata")).header("authorization", auth).json(&serde_json::json!({})).send().await.unwrap();
+    assert_eq!(r.status(), 400);
+
+    // Restart: the embeddings come from yard.emb, not recomputed (the file is not rewritten).
+    let emb_modified = std::fs::metadata(maps.path().join("yard.emb")).unwrap().modified().unwrap();
+    server.stop().await;
+    let server = TestServer::start(&tiny_model(), maps.path(), &["--admin-token", "s3cret"]).await;
+    let one: serde_json::Value = server.client.get(server.url("/v1/maps/yard")).send().await.unwrap().json().await.unwrap();
+    assert_eq!(one["metadata"]["description"], "moved");
+    assert_eq!(one["cached"], true);
+    assert_eq!(std::fs::metadata(maps.path().join("yard.emb")).unwrap().modified().unwrap(), emb_modified);
+
+    // Delete.
+    let c = &server.client;
+    let r = c.delete(server.url("/v1/maps/yard")).send().await.unwrap();
+    assert_eq!(r.status(), 401);
+    let r = c.delete(server.url("/v1/maps/yard")).header("authorization", auth).send().await.unwrap();
+    assert_eq!(r.status(), 204);
+    assert!(!maps.path().join("yard.bin").exists() && !maps.path().join("yard.emb").exists());
+    let r = c.delete(server.url("/v1/maps/yard")).header("authorization", auth).send().await.unwrap();
+    assert_eq!(r.status(), 404);
+    let (status, _, _) = server.localize("yard", &kitti_request(1)).await;
+    assert_eq!(status, 404);
+    let (status, _, _) = server.localize("street", &kitti_request(1)).await;
+    assert_eq!(status, 200, "other regions are untouched");
+    server.stop().await;
+}
+
+#[test]
+fn a_broken_model_directory_is_one_clear_start_up_error() {
+    let dir = tempfile::tempdir().unwrap();
+    for entry in std::fs::read_dir(tiny_model()).unwrap() {
+        let entry = entry.unwrap();
+        std::fs::copy(entry.path(), dir.path().join(entry.file_name())).unwrap();
+    }
+    std::fs::write(dir.path().join("agent.onnx"), b"not an onnx file").unwrap();
+    let maps = tempfile::tempdir().unwrap();
+    let config = cmr_agent::api::ServeArgs::from_flags(["--models", dir.path().to_str().unwrap(), "--maps", maps.path().to_str().unwrap()]).unwrap();
+    let err = format!("{:#}", cmr_agent::api::build_state(config).err().expect("refused"));
+    assert!(err.contains("sha256") && err.contains("agent"), "{err}");
+}
+
+#[test]
+fn committed_openapi_document_is_current() {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("openapi/openapi.json");
+    let committed = std::fs::read_to_string(&path).unwrap_or_default();
+    assert!(
+        committed == cmr_agent::api::openapi::schema_json(),
+        "openapi/openapi.json is stale: run `./target/release/cmr-agent print-schema > openapi/openapi.json`"
+    );
+}
