@@ -251,4 +251,36 @@ pub(crate) mod tests {
         let err = run(&config).unwrap_err();
         assert!(format!("{err:#}").contains("no frame 7"), "{err:#}");
     }
+
+    /// The learned methods through real ONNX graphs (the committed tiny contract model): every
+    /// method reports, the agent at every iteration, and each record's first agent pose is
+    /// reachable from the initial pose by one action of the set.
+    #[test]
+    fn learned_methods_run_through_the_server_code_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let (data, out) = (dir.path().join("data"), dir.path().join("out"));
+        write_tiny_sequence(&data, 2);
+        let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model");
+        let config = EvalConfig { models: Some(models), iterations: 4, ..config(&data, &out) };
+        let report = run(&config).unwrap();
+        let names: Vec<&str> = report.methods.iter().map(|m| m.method.as_str()).collect();
+        assert_eq!(names, vec![AGENT, super::super::learned::BASELINE, "expert (oracle)", "no-op"]);
+        let agent = &report.methods[0];
+        assert_eq!(agent.per_iteration.len(), 4);
+        assert!(agent.parameters.unwrap() > report.methods[1].parameters.unwrap());
+        assert!(agent.phases_ms.contains_key("agent steps") && report.methods[1].phases_ms.contains_key("matching"));
+        assert!(report.resources.map_prepare_ms.is_some_and(|m| m.n == 2));
+        assert!(report.resources.peak_rss_bytes.is_some_and(|b| b > 0));
+        let records: Vec<CaseRecord> = serde_json::from_str(&std::fs::read_to_string(out.join("cases.json")).unwrap()).unwrap();
+        assert_eq!(records.len(), 2 * 4);
+        for r in records.iter().filter(|r| r.method == AGENT) {
+            assert_eq!(r.errors.len(), 4);
+            assert!(r.elapsed_ms.windows(2).all(|w| w[0] <= w[1]));
+            assert!(r.notes["iterations_run"].as_u64().unwrap() >= 1);
+        }
+        for r in records.iter().filter(|r| r.method == super::super::learned::BASELINE) {
+            assert_eq!(r.errors.len(), 1);
+            assert!(r.notes["matches"].as_u64().is_some() && r.notes["solved"].is_boolean());
+        }
+    }
 }
