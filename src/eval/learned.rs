@@ -79,17 +79,8 @@ impl Learned {
         let logits = self.backend.frustum_logits(&map.features, &image_features)?;
         let frustum_ms = ms(t);
         let t = Instant::now();
-        let in_view: Vec<usize> = (0..logits.len()).filter(|&i| logits[i] > 0.0).collect();
-        let dim = manifest.features.dim;
-        let matches = mutual_nearest(&map.features, dim, &in_view, &image_features);
-        let (stride, grid_width) = (manifest.features.stride, manifest.features.grid_width);
-        let correspondences: Vec<Correspondence> = matches
-            .iter()
-            .map(|m| {
-                let p = map.points[m.point];
-                Correspondence { point: nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64), pixel: cell_centre(m.cell, grid_width, stride) }
-            })
-            .collect();
+        let grid = FeatureGrid { dim: manifest.features.dim, stride: manifest.features.stride, grid_width: manifest.features.grid_width };
+        let (in_view, correspondences) = one_shot_correspondences(&map.points, &map.features, &logits, &image_features, grid);
         let matching_ms = ms(t);
         let t = Instant::now();
         let solution = GroundPnp::new(case.initial, crop_intrinsics).solve_ransac(&correspondences, &self.ransac);
@@ -108,13 +99,46 @@ impl Learned {
                 ("RANSAC + refinement".into(), ransac_ms),
             ],
             notes: json!({
-                "predicted_in_view": in_view.len(),
+                "predicted_in_view": in_view,
                 "matches": correspondences.len(),
                 "inliers": solution.map_or(0, |s| s.inliers),
                 "solved": solution.is_some(),
             }),
         })
     }
+}
+
+/// The shape of the image feature grid, from the manifest.
+#[derive(Debug, Clone, Copy)]
+pub struct FeatureGrid {
+    pub dim: usize,
+    pub stride: usize,
+    pub grid_width: usize,
+}
+
+/// The baseline's matching stage: the points the frustum head predicts in view (logit > 0),
+/// matched to image cells by mutual nearest neighbours, each match as (map point, cell-centre
+/// pixel in the model's crop). Returns the number of predicted-in-view points and the matches.
+pub fn one_shot_correspondences(
+    points: &[[f32; 3]],
+    point_features: &[f32],
+    frustum_logits: &[f32],
+    image_features: &[f32],
+    grid: FeatureGrid,
+) -> (usize, Vec<Correspondence>) {
+    let in_view: Vec<usize> = (0..frustum_logits.len().min(points.len())).filter(|&i| frustum_logits[i] > 0.0).collect();
+    let matches = mutual_nearest(point_features, grid.dim, &in_view, image_features);
+    let correspondences = matches
+        .iter()
+        .map(|m| {
+            let p = points[m.point];
+            Correspondence {
+                point: nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64),
+                pixel: cell_centre(m.cell, grid.grid_width, grid.stride),
+            }
+        })
+        .collect();
+    (in_view.len(), correspondences)
 }
 
 impl Method for Learned {
@@ -135,4 +159,77 @@ impl Method for Learned {
 
 fn ms(since: Instant) -> f64 {
     since.elapsed().as_secs_f64() * 1e3
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::agent::StateLayout;
+    use crate::eval::methods::tests::case;
+    use crate::geometry::{Intrinsics, PoseError};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// With embeddings that are perfect up to noise (each point carries the random feature of
+    /// the cell it truly projects to), the baseline's glue — frustum selection, cell indexing,
+    /// crop intrinsics, map frame, rig — must recover the ground truth to cell precision.
+    #[test]
+    fn ideal_embeddings_give_the_true_pose() {
+        let c = case(-140.0, 7.0, -6.0);
+        let layout = StateLayout {
+            dim: 64,
+            stride: 4,
+            grid_height: 40,
+            grid_width: 128,
+            image_width: 512,
+            image_height: 160,
+            num_state_points: 16,
+            xyz_scale_m: 10.0,
+        };
+        let k = Intrinsics { fx: 359.0, fy: 359.0, cx: 255.5, cy: 79.5 };
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let unit = |rng: &mut ChaCha8Rng| {
+            let v: Vec<f32> = (0..64).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            v.into_iter().map(|x| x / n).collect::<Vec<f32>>()
+        };
+        let cells = layout.cells();
+        let cell_features: Vec<Vec<f32>> = (0..cells).map(|_| unit(&mut rng)).collect();
+        let mut image = vec![0f32; 64 * cells];
+        for (cell, f) in cell_features.iter().enumerate() {
+            for (ch, v) in f.iter().enumerate() {
+                image[ch * cells + cell] = *v;
+            }
+        }
+        // Dense points in front of the true camera, so many cells are hit.
+        let inverse = c.truth.inverse();
+        let mut points = Vec::new();
+        for _ in 0..3000 {
+            let p_cam = k.back_project(rng.random_range(0.0..511.0), rng.random_range(0.0..159.0), rng.random_range(4.0..30.0));
+            let p = inverse.transform(&p_cam);
+            points.push([p.x as f32, p.y as f32, p.z as f32]);
+        }
+        points.extend(c.map_points.iter().copied()); // plus the case's own cloud, mostly out of view
+        let mut features = Vec::with_capacity(points.len() * 64);
+        let mut logits = Vec::with_capacity(points.len());
+        for p in &points {
+            let p_cam = c.truth.transform(&nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64));
+            match layout.cell_of(&k, &p_cam) {
+                Some(cell) => {
+                    features.extend(cell_features[cell].iter().map(|v| v + rng.random_range(-0.02..0.02)));
+                    logits.push(3.0);
+                }
+                None => {
+                    features.extend(unit(&mut rng));
+                    logits.push(-3.0);
+                }
+            }
+        }
+        let grid = FeatureGrid { dim: 64, stride: 4, grid_width: 128 };
+        let (in_view, matches) = one_shot_correspondences(&points, &features, &logits, &image, grid);
+        assert!(in_view >= 3000 && matches.len() > 500, "{in_view} {}", matches.len());
+        let solution = GroundPnp::new(c.initial, k).solve_ransac(&matches, &RansacOptions::default()).unwrap();
+        let e = PoseError::between(&solution.camera_from_map, &c.truth);
+        assert!(e.rte_m < 0.1 && e.rre_geodesic_deg < 0.2, "{e:?}");
+    }
 }
