@@ -48,7 +48,7 @@ pub fn success_plot(path: &Path, title: &str, x_label: &str, xs: &[f64], series:
             .margin(16)
             .x_label_area_size(48)
             .y_label_area_size(60)
-            .build_cartesian_2d(0f64..x_max, 0f64..100f64)
+            .build_cartesian_2d(0f64..x_max, 0f64..102f64)
             .map_err(err)?;
         chart
             .configure_mesh()
