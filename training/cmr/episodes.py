@@ -94,11 +94,13 @@ class Trajectory:
     log_probs: np.ndarray  # [T, B]
     values: np.ndarray  # [T+1, B]
     rewards: np.ndarray  # [T, B]
+    states: list | None = None  # [T] of (state_2d [B,...], state_3d [B,...]) when kept for the update
 
 
 @torch.no_grad()
 def rollout(agent, episodes: Episodes, steps: int, mode: str = "greedy", expert_mix: float = 0.0,
-            rng: np.random.Generator | None = None, generator: torch.Generator | None = None) -> Trajectory:
+            rng: np.random.Generator | None = None, generator: torch.Generator | None = None,
+            keep_states: bool = False) -> Trajectory:
     """mode: 'greedy' (argmax), 'sample' (stochastic policy), 'expert' (greedy expert, no agent
     needed). With expert_mix > 0, each env takes the expert's action with that probability (DAgger)."""
     b = len(episodes)
@@ -108,11 +110,15 @@ def rollout(agent, episodes: Episodes, steps: int, mode: str = "greedy", expert_
     log_probs = np.zeros((steps, b), dtype=np.float32)
     values = np.zeros((steps + 1, b), dtype=np.float32)
     rewards = np.zeros((steps, b), dtype=np.float32)
+    states = [] if keep_states else None
     for t in range(steps + 1):
         current = poses[-1]
         if agent is not None:
-            logits, value = agent(*episodes.state(current))
+            state = episodes.state(current)
+            logits, value = agent(*state)
             values[t] = value[:, 0].cpu().numpy()
+            if keep_states and t < steps:
+                states.append(state)
         if t == steps:
             break
         expert = np.array([g.expert_indices(p, episodes.truth[i], episodes.pivots[i]) for i, p in enumerate(current)])
@@ -138,7 +144,7 @@ def rollout(agent, episodes: Episodes, steps: int, mode: str = "greedy", expert_
             rewards[t, i] = g.step_reward(before, after)
             nxt.append(q)
         poses.append(nxt)
-    return Trajectory(poses, actions, experts, log_probs, values, rewards)
+    return Trajectory(poses, actions, experts, log_probs, values, rewards, states)
 
 
 def gae(rewards: np.ndarray, values: np.ndarray, gamma: float, lam: float) -> tuple[np.ndarray, np.ndarray]:

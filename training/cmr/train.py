@@ -228,7 +228,11 @@ class Run:
             for start in range(0, len(order), cfg.minibatch):
                 batch = [flat[j] for j in order[start:start + cfg.minibatch]]
                 rows = [i for _, i in batch]
-                s2, s3 = eps.state([traj.poses[t][i] for t, i in batch], rows)
+                if traj.states is not None:
+                    s2 = torch.stack([traj.states[t][0][i] for t, i in batch])
+                    s3 = torch.stack([traj.states[t][1][i] for t, i in batch])
+                else:
+                    s2, s3 = eps.state([traj.poses[t][i] for t, i in batch], rows)
                 logits, value = agent(s2, s3)
                 dev = logits.device
                 expert = torch.as_tensor(np.stack([traj.experts[t, i] for t, i in batch]), device=dev)
@@ -277,7 +281,7 @@ class Run:
             rng = np.random.default_rng([cfg.seed, 3, it])
             gen = torch.Generator(device=self.device).manual_seed(cfg.seed * 100003 + it)
             agent.eval()
-            traj = rollout(agent, eps, cfg.rollout_steps, "sample", mix, rng, gen)
+            traj = rollout(agent, eps, cfg.rollout_steps, "sample", mix, rng, gen, keep_states=True)
             stats = self.agent_update(eps, traj, ppo_weight)
             self.agent_iter += 1
             if self.agent_iter % cfg.log_every == 0 or self.agent_iter == 1:
