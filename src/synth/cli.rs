@@ -23,6 +23,8 @@ pub enum Action {
     Demo(super::demo::DemoArgs),
     /// Render a grid of frames with the LiDAR projected onto them (a visual sensor check).
     ContactSheet(super::contact_sheet::ContactSheetArgs),
+    /// Time the camera render, LiDAR sweep and PNG encoding per frame (writes nothing).
+    Bench(super::bench::BenchArgs),
 }
 
 /// Scene and sensor options shared by every synth command.
@@ -146,6 +148,7 @@ pub fn run(args: Args) -> Result<()> {
     match args.action {
         Some(Action::Demo(demo)) => super::demo::run(&demo),
         Some(Action::ContactSheet(sheet)) => super::contact_sheet::run(&sheet),
+        Some(Action::Bench(bench)) => super::bench::run(&bench),
         None => {
             let g = args.generate;
             let Some(out) = g.out else { bail!("--out DIR is required (where the sequences are written)") };
