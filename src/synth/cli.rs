@@ -152,8 +152,9 @@ pub fn run(args: Args) -> Result<()> {
         None => {
             let g = args.generate;
             let Some(out) = g.out else { bail!("--out DIR is required (where the sequences are written)") };
-            std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
             let config = g.world.config(g.sequences, g.first_sequence, g.frames);
+            config.validate()?;
+            std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
             let summary = generate(&config, &out, g.overwrite, !g.quiet)?;
             tracing::info!(
                 frames = summary.frames,
