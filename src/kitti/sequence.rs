@@ -157,3 +157,39 @@ pub fn discover_sequences(root: &Path) -> Result<Vec<Sequence>> {
         })
         .collect()
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kitti::{velodyne::write_velodyne, write_atomic, write_poses};
+
+    fn write_sequence(dir: &Path, frames: usize, poses: usize) {
+        std::fs::create_dir_all(dir.join("velodyne")).unwrap();
+        let calib = "P2: 700 0 600 42 0 700 180 0 0 0 1 0\nTr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27\n";
+        write_atomic(&dir.join("calib.txt"), calib.as_bytes()).unwrap();
+        for i in 0..frames {
+            let p = LidarPoint { x: i as f32, y: 0.0, z: 0.0, intensity: 0.5 };
+            write_velodyne(&dir.join("velodyne").join(format!("{i:06}.bin")), &[p]).unwrap();
+        }
+        write_poses(&dir.join("poses.txt"), &vec![Pose::identity(); poses]).unwrap();
+    }
+
+    #[test]
+    fn frames_follow_the_files_and_short_pose_files_are_refused() {
+        let root = tempfile::tempdir().unwrap();
+        write_sequence(&root.path().join("03"), 3, 3);
+        let seq = Sequence::open(&root.path().join("03"), None).unwrap();
+        assert_eq!(seq.frame_indices, vec![0, 1, 2]);
+        let frame = seq.frame(2).unwrap();
+        assert_eq!(frame.read_points().unwrap()[0].x, 2.0);
+        assert!(frame.image_path.ends_with("image_2/000002.png"));
+        // camera_from_lidar = [I | (42/700, 0, 0)] · Tr
+        assert!((frame.camera_from_lidar.translation().x - 0.06).abs() < 1e-12);
+        assert!(seq.frame(3).unwrap_err().to_string().contains("no frame 3"));
+        write_sequence(&root.path().join("04"), 3, 2);
+        let err = discover_sequences(root.path()).unwrap_err().to_string();
+        assert!(err.contains("poses.txt") && err.contains("has 2 poses"), "{err}");
+        let empty = tempfile::tempdir().unwrap();
+        assert!(discover_sequences(empty.path()).unwrap_err().to_string().contains("no KITTI sequence"));
+    }
+}

@@ -23,6 +23,8 @@ pub enum Action {
     Demo(super::demo::DemoArgs),
     /// Render a grid of frames with the LiDAR projected onto them (a visual sensor check).
     ContactSheet(super::contact_sheet::ContactSheetArgs),
+    /// Time the camera render, LiDAR sweep and PNG encoding per frame (writes nothing).
+    Bench(super::bench::BenchArgs),
 }
 
 /// Scene and sensor options shared by every synth command.
@@ -146,11 +148,13 @@ pub fn run(args: Args) -> Result<()> {
     match args.action {
         Some(Action::Demo(demo)) => super::demo::run(&demo),
         Some(Action::ContactSheet(sheet)) => super::contact_sheet::run(&sheet),
+        Some(Action::Bench(bench)) => super::bench::run(&bench),
         None => {
             let g = args.generate;
             let Some(out) = g.out else { bail!("--out DIR is required (where the sequences are written)") };
-            std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
             let config = g.world.config(g.sequences, g.first_sequence, g.frames);
+            config.validate()?;
+            std::fs::create_dir_all(&out).with_context(|| format!("creating {}", out.display()))?;
             let summary = generate(&config, &out, g.overwrite, !g.quiet)?;
             tracing::info!(
                 frames = summary.frames,

@@ -51,7 +51,9 @@ impl GeneratorConfig {
         if !(self.spacing_m > 0.0 && self.spacing_m <= 50.0) {
             bail!("frame spacing {} m must be within (0, 50]", self.spacing_m);
         }
-        self.lidar.validate().map_err(anyhow::Error::msg)
+        self.lidar.validate().map_err(anyhow::Error::msg)?;
+        // Drawn values are always in range; this catches out-of-range overrides up front.
+        Style::draw(self.preset, &self.overrides, &mut ChaCha8Rng::seed_from_u64(0)).validate().map_err(anyhow::Error::msg)
     }
 }
 

@@ -6,6 +6,7 @@
 //! `lidar` and `render` (the two sensors), `generate` (sequences on disk), then the extras:
 //! `demo` (the shipped demo map and request) and `contact_sheet` (a visual check).
 
+pub mod bench;
 pub mod bvh;
 pub mod cli;
 pub mod contact_sheet;
