@@ -1,11 +1,20 @@
 //! cmr-agent: tells a vehicle where its camera is inside a pre-built LiDAR map.
 //!
 //! The folder layout mirrors the architecture (see docs/architecture.md):
-//! geometry conventions shared by everything, the KITTI-odometry layout, the synthetic world
-//! generator, and the serving stack.
+//! - `geometry`: frames, projection, poses, the action set, metrics: one home for conventions;
+//! - `kitti`: the KITTI-odometry layout, read by everything and written by `synth`;
+//! - `synth`: the procedural street world generator;
+//! - `maps`: point-cloud formats, the map store, the embedding cache;
+//! - `model`: ONNX Runtime and the model manifest;
+//! - `agent`: state building, the iterative localization loop and the batching scheduler;
+//! - `api`: the HTTP server;
+//! - `eval`: the paper's metrics and tables over a KITTI-layout data set.
 
-pub mod geometry;
-pub mod model;
 pub mod agent;
-pub mod maps;
 pub mod api;
+pub mod eval;
+pub mod geometry;
+pub mod kitti;
+pub mod maps;
+pub mod model;
+pub mod synth;

@@ -11,8 +11,12 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// Generate synthetic KITTI-odometry sequences, the demo map and request, or a contact sheet.
+    Synth(cmr_agent::synth::cli::Args),
     /// Serve the localization HTTP API.
     Serve(cmr_agent::api::ServeArgs),
+    /// Evaluate on a KITTI-odometry directory with the paper's protocol: agent, baselines, tables, plots.
+    Eval(cmr_agent::eval::cli::Args),
     /// Print the OpenAPI document (the committed openapi/openapi.json).
     PrintSchema,
 }
@@ -24,7 +28,9 @@ fn main() -> anyhow::Result<()> {
         .init();
     let cli = Cli::parse();
     match cli.command {
+        Command::Synth(args) => cmr_agent::synth::cli::run(args),
         Command::Serve(args) => cmr_agent::api::run_serve(args),
+        Command::Eval(args) => cmr_agent::eval::cli::main(args),
         Command::PrintSchema => {
             print!("{}", cmr_agent::api::openapi::schema_json());
             Ok(())

@@ -43,6 +43,12 @@ impl Intrinsics {
         Point3::new((u - self.cx) / self.fx * z, (v - self.cy) / self.fy * z, z)
     }
 
+    /// The camera-frame direction through pixel (u, v), scaled so its z is 1: a point at
+    /// parameter t along it has depth z = t (what the synthetic renderer casts).
+    pub fn ray_direction(&self, u: f64, v: f64) -> nalgebra::Vector3<f64> {
+        nalgebra::Vector3::new((u - self.cx) / self.fx, (v - self.cy) / self.fy, 1.0)
+    }
+
     /// Whether a camera-frame point lies in the frustum of a `width` × `height` image.
     #[inline]
     pub fn in_frustum(&self, p: &Point3<f64>, width: u32, height: u32) -> bool {
@@ -121,6 +127,15 @@ mod tests {
         let q = k.back_project(u, v, p.z);
         assert!((p - q).norm() < 1e-12);
         assert!(k.project(&Point3::new(0.0, 0.0, -1.0)).is_none());
+    }
+
+    #[test]
+    fn ray_direction_reprojects_to_its_pixel() {
+        let k = Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 };
+        let d = k.ray_direction(100.0, 300.0);
+        assert_eq!(d.z, 1.0);
+        let (u, v) = k.project(&Point3::from(d * 17.5)).unwrap();
+        assert!((u - 100.0).abs() < 1e-9 && (v - 300.0).abs() < 1e-9);
     }
 
     #[test]

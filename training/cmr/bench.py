@@ -42,6 +42,7 @@ def bench(models_dir: Path, repeats: int = 20, threads: int = 2) -> dict:
         names = [i.name for i in sess.get_inputs()]
         feeds = {n: t.numpy() for n, t in zip(names, example_inputs(name, **kwargs))}
         out[f"{name}_ms"] = round(time_graph(sess, feeds, repeats), 2)
+    out["onnxruntime"] = ort.__version__
     return out
 
 

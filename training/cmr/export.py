@@ -16,6 +16,7 @@ import json
 import os
 import subprocess
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -93,7 +94,9 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
 def onnx_bytes(name: str, module: torch.nn.Module) -> bytes:
     inputs, outputs, dynamic = GRAPH_IO[name]
     buf = io.BytesIO()
-    with torch.no_grad():
+    # The TorchScript exporter is deprecated but yields plain opset-18 graphs with stable names.
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
         torch.onnx.export(module.eval(), example_inputs(name), buf, input_names=inputs, output_names=outputs,
                           dynamic_axes=dynamic or None, opset_version=OPSET, dynamo=False, do_constant_folding=True)
     return buf.getvalue()

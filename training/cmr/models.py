@@ -35,8 +35,8 @@ def conv_bn(cin: int, cout: int, k: int = 3, stride: int = 1) -> nn.Sequential:
 
 
 def point_mlp(cin: int, cout: int) -> nn.Sequential:
-    """A shared per-point layer on [B, C, N] tensors."""
-    return nn.Sequential(nn.Conv1d(cin, cout, 1, bias=False), nn.BatchNorm1d(cout), nn.ReLU(inplace=True))
+    """A shared per-point layer on [B, N, C] tensors (a plain MatMul: faster than Conv1d+BN on CPU)."""
+    return nn.Sequential(nn.Linear(cin, cout), nn.ReLU(inplace=True))
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,7 @@ class PointEncoder(nn.Module):
         self.local = nn.Sequential(point_mlp(4, width), point_mlp(width, width))
         self.bev = nn.Sequential(conv_bn(width, 48, stride=2), conv_bn(48, 48), conv_bn(48, 48))
         self.bev_out = conv_bn(48 + width, 48, k=1)
-        self.head = nn.Sequential(point_mlp(width + 48, 64), nn.Conv1d(64, FEATURE_DIM, 1))
+        self.head = nn.Sequential(point_mlp(width + 48, 64), nn.Linear(64, FEATURE_DIM))
 
     def cell_index(self, centred: torch.Tensor) -> torch.Tensor:
         g = self.grid
@@ -71,8 +71,8 @@ class PointEncoder(nn.Module):
         # Height and the in-cell offset are yaw-agnostic local cues; the CNN supplies the layout.
         offset = centred[..., :2] / g.cell_m - torch.floor(centred[..., :2] / g.cell_m) - 0.5
         radius = torch.sqrt((centred[..., :2] ** 2).sum(-1, keepdim=True)) / 40.0
-        x = torch.cat([centred[..., 2:3] / 3.0, offset, radius], dim=-1).transpose(1, 2)  # [B, 4, N]
-        local = self.local(x)  # [B, C, N], >= 0 after ReLU
+        x = torch.cat([centred[..., 2:3] / 3.0, offset, radius], dim=-1)  # [B, N, 4]
+        local = self.local(x).transpose(1, 2)  # [B, C, N], >= 0 after ReLU
         c = local.shape[1]
         idx = self.cell_index(centred).unsqueeze(1).expand(b, c, n)
         # Zeros built from `local` so the exported graph keeps a static rank for the grid.
@@ -83,7 +83,7 @@ class PointEncoder(nn.Module):
         ctx = F.interpolate(ctx, scale_factor=2.0, mode="nearest")
         ctx = self.bev_out(torch.cat([ctx, grid], dim=1)).flatten(2)
         gathered = ctx.gather(2, idx[:, :1].expand(b, ctx.shape[1], n))
-        out = self.head(torch.cat([local, gathered], dim=1)).transpose(1, 2)
+        out = self.head(torch.cat([local, gathered], dim=1).transpose(1, 2))
         return l2_normalise(out, dim=-1)
 
 
@@ -136,14 +136,13 @@ class Agent(nn.Module):
     def __init__(self, state_dim: int = 128):
         super().__init__()
         self.cnn = nn.Sequential(
-            nn.Conv2d(2 * FEATURE_DIM, 32, 1), nn.ReLU(inplace=True),
-            nn.Conv2d(32, 32, 3, 2, 1), nn.ReLU(inplace=True),   # 20 x 64
+            nn.Conv2d(2 * FEATURE_DIM, 16, 1), nn.ReLU(inplace=True),
+            nn.Conv2d(16, 32, 3, 2, 1), nn.ReLU(inplace=True),   # 20 x 64
             nn.Conv2d(32, 48, 3, 2, 1), nn.ReLU(inplace=True),   # 10 x 32
             nn.Conv2d(48, 32, 3, 2, 1), nn.ReLU(inplace=True),   # 5 x 16
         )
         self.fc2d = nn.Sequential(nn.Linear(32 * 5 * 16, state_dim), nn.ReLU(inplace=True))
-        self.pointnet = nn.Sequential(nn.Conv1d(5, 64, 1), nn.ReLU(inplace=True),
-                                      nn.Conv1d(64, 128, 1), nn.ReLU(inplace=True))
+        self.pointnet = nn.Sequential(point_mlp(5, 64), point_mlp(64, 128))
         self.fc3d = nn.Sequential(nn.Linear(128, state_dim), nn.ReLU(inplace=True))
         self.trunk = nn.Sequential(nn.Linear(2 * state_dim, 256), nn.ReLU(inplace=True))
         self.policy = nn.Linear(256, NUM_DOFS * NUM_STEPS)
@@ -151,7 +150,7 @@ class Agent(nn.Module):
 
     def forward(self, state_2d: torch.Tensor, state_3d: torch.Tensor):
         f2 = self.fc2d(self.cnn(state_2d).flatten(1))
-        f3 = self.fc3d(self.pointnet(state_3d.transpose(1, 2)).amax(dim=2))
+        f3 = self.fc3d(self.pointnet(state_3d).amax(dim=1))
         z = self.trunk(torch.cat([f2, f3], dim=1))
         return self.policy(z).view(-1, NUM_DOFS, NUM_STEPS), self.value(z)
 

@@ -1,0 +1,78 @@
+//! `cmr-agent eval`: flags and the entry point.
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+
+use super::pnp::RansacOptions;
+use super::run::{EvalConfig, run};
+
+#[derive(Debug, clap::Args)]
+pub struct Args {
+    /// KITTI-odometry data: a dataset root, a directory of sequences, or one sequence.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Frozen test cases: read if the file exists, else drawn from --seed and written there.
+    #[arg(long)]
+    pub perturbations: PathBuf,
+    /// Output directory for eval.json, cases.json, tables.md and the Fig. 5 PNGs.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Model directory (manifest.json + four ONNX graphs). Without it only the expert and
+    /// no-op reference methods run.
+    #[arg(long, env = "CMR_MODELS")]
+    pub models: Option<PathBuf>,
+    /// Path of libonnxruntime.so (otherwise the project's usual search).
+    #[arg(long, env = "ORT_DYLIB_PATH")]
+    pub ort_lib: Option<PathBuf>,
+    /// ONNX Runtime intra-op threads.
+    #[arg(long, default_value_t = 2)]
+    pub threads: usize,
+    /// Agent (and expert) iterations K; every iteration 1..K is reported.
+    #[arg(long, default_value_t = 10)]
+    pub iterations: usize,
+    /// Seed of the perturbations when the file is created.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Use every n-th frame when creating the perturbation file.
+    #[arg(long, default_value_t = 1)]
+    pub frame_stride: usize,
+    /// At most this many cases when creating the perturbation file.
+    #[arg(long)]
+    pub max_cases: Option<usize>,
+    /// RANSAC iterations of the one-shot baseline.
+    #[arg(long, default_value_t = 1000)]
+    pub ransac_iterations: usize,
+    /// RANSAC inlier threshold in pixels of the model's 512×160 crop.
+    #[arg(long, default_value_t = 8.0)]
+    pub inlier_px: f64,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+pub fn main(args: Args) -> Result<()> {
+    if args.iterations == 0 {
+        anyhow::bail!("--iterations must be at least 1");
+    }
+    let config = EvalConfig {
+        data: args.data,
+        perturbations: args.perturbations,
+        out: args.out,
+        models: args.models,
+        ort_lib: args.ort_lib,
+        threads: args.threads.max(1),
+        iterations: args.iterations,
+        seed: args.seed,
+        frame_stride: args.frame_stride,
+        max_cases: args.max_cases,
+        num_points: 40_960,
+        ransac: RansacOptions { iterations: args.ransac_iterations, inlier_px: args.inlier_px, ..RansacOptions::default() },
+        progress: !args.quiet,
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+    };
+    let report = run(&config)?;
+    print!("{}", report.markdown());
+    eprintln!("wrote {}/{{eval.json,cases.json,tables.md,fig5_rotation.png,fig5_translation.png}}", config.out.display());
+    Ok(())
+}

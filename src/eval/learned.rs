@@ -1,0 +1,235 @@
+//! The two learned methods, sharing one model backend and one map embedding per case:
+//! - the CMR agent, through the server's own synchronous path (`agent::prepare_map`,
+//!   `agent::prepare_image`, `agent::localize`);
+//! - the one-shot baseline on the same embeddings: points the frustum head predicts in view,
+//!   mutual-nearest-neighbour feature matches against the image feature grid, then the
+//!   ground-plane 2-point RANSAC solver (`pnp`).
+
+use std::collections::BTreeMap;
+use std::time::Instant;
+
+use anyhow::Result;
+use serde_json::json;
+
+use crate::agent::{self, PreparedMap};
+use crate::model::Backend;
+
+use super::matching::{cell_centre, mutual_nearest};
+use super::methods::{EvalCase, Method, MethodRun, pad_to};
+use super::pnp::{Correspondence, GroundPnp, RansacOptions};
+
+pub const AGENT: &str = "cmr-agent";
+pub const BASELINE: &str = "one-shot matching + RANSAC";
+
+pub struct Learned {
+    backend: Backend,
+    iterations: usize,
+    ransac: RansacOptions,
+}
+
+impl Learned {
+    pub fn new(backend: Backend, iterations: usize, ransac: RansacOptions) -> Self {
+        Learned { backend, iterations, ransac }
+    }
+
+    /// Parameters each method runs: the agent all four graphs, the baseline all but the agent.
+    pub fn parameters(graphs: &BTreeMap<String, u64>) -> BTreeMap<String, u64> {
+        let sum = |names: &[&str]| names.iter().filter_map(|n| graphs.get(*n)).sum::<u64>();
+        let encoders = ["point_encoder", "image_encoder", "frustum_head"];
+        BTreeMap::from([(AGENT.to_string(), sum(&[&encoders[..], &["agent"]].concat())), (BASELINE.to_string(), sum(&encoders))])
+    }
+
+    fn run_agent(&mut self, case: &EvalCase, map: &PreparedMap) -> Result<MethodRun> {
+        let start = Instant::now();
+        let manifest = self.backend.manifest().clone();
+        let (tensor, crop_intrinsics) = agent::prepare_image(&case.image, &case.intrinsics, &manifest)?;
+        let image_ms = ms(start);
+        let loc = agent::localize(&mut self.backend, map, &tensor, crop_intrinsics, case.initial, self.iterations)?;
+        let t = loc.timings;
+        // localize reports one total for all steps; each step does the same work, so the time to
+        // reach step k is the time before the loop plus k equal shares of it.
+        let before_loop = image_ms + t.image_encoder_ms + t.frustum_head_ms;
+        let per_step = t.agent_steps_ms / loc.steps.len().max(1) as f64;
+        let poses = loc.steps.iter().map(|s| s.camera_from_map).collect();
+        let elapsed = (1..=loc.steps.len()).map(|k| before_loop + per_step * k as f64).collect();
+        let (poses, elapsed_ms) = pad_to(poses, elapsed, self.iterations, case.initial);
+        Ok(MethodRun {
+            method: AGENT.into(),
+            poses,
+            elapsed_ms,
+            phases_ms: vec![
+                ("image preprocessing".into(), image_ms),
+                ("image encoder".into(), t.image_encoder_ms),
+                ("frustum head".into(), t.frustum_head_ms),
+                ("agent steps".into(), t.agent_steps_ms),
+            ],
+            notes: json!({ "iterations_run": loc.steps.len(), "converged": loc.converged, "confidence": loc.confidence.score }),
+        })
+    }
+
+    fn run_baseline(&mut self, case: &EvalCase, map: &PreparedMap) -> Result<MethodRun> {
+        let start = Instant::now();
+        let manifest = self.backend.manifest().clone();
+        let (tensor, crop_intrinsics) = agent::prepare_image(&case.image, &case.intrinsics, &manifest)?;
+        let image_ms = ms(start);
+        let t = Instant::now();
+        let image_features = self.backend.encode_image(&tensor)?;
+        let encoder_ms = ms(t);
+        let t = Instant::now();
+        let logits = self.backend.frustum_logits(&map.features, &image_features)?;
+        let frustum_ms = ms(t);
+        let t = Instant::now();
+        let grid = FeatureGrid { dim: manifest.features.dim, stride: manifest.features.stride, grid_width: manifest.features.grid_width };
+        let (in_view, correspondences) = one_shot_correspondences(&map.points, &map.features, &logits, &image_features, grid);
+        let matching_ms = ms(t);
+        let t = Instant::now();
+        let solution = GroundPnp::new(case.initial, crop_intrinsics).solve_ransac(&correspondences, &self.ransac);
+        let ransac_ms = ms(t);
+        // No solution: the method answers with the initial pose (and so fails the case).
+        let pose = solution.map_or(case.initial, |s| s.camera_from_map);
+        Ok(MethodRun {
+            method: BASELINE.into(),
+            poses: vec![pose],
+            elapsed_ms: vec![ms(start)],
+            phases_ms: vec![
+                ("image preprocessing".into(), image_ms),
+                ("image encoder".into(), encoder_ms),
+                ("frustum head".into(), frustum_ms),
+                ("matching".into(), matching_ms),
+                ("RANSAC + refinement".into(), ransac_ms),
+            ],
+            notes: json!({
+                "predicted_in_view": in_view,
+                "matches": correspondences.len(),
+                "inliers": solution.map_or(0, |s| s.inliers),
+                "solved": solution.is_some(),
+            }),
+        })
+    }
+}
+
+/// The shape of the image feature grid, from the manifest.
+#[derive(Debug, Clone, Copy)]
+pub struct FeatureGrid {
+    pub dim: usize,
+    pub stride: usize,
+    pub grid_width: usize,
+}
+
+/// The baseline's matching stage: the points the frustum head predicts in view (logit > 0),
+/// matched to image cells by mutual nearest neighbours, each match as (map point, cell-centre
+/// pixel in the model's crop). Returns the number of predicted-in-view points and the matches.
+pub fn one_shot_correspondences(
+    points: &[[f32; 3]],
+    point_features: &[f32],
+    frustum_logits: &[f32],
+    image_features: &[f32],
+    grid: FeatureGrid,
+) -> (usize, Vec<Correspondence>) {
+    let in_view: Vec<usize> = (0..frustum_logits.len().min(points.len())).filter(|&i| frustum_logits[i] > 0.0).collect();
+    let matches = mutual_nearest(point_features, grid.dim, &in_view, image_features);
+    let correspondences = matches
+        .iter()
+        .map(|m| {
+            let p = points[m.point];
+            Correspondence {
+                point: nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64),
+                pixel: cell_centre(m.cell, grid.grid_width, grid.stride),
+            }
+        })
+        .collect();
+    (in_view.len(), correspondences)
+}
+
+impl Method for Learned {
+    fn names(&self) -> Vec<String> {
+        vec![AGENT.into(), BASELINE.into()]
+    }
+
+    fn run(&mut self, case: &EvalCase) -> Result<Vec<MethodRun>> {
+        let t = Instant::now();
+        let map = agent::prepare_map(&mut self.backend, &case.map_cloud)?;
+        let prepare_ms = ms(t);
+        let mut agent_run = self.run_agent(case, &map)?;
+        // Once per map (the server caches it), so it is reported apart from per-request times.
+        agent_run.notes["map_prepare_ms"] = json!(prepare_ms);
+        Ok(vec![agent_run, self.run_baseline(case, &map)?])
+    }
+}
+
+fn ms(since: Instant) -> f64 {
+    since.elapsed().as_secs_f64() * 1e3
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::agent::StateLayout;
+    use crate::eval::methods::tests::case;
+    use crate::geometry::{Intrinsics, PoseError};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// With embeddings that are perfect up to noise (each point carries the random feature of
+    /// the cell it truly projects to), the baseline's glue — frustum selection, cell indexing,
+    /// crop intrinsics, map frame, rig — must recover the ground truth to cell precision.
+    #[test]
+    fn ideal_embeddings_give_the_true_pose() {
+        let c = case(-140.0, 7.0, -6.0);
+        let layout = StateLayout {
+            dim: 64,
+            stride: 4,
+            grid_height: 40,
+            grid_width: 128,
+            image_width: 512,
+            image_height: 160,
+            num_state_points: 16,
+            xyz_scale_m: 10.0,
+        };
+        let k = Intrinsics { fx: 359.0, fy: 359.0, cx: 255.5, cy: 79.5 };
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let unit = |rng: &mut ChaCha8Rng| {
+            let v: Vec<f32> = (0..64).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+            let n = v.iter().map(|x| x * x).sum::<f32>().sqrt();
+            v.into_iter().map(|x| x / n).collect::<Vec<f32>>()
+        };
+        let cells = layout.cells();
+        let cell_features: Vec<Vec<f32>> = (0..cells).map(|_| unit(&mut rng)).collect();
+        let mut image = vec![0f32; 64 * cells];
+        for (cell, f) in cell_features.iter().enumerate() {
+            for (ch, v) in f.iter().enumerate() {
+                image[ch * cells + cell] = *v;
+            }
+        }
+        // Dense points in front of the true camera, so many cells are hit.
+        let inverse = c.truth.inverse();
+        let mut points = Vec::new();
+        for _ in 0..3000 {
+            let p_cam = k.back_project(rng.random_range(0.0..511.0), rng.random_range(0.0..159.0), rng.random_range(4.0..30.0));
+            let p = inverse.transform(&p_cam);
+            points.push([p.x as f32, p.y as f32, p.z as f32]);
+        }
+        points.extend(c.map_points.iter().copied()); // plus the case's own cloud, mostly out of view
+        let mut features = Vec::with_capacity(points.len() * 64);
+        let mut logits = Vec::with_capacity(points.len());
+        for p in &points {
+            let p_cam = c.truth.transform(&nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64));
+            match layout.cell_of(&k, &p_cam) {
+                Some(cell) => {
+                    features.extend(cell_features[cell].iter().map(|v| v + rng.random_range(-0.02..0.02)));
+                    logits.push(3.0);
+                }
+                None => {
+                    features.extend(unit(&mut rng));
+                    logits.push(-3.0);
+                }
+            }
+        }
+        let grid = FeatureGrid { dim: 64, stride: 4, grid_width: 128 };
+        let (in_view, matches) = one_shot_correspondences(&points, &features, &logits, &image, grid);
+        assert!(in_view >= 3000 && matches.len() > 500, "{in_view} {}", matches.len());
+        let solution = GroundPnp::new(c.initial, k).solve_ransac(&matches, &RansacOptions::default()).unwrap();
+        let e = PoseError::between(&solution.camera_from_map, &c.truth);
+        assert!(e.rte_m < 0.1 && e.rre_geodesic_deg < 0.2, "{e:?}");
+    }
+}

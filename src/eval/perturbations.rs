@@ -1,0 +1,197 @@
+//! The frozen test cases: one random map-frame motion Q per evaluated frame.
+//!
+//! Drawn once from a seed and written to a JSON file; every later run (on any machine) reads the
+//! file back, so two evaluations compare exactly the same cases. Q = rotation about the map's z
+//! axis by `yaw_deg` ∈ [−180°, 180°), then translation (`dx_m`, `dy_m`) ∈ [−10, 10] m each; the
+//! map is Q·scan and the ground truth camera_from_map is camera_from_lidar · Q⁻¹.
+
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::geometry::Pose;
+
+pub const FORMAT: &str = "cmr-agent-perturbations/1";
+/// The seed of the N-point sampling (ChaCha8) every Rust code path uses; recorded so that a
+/// file made by a build with another sampling is refused instead of silently compared.
+pub const SAMPLING_SEED: u64 = 0;
+pub const MAX_YAW_DEG: f64 = 180.0;
+pub const MAX_SHIFT_M: f64 = 10.0;
+
+/// One evaluated case.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Perturbation {
+    pub sequence: String,
+    pub frame: usize,
+    pub yaw_deg: f64,
+    pub dx_m: f64,
+    pub dy_m: f64,
+}
+
+impl Perturbation {
+    /// Q: the motion applied to the scan to make the map.
+    pub fn map_from_lidar(&self) -> Pose {
+        Pose::ground_motion(self.yaw_deg.to_radians(), self.dx_m, self.dy_m)
+    }
+
+    /// Ground truth camera_from_map for a rig with this `camera_from_lidar`.
+    pub fn truth(&self, camera_from_lidar: &Pose) -> Pose {
+        camera_from_lidar.compose(&self.map_from_lidar().inverse())
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PerturbationFile {
+    pub format: String,
+    /// The seed the motions were drawn from.
+    pub seed: u64,
+    /// The seed of the N-point sampling (see [`SAMPLING_SEED`]).
+    pub sampling_seed: u64,
+    pub cases: Vec<Perturbation>,
+}
+
+impl PerturbationFile {
+    /// Draws one motion per frame, in the order given, from `seed`.
+    pub fn generate(frames: &[(String, usize)], seed: u64) -> Self {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let cases = frames
+            .iter()
+            .map(|(sequence, frame)| Perturbation {
+                sequence: sequence.clone(),
+                frame: *frame,
+                yaw_deg: micro(rng.random_range(-MAX_YAW_DEG..MAX_YAW_DEG)).clamp(-MAX_YAW_DEG, MAX_YAW_DEG - 1e-6),
+                dx_m: micro(rng.random_range(-MAX_SHIFT_M..=MAX_SHIFT_M)),
+                dy_m: micro(rng.random_range(-MAX_SHIFT_M..=MAX_SHIFT_M)),
+            })
+            .collect();
+        PerturbationFile { format: FORMAT.into(), seed, sampling_seed: SAMPLING_SEED, cases }
+    }
+
+    pub fn read(path: &Path) -> Result<Self> {
+        let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let file: PerturbationFile = serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+        file.validate().with_context(|| format!("checking {}", path.display()))?;
+        Ok(file)
+    }
+
+    pub fn validate(&self) -> Result<()> {
+        if self.format != FORMAT {
+            bail!("unknown perturbation file format {:?} (this build reads {FORMAT:?})", self.format);
+        }
+        if self.sampling_seed != SAMPLING_SEED {
+            bail!("the file was made with point-sampling seed {}, this build samples with {SAMPLING_SEED}", self.sampling_seed);
+        }
+        if self.cases.is_empty() {
+            bail!("the file lists no cases");
+        }
+        for (i, c) in self.cases.iter().enumerate() {
+            let finite = c.yaw_deg.is_finite() && c.dx_m.is_finite() && c.dy_m.is_finite();
+            if !finite || c.yaw_deg.abs() > MAX_YAW_DEG || c.dx_m.abs() > MAX_SHIFT_M || c.dy_m.abs() > MAX_SHIFT_M {
+                bail!("case {i} ({} frame {}) is outside the protocol's range", c.sequence, c.frame);
+            }
+        }
+        Ok(())
+    }
+
+    /// Writes atomically (temporary file in the same directory, fsync, rename).
+    pub fn write(&self, path: &Path) -> Result<()> {
+        let json = serde_json::to_string_pretty(self)?;
+        write_atomic(path, json.as_bytes())
+    }
+
+    /// Reads `path` when it exists; otherwise draws the cases for `frames` from `seed` and
+    /// writes them there. Returns the file and whether it was created. Either way the cases are
+    /// the ones parsed from the file, so every run evaluates the file's text, bit for bit.
+    pub fn load_or_create(path: &Path, frames: &[(String, usize)], seed: u64) -> Result<(Self, bool)> {
+        if path.exists() {
+            return Ok((Self::read(path)?, false));
+        }
+        let file = Self::generate(frames, seed);
+        file.validate()?;
+        file.write(path)?;
+        Ok((Self::read(path)?, true))
+    }
+}
+
+/// Rounds to 1e-6 (µm, µdeg): short, exact-looking numbers in the file.
+fn micro(x: f64) -> f64 {
+    (x * 1e6).round() / 1e6
+}
+
+/// Temporary file in the same directory, fsync, rename: readers see the old or the new file.
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    use std::io::Write;
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let name = path.file_name().context("output path has no file name")?.to_string_lossy();
+    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
+    let result = (|| -> std::io::Result<()> {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result.with_context(|| format!("writing {}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::PoseError;
+
+    fn frames() -> Vec<(String, usize)> {
+        (0..20).map(|i| (format!("{:02}", i % 2), i)).collect()
+    }
+
+    #[test]
+    fn same_seed_same_cases_and_the_file_round_trips() {
+        let a = PerturbationFile::generate(&frames(), 7);
+        assert_eq!(a, PerturbationFile::generate(&frames(), 7));
+        assert_ne!(a, PerturbationFile::generate(&frames(), 8));
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cases.json");
+        let (created, fresh) = PerturbationFile::load_or_create(&path, &frames(), 7).unwrap();
+        assert!(fresh);
+        // A second run reads the file, whatever seed or frames it is given.
+        let (read, fresh) = PerturbationFile::load_or_create(&path, &frames()[..3], 99).unwrap();
+        assert!(!fresh);
+        assert_eq!(read, created);
+        assert_eq!(read, a);
+        assert!(a.cases.iter().all(|c| c.yaw_deg >= -180.0 && c.yaw_deg < 180.0 && c.dx_m.abs() <= 10.0));
+    }
+
+    #[test]
+    fn foreign_or_broken_files_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cases.json");
+        let mut file = PerturbationFile::generate(&frames(), 1);
+        file.sampling_seed = 5;
+        std::fs::write(&path, serde_json::to_string(&file).unwrap()).unwrap();
+        assert!(PerturbationFile::read(&path).unwrap_err().to_string().contains("checking"));
+        file.sampling_seed = SAMPLING_SEED;
+        file.cases[0].dx_m = 30.0;
+        file.write(&path).unwrap();
+        assert!(PerturbationFile::read(&path).is_err());
+        std::fs::write(&path, "{").unwrap();
+        assert!(PerturbationFile::read(&path).is_err());
+    }
+
+    #[test]
+    fn truth_undoes_the_map_motion() {
+        let case = Perturbation { sequence: "00".into(), frame: 0, yaw_deg: 30.0, dx_m: 3.0, dy_m: -4.0 };
+        let rig = Pose::ground_motion(0.1, 0.5, 0.2);
+        let truth = case.truth(&rig);
+        let p = nalgebra::Point3::new(5.0, 1.0, -1.5);
+        let moved = case.map_from_lidar().transform(&p);
+        assert!((truth.transform(&moved) - rig.transform(&p)).norm() < 1e-12);
+        // Starting at the rig pose, the error is the perturbation itself.
+        let e = PoseError::between(&rig, &truth);
+        assert!((e.rre_geodesic_deg - 30.0).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,123 @@
+//! PNG plots of success rate against rotation and translation thresholds (the paper's Fig. 5),
+//! drawn with plotters into a memory buffer and encoded with the `image` crate.
+
+use std::path::Path;
+use std::sync::Once;
+
+use anyhow::{Result, anyhow};
+use plotters::prelude::*;
+
+use super::perturbations::write_atomic;
+use super::report::EvalReport;
+
+/// DejaVu Sans (Bitstream Vera licence, see assets/fonts/DejaVuSans.LICENSE): plotters'
+/// bitmap backend has no system-font access without extra native libraries.
+static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
+static REGISTER: Once = Once::new();
+
+const PALETTE: [RGBColor; 6] = [
+    RGBColor(214, 39, 40),
+    RGBColor(31, 119, 180),
+    RGBColor(44, 160, 44),
+    RGBColor(127, 127, 127),
+    RGBColor(148, 103, 189),
+    RGBColor(255, 127, 14),
+];
+
+fn register_font() {
+    REGISTER.call_once(|| {
+        // A bundled, known-good TTF: failure here is a build defect, reported by the tests.
+        if plotters::style::register_font("sans-serif", FontStyle::Normal, FONT).is_err() {
+            tracing::error!("bundled font failed to load; plot text will be missing");
+        }
+    });
+}
+
+/// One line per method: (name, y values in 0..1 at `xs`).
+pub fn success_plot(path: &Path, title: &str, x_label: &str, xs: &[f64], series: &[(String, Vec<f64>)]) -> Result<()> {
+    register_font();
+    let (w, h) = (800u32, 520u32);
+    let mut buffer = vec![0u8; (w * h * 3) as usize];
+    let x_max = xs.last().copied().unwrap_or(1.0);
+    {
+        let root = BitMapBackend::with_buffer(&mut buffer, (w, h)).into_drawing_area();
+        let err = |e| anyhow!("plotting {}: {e:?}", path.display());
+        root.fill(&WHITE).map_err(err)?;
+        let mut chart = ChartBuilder::on(&root)
+            .caption(title, ("sans-serif", 24))
+            .margin(16)
+            .x_label_area_size(48)
+            .y_label_area_size(60)
+            .build_cartesian_2d(0f64..x_max, 0f64..102f64)
+            .map_err(err)?;
+        chart
+            .configure_mesh()
+            .x_desc(x_label)
+            .y_desc("success rate (%)")
+            .label_style(("sans-serif", 15))
+            .axis_desc_style(("sans-serif", 17))
+            .draw()
+            .map_err(err)?;
+        for (i, (name, ys)) in series.iter().enumerate() {
+            let color = PALETTE[i % PALETTE.len()];
+            chart
+                .draw_series(LineSeries::new(xs.iter().zip(ys).map(|(x, y)| (*x, 100.0 * y)), color.stroke_width(3)))
+                .map_err(err)?
+                .label(name.as_str())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 24, y)], color.stroke_width(3)));
+        }
+        chart
+            .configure_series_labels()
+            .label_font(("sans-serif", 16))
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .position(SeriesLabelPosition::LowerRight)
+            .draw()
+            .map_err(err)?;
+        root.present().map_err(err)?;
+    }
+    let image = image::RgbImage::from_raw(w, h, buffer).ok_or_else(|| anyhow!("plot buffer has the wrong size"))?;
+    let mut png = Vec::new();
+    image.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
+    write_atomic(path, &png)
+}
+
+/// The two Fig. 5 panels for every method of the report, at each method's last iteration.
+pub fn write_figure5(report: &EvalReport, out_dir: &Path) -> Result<()> {
+    let series = |pick: fn(&super::report::MethodReport) -> &Vec<f64>| -> Vec<(String, Vec<f64>)> {
+        report.methods.iter().map(|m| (m.method.clone(), pick(m).clone())).collect()
+    };
+    success_plot(
+        &out_dir.join("fig5_rotation.png"),
+        &format!("Success rate vs rotation threshold ({} cases)", report.cases),
+        "RRE threshold (°, Euler sum)",
+        &report.rotation_thresholds_deg,
+        &series(|m| &m.rotation_curve),
+    )?;
+    success_plot(
+        &out_dir.join("fig5_translation.png"),
+        &format!("Success rate vs translation threshold ({} cases)", report.cases),
+        "RTE threshold (m)",
+        &report.translation_thresholds_m,
+        &series(|m| &m.translation_curve),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn writes_a_png_with_text_and_lines() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("plot.png");
+        let xs: Vec<f64> = (0..=10).map(f64::from).collect();
+        let ys: Vec<f64> = xs.iter().map(|x| x / 10.0).collect();
+        success_plot(&path, "title", "x (m)", &xs, &[("a".into(), ys.clone()), ("b".into(), ys.iter().map(|y| y * y).collect())]).unwrap();
+        let img = image::open(&path).unwrap().to_rgb8();
+        assert_eq!(img.dimensions(), (800, 520));
+        // Red line pixels and dark text pixels both exist.
+        assert!(img.pixels().any(|p| p.0 == [214, 39, 40]));
+        assert!(img.pixels().filter(|p| p.0[0] < 60 && p.0[1] < 60 && p.0[2] < 60).count() > 200);
+    }
+}

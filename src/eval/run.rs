@@ -1,0 +1,286 @@
+//! The evaluation run: cases in, every method on every case, records and report out.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressStyle};
+
+use crate::geometry::{ActionSet, PoseError};
+use crate::model::{BackendOptions, ModelSet};
+
+use super::data::Dataset;
+use super::learned::{AGENT, Learned};
+use super::methods::{EvalCase, Expert, Method, NoOp};
+use super::perturbations::{PerturbationFile, write_atomic};
+use super::pnp::RansacOptions;
+use super::plots::write_figure5;
+use super::report::{CaseRecord, EvalReport, Resources, rotation_thresholds, summarise, translation_thresholds};
+use super::summary::MeanStd;
+
+/// Everything one evaluation needs (the CLI fills it from flags).
+#[derive(Debug, Clone)]
+pub struct EvalConfig {
+    pub data: PathBuf,
+    pub perturbations: PathBuf,
+    pub out: PathBuf,
+    /// Model directory (manifest + four graphs); without it only the reference methods run.
+    pub models: Option<PathBuf>,
+    pub ort_lib: Option<PathBuf>,
+    pub threads: usize,
+    pub iterations: usize,
+    pub seed: u64,
+    pub frame_stride: usize,
+    pub max_cases: Option<usize>,
+    /// N when no model is given (the model's manifest decides otherwise).
+    pub num_points: usize,
+    pub ransac: RansacOptions,
+    pub progress: bool,
+    /// The command line, recorded in the outputs.
+    pub command: String,
+}
+
+/// Runs every method on every case; one record per (case, method).
+pub fn evaluate(
+    cases: impl Iterator<Item = Result<EvalCase>>,
+    methods: &mut [Box<dyn Method>],
+    progress: &ProgressBar,
+) -> Result<Vec<CaseRecord>> {
+    let mut records = Vec::new();
+    for case in cases {
+        let case = case?;
+        for method in methods.iter_mut() {
+            let runs = method
+                .run(&case)
+                .with_context(|| format!("{:?} on sequence {} frame {}", method.names(), case.perturbation.sequence, case.perturbation.frame))?;
+            for run in runs {
+                records.push(CaseRecord {
+                    sequence: case.perturbation.sequence.clone(),
+                    frame: case.perturbation.frame,
+                    errors: run.poses.iter().map(|p| PoseError::between(p, &case.truth)).collect(),
+                    method: run.method,
+                    elapsed_ms: run.elapsed_ms,
+                    phases_ms: run.phases_ms.into_iter().collect(),
+                    notes: run.notes,
+                });
+            }
+        }
+        progress.inc(1);
+    }
+    progress.finish_and_clear();
+    Ok(records)
+}
+
+/// Peak resident set size of this process (Linux `VmHWM`).
+pub fn peak_rss_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb * 1024)
+}
+
+/// The whole command: load, evaluate, write `eval.json`, `cases.json`, `tables.md` and the plots.
+pub fn run(config: &EvalConfig) -> Result<EvalReport> {
+    let dataset = Dataset::open(&config.data)?;
+    let frames = dataset.frames(config.frame_stride, config.max_cases);
+    let (file, created) = PerturbationFile::load_or_create(&config.perturbations, &frames, config.seed)?;
+    if created {
+        tracing::info!(cases = file.cases.len(), path = %config.perturbations.display(), seed = config.seed, "wrote new perturbation file");
+    } else {
+        tracing::info!(cases = file.cases.len(), path = %config.perturbations.display(), "read perturbation file");
+    }
+
+    let mut methods: Vec<Box<dyn Method>> = Vec::new();
+    let mut graph_parameters = BTreeMap::new();
+    let (mut num_points, mut actions) = (config.num_points, ActionSet::default());
+    let mut learned_index = None;
+    if let Some(dir) = &config.models {
+        let set = ModelSet::load(dir, BackendOptions { intra_threads: config.threads, ort_lib: config.ort_lib.clone() })?;
+        num_points = set.manifest.points.num_points;
+        actions = set.manifest.action_set();
+        if let Some(map) = set.manifest.parameters.as_object() {
+            graph_parameters = map.iter().filter_map(|(k, v)| v.as_u64().map(|n| (k.clone(), n))).collect();
+        }
+        learned_index = Some(methods.len());
+        methods.push(Box::new(Learned::new(set.backend()?, config.iterations, config.ransac)));
+    }
+    methods.push(Box::new(Expert { actions, iterations: config.iterations }));
+    methods.push(Box::new(NoOp));
+
+    let progress = if config.progress { ProgressBar::new(file.cases.len() as u64) } else { ProgressBar::hidden() };
+    progress.set_style(ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} cases, eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()));
+    let cases = file.cases.iter().map(|p| dataset.case(p, num_points));
+    let records = evaluate(cases, &mut methods, &progress)?;
+
+    let map_prepare_ms = learned_index.and_then(|_| {
+        let times: Vec<f64> = records
+            .iter()
+            .filter(|r| r.method == AGENT)
+            .filter_map(|r| r.notes.get("map_prepare_ms").and_then(|v| v.as_f64()))
+            .collect();
+        (!times.is_empty()).then(|| MeanStd::of(times))
+    });
+    let parameters = Learned::parameters(&graph_parameters);
+    let report = EvalReport {
+        format: "cmr-agent-eval/1".into(),
+        data: config.data.display().to_string(),
+        perturbations: config.perturbations.display().to_string(),
+        models: config.models.as_ref().map(|p| p.display().to_string()),
+        cases: file.cases.len(),
+        iterations: config.iterations,
+        command: config.command.clone(),
+        created_unix_s: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs()),
+        rotation_thresholds_deg: rotation_thresholds(),
+        translation_thresholds_m: translation_thresholds(),
+        methods: summarise(&records, &parameters),
+        resources: Resources { peak_rss_bytes: peak_rss_bytes(), graph_parameters, map_prepare_ms },
+    };
+    write_outputs(&report, &records, &config.out)?;
+    Ok(report)
+}
+
+pub fn write_outputs(report: &EvalReport, records: &[CaseRecord], out: &Path) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    write_atomic(&out.join("eval.json"), serde_json::to_string_pretty(report)?.as_bytes())?;
+    write_atomic(&out.join("cases.json"), serde_json::to_string(records)?.as_bytes())?;
+    write_atomic(&out.join("tables.md"), report.markdown().as_bytes())?;
+    write_figure5(report, out)
+}
+
+#[cfg(test)]
+pub(crate) mod tests {
+    use super::*;
+    use crate::maps::formats::{PointCloud, write_kitti_bin};
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    /// A tiny KITTI-odometry sequence: random street-like scans, flat grey images, and a
+    /// KITTI-like calibration with the velodyne axes exactly permuted into the camera's.
+    pub(crate) fn write_tiny_sequence(root: &Path, frames: usize) {
+        let seq = root.join("00");
+        std::fs::create_dir_all(seq.join("velodyne")).unwrap();
+        std::fs::create_dir_all(seq.join("image_2")).unwrap();
+        let p = |tx: f64| format!("7.0e+02 0 6.2e+02 {tx} 0 7.0e+02 1.87e+02 0 0 0 1 0");
+        let calib = format!(
+            "P0: {}\nP1: {}\nP2: {}\nP3: {}\nTr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27\n",
+            p(0.0),
+            p(-386.0),
+            p(45.0),
+            p(-337.0)
+        );
+        std::fs::write(seq.join("calib.txt"), calib).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        for f in 0..frames {
+            let xyz: Vec<[f32; 3]> = (0..3000)
+                .map(|_| [rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(-1.7..4.0)])
+                .collect();
+            let cloud = PointCloud { intensity: Some(vec![0.5; xyz.len()]), xyz };
+            std::fs::write(seq.join("velodyne").join(format!("{f:06}.bin")), write_kitti_bin(&cloud)).unwrap();
+            image::RgbImage::from_pixel(1241, 376, image::Rgb([90, 100, 110])).save(seq.join("image_2").join(format!("{f:06}.png"))).unwrap();
+        }
+    }
+
+    pub(crate) fn config(root: &Path, out: &Path) -> EvalConfig {
+        EvalConfig {
+            data: root.to_path_buf(),
+            perturbations: out.join("perturbations.json"),
+            out: out.to_path_buf(),
+            models: None,
+            ort_lib: None,
+            threads: 1,
+            iterations: 10,
+            seed: 3,
+            frame_stride: 1,
+            max_cases: None,
+            num_points: 2048,
+            ransac: RansacOptions::default(),
+            progress: false,
+            command: "test".into(),
+        }
+    }
+
+    #[test]
+    fn reference_methods_on_a_generated_sequence_write_every_output_reproducibly() {
+        let dir = tempfile::tempdir().unwrap();
+        let (data, out) = (dir.path().join("data"), dir.path().join("out"));
+        write_tiny_sequence(&data, 3);
+        let config = config(&data, &out);
+        let report = run(&config).unwrap();
+        assert_eq!(report.cases, 3);
+        for file in ["eval.json", "cases.json", "tables.md", "fig5_rotation.png", "fig5_translation.png", "perturbations.json"] {
+            assert!(out.join(file).is_file(), "{file}");
+        }
+        let names: Vec<&str> = report.methods.iter().map(|m| m.method.as_str()).collect();
+        assert_eq!(names, vec!["expert (oracle)", "no-op"]);
+
+        // No-op: the error is the perturbation itself.
+        let cases = PerturbationFile::read(&config.perturbations).unwrap().cases;
+        let noop = &report.methods[1].summary.all;
+        let expected_rte = cases.iter().map(|c| c.dx_m.hypot(c.dy_m)).sum::<f64>() / 3.0;
+        let expected_rre = cases.iter().map(|c| c.yaw_deg.abs()).sum::<f64>() / 3.0;
+        assert!((noop.rte_m.mean - expected_rte).abs() < 1e-6, "{} vs {expected_rte}", noop.rte_m.mean);
+        assert!((noop.rre_geodesic_deg.mean - expected_rre).abs() < 1e-6);
+        // Expert: near zero after K iterations, all registered.
+        let expert = &report.methods[0];
+        assert_eq!(expert.per_iteration.len(), 10);
+        assert_eq!(expert.summary.registration_recall, 1.0);
+        assert!(expert.summary.all.rte_m.mean < 0.06 && expert.summary.all.rre_geodesic_deg.mean < 0.06);
+
+        // A second run reads the same perturbation file and reproduces the records.
+        let first = std::fs::read_to_string(out.join("cases.json")).unwrap();
+        let again = run(&EvalConfig { seed: 99, ..config }).unwrap();
+        let second = std::fs::read_to_string(out.join("cases.json")).unwrap();
+        let errors = |text: &str| -> Vec<Vec<PoseError>> {
+            serde_json::from_str::<Vec<CaseRecord>>(text).unwrap().into_iter().map(|r| r.errors).collect()
+        };
+        assert_eq!(errors(&first), errors(&second));
+        assert_eq!(again.methods[1].summary, report.methods[1].summary);
+        let tables = std::fs::read_to_string(out.join("tables.md")).unwrap();
+        assert!(tables.contains("## Table 1") && tables.contains("## Table 4: expert (oracle)") && tables.contains("## Table 2"));
+    }
+
+    #[test]
+    fn a_perturbation_file_naming_unknown_frames_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let (data, out) = (dir.path().join("data"), dir.path().join("out"));
+        write_tiny_sequence(&data, 1);
+        let config = config(&data, &out);
+        let mut file = PerturbationFile::generate(&[("00".into(), 0), ("00".into(), 7)], 1);
+        file.cases[1].frame = 7;
+        file.write(&config.perturbations).unwrap();
+        let err = run(&config).unwrap_err();
+        assert!(format!("{err:#}").contains("no frame 7"), "{err:#}");
+    }
+
+    /// The learned methods through real ONNX graphs (the committed tiny contract model): every
+    /// method reports, the agent at every iteration, and each record's first agent pose is
+    /// reachable from the initial pose by one action of the set.
+    #[test]
+    fn learned_methods_run_through_the_server_code_path() {
+        let dir = tempfile::tempdir().unwrap();
+        let (data, out) = (dir.path().join("data"), dir.path().join("out"));
+        write_tiny_sequence(&data, 2);
+        let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model");
+        let config = EvalConfig { models: Some(models), iterations: 4, ..config(&data, &out) };
+        let report = run(&config).unwrap();
+        let names: Vec<&str> = report.methods.iter().map(|m| m.method.as_str()).collect();
+        assert_eq!(names, vec![AGENT, super::super::learned::BASELINE, "expert (oracle)", "no-op"]);
+        let agent = &report.methods[0];
+        assert_eq!(agent.per_iteration.len(), 4);
+        assert!(agent.parameters.unwrap() > report.methods[1].parameters.unwrap());
+        assert!(agent.phases_ms.contains_key("agent steps") && report.methods[1].phases_ms.contains_key("matching"));
+        assert!(report.resources.map_prepare_ms.is_some_and(|m| m.n == 2));
+        assert!(report.resources.peak_rss_bytes.is_some_and(|b| b > 0));
+        let records: Vec<CaseRecord> = serde_json::from_str(&std::fs::read_to_string(out.join("cases.json")).unwrap()).unwrap();
+        assert_eq!(records.len(), 2 * 4);
+        for r in records.iter().filter(|r| r.method == AGENT) {
+            assert_eq!(r.errors.len(), 4);
+            assert!(r.elapsed_ms.windows(2).all(|w| w[0] <= w[1]));
+            assert!(r.notes["iterations_run"].as_u64().unwrap() >= 1);
+        }
+        for r in records.iter().filter(|r| r.method == super::super::learned::BASELINE) {
+            assert_eq!(r.errors.len(), 1);
+            assert!(r.notes["matches"].as_u64().is_some() && r.notes["solved"].is_boolean());
+        }
+    }
+}

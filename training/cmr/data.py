@@ -1,0 +1,183 @@
+"""KITTI-odometry reader and the paper's sample protocol (see the common brief).
+
+A sequence directory holds `calib.txt`, `velodyne/NNNNNN.bin` (float32 x, y, z, intensity) and
+`image_2/NNNNNN.png`. One sample = one frame with:
+- the image resized per `geometry.preprocess_plan` and cropped to 160 x 512 (random crop when
+  training, centre crop otherwise), intrinsics adjusted to the crop, ImageNet-normalised;
+- the scan sampled to N points (random permutation, refilled with replacement when short);
+- a random map-frame motion Q (yaw over the full circle, ground shift within +-10 m):
+  map = Q * scan, truth camera_from_map = camera_from_lidar * Q^-1, initial pose camera_from_lidar;
+- in-frustum labels of every sampled point under the true pose.
+
+Decoded frames (resized image, xyz) are cached in memory: PNG decode dominates on 2 cores.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from . import geometry as g
+
+OUT_W, OUT_H = 512, 160
+NOMINAL_SCALE = 0.5
+IMAGE_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
+IMAGE_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
+
+
+class DataError(ValueError):
+    """A sequence on disk does not follow the KITTI-odometry layout."""
+
+
+@dataclass(frozen=True)
+class Calibration:
+    camera_from_lidar: np.ndarray  # 4x4, velodyne -> rectified image_2 camera
+    intrinsics: np.ndarray  # (fx, fy, cx, cy) of image_2
+
+
+def parse_calib(path: Path) -> Calibration:
+    rows: dict[str, np.ndarray] = {}
+    for line in Path(path).read_text().splitlines():
+        if ":" not in line:
+            continue
+        key, values = line.split(":", 1)
+        try:
+            rows[key.strip()] = np.array([float(v) for v in values.split()])
+        except ValueError as e:
+            raise DataError(f"{path}: bad number in line {key!r}") from e
+    for key in ("P2", "Tr"):
+        if key not in rows or rows[key].size != 12:
+            raise DataError(f"{path}: missing or malformed {key} (need 12 floats)")
+    p2 = rows["P2"].reshape(3, 4)
+    tr = np.eye(4)
+    tr[:3, :] = rows["Tr"].reshape(3, 4)
+    shift = np.eye(4)
+    shift[:3, 3] = (p2[0, 3] / p2[0, 0], p2[1, 3] / p2[1, 1], p2[2, 3])
+    return Calibration(shift @ tr, np.array([p2[0, 0], p2[1, 1], p2[0, 2], p2[1, 2]]))
+
+
+def read_scan(path: Path) -> np.ndarray:
+    raw = np.fromfile(path, dtype=np.float32)
+    if raw.size % 4:
+        raise DataError(f"{path}: size is not a multiple of 4 float32 values")
+    xyz = raw.reshape(-1, 4)[:, :3]
+    return xyz[np.isfinite(xyz).all(axis=1)]
+
+
+@dataclass(frozen=True)
+class Frame:
+    sequence: Path
+    index: int
+    calib: Calibration
+
+    @property
+    def image_path(self) -> Path:
+        return self.sequence / "image_2" / f"{self.index:06d}.png"
+
+    @property
+    def scan_path(self) -> Path:
+        return self.sequence / "velodyne" / f"{self.index:06d}.bin"
+
+
+def list_frames(sequences: list[Path]) -> list[Frame]:
+    frames = []
+    for seq in sequences:
+        seq = Path(seq)
+        if not (seq / "calib.txt").is_file():
+            raise DataError(f"{seq}: no calib.txt (expected a KITTI-odometry sequence directory)")
+        calib = parse_calib(seq / "calib.txt")
+        for scan in sorted((seq / "velodyne").glob("*.bin")):
+            idx = int(scan.stem)
+            if (seq / "image_2" / f"{idx:06d}.png").is_file():
+                frames.append(Frame(seq, idx, calib))
+    if not frames:
+        raise DataError(f"no frames with both velodyne/*.bin and image_2/*.png under {sequences}")
+    return frames
+
+
+def find_sequences(root: Path) -> list[Path]:
+    """`root` itself when it is a sequence, else its `sequences/*` or `*` sub-directories that are."""
+    root = Path(root)
+    if (root / "calib.txt").is_file():
+        return [root]
+    base = root / "sequences" if (root / "sequences").is_dir() else root
+    seqs = sorted(p for p in base.iterdir() if (p / "calib.txt").is_file()) if base.is_dir() else []
+    if not seqs:
+        raise DataError(f"{root}: no KITTI-odometry sequences found")
+    return seqs
+
+
+@lru_cache(maxsize=1024)
+def _decoded(image_path: Path, scan_path: Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """(resized uint8 image HxWx3, xyz float32, original (W, H)); resizing does not depend on the crop."""
+    with Image.open(image_path) as im:
+        im = im.convert("RGB")
+        w, h = im.size
+        plan = g.preprocess_plan(w, h, NOMINAL_SCALE, OUT_W, OUT_H)
+        resized = np.asarray(im.resize((plan["resized_width"], plan["resized_height"]), Image.BILINEAR))
+    return resized, read_scan(scan_path), (w, h)
+
+
+@dataclass
+class Sample:
+    image: np.ndarray  # [3, 160, 512] float32, normalised
+    intrinsics: np.ndarray  # crop intrinsics (fx, fy, cx, cy)
+    points: np.ndarray  # [N, 3] float32, map frame
+    labels: np.ndarray  # [N] bool, in the true frustum
+    truth: np.ndarray  # 4x4 camera_from_map
+    initial: np.ndarray  # 4x4 camera_from_map (the rig calibration)
+    motion: np.ndarray  # Q, 4x4
+
+
+def sample_points(xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    if len(xyz) == 0:
+        raise DataError("empty scan")
+    order = rng.permutation(len(xyz))[:n]
+    if len(order) < n:
+        order = np.concatenate([order, rng.integers(0, len(xyz), n - len(order))])
+    return xyz[order]
+
+
+def colour_jitter(rgb: np.ndarray, rng: np.random.Generator, strength: float = 0.2) -> np.ndarray:
+    """Brightness, contrast and saturation jitter on a float image in [0, 1]."""
+    x = rgb * rng.uniform(1 - strength, 1 + strength)
+    mean = x.mean()
+    x = (x - mean) * rng.uniform(1 - strength, 1 + strength) + mean
+    grey = x.mean(axis=-1, keepdims=True)
+    x = (x - grey) * rng.uniform(1 - strength, 1 + strength) + grey
+    return np.clip(x, 0.0, 1.0)
+
+
+def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points: int = 40960,
+                max_shift_m: float = 10.0) -> Sample:
+    resized, xyz, (w, h) = _decoded(frame.image_path, frame.scan_path)
+    rh, rw = resized.shape[:2]
+    crop = (int(rng.integers(0, rw - OUT_W + 1)), int(rng.integers(0, rh - OUT_H + 1))) if train else None
+    plan = g.preprocess_plan(w, h, NOMINAL_SCALE, OUT_W, OUT_H, crop)
+    x0, y0 = plan["crop_x"], plan["crop_y"]
+    rgb = resized[y0:y0 + OUT_H, x0:x0 + OUT_W].astype(np.float32) / 255.0
+    if train:
+        rgb = colour_jitter(rgb, rng)
+    image = ((rgb - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1).astype(np.float32)
+    k = g.adjust_intrinsics(plan, frame.calib.intrinsics, w, h)
+
+    scan = sample_points(xyz, num_points, rng).astype(np.float64)
+    q = g.ground_motion(rng.uniform(-math.pi, math.pi), *rng.uniform(-max_shift_m, max_shift_m, 2))
+    points = g.transform(q, scan)
+    truth = frame.calib.camera_from_lidar @ g.invert(q)
+    labels = g.in_frustum(k, g.transform(truth, points), OUT_W, OUT_H)
+    return Sample(image=np.ascontiguousarray(image), intrinsics=k, points=points.astype(np.float32),
+                  labels=labels, truth=truth, initial=frame.calib.camera_from_lidar.copy(), motion=q)
+
+
+def split_frames(frames: list[Frame], holdout_every: int) -> tuple[list[Frame], list[Frame]]:
+    """Deterministic hold-out (every k-th frame) for validation when no test set is given."""
+    if holdout_every <= 1:
+        return frames, []
+    return ([f for i, f in enumerate(frames) if i % holdout_every],
+            [f for i, f in enumerate(frames) if not i % holdout_every])

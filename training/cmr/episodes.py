@@ -1,0 +1,159 @@
+"""Registration episodes on frozen one-shot embeddings: batching samples, rolling out a policy
+(agent, expert, or a DAgger mix of both), and the per-step reward."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from . import geometry as g
+from .data import Sample
+from .state import NUM_STATE_POINTS, build_state
+
+REWARD_POINTS = 1024  # true-frustum points used for the point-to-point distance
+
+
+@dataclass
+class Episodes:
+    """B samples with their one-shot embeddings, stacked as tensors on one device."""
+    points: torch.Tensor  # [B, N, 3]
+    point_features: torch.Tensor  # [B, N, 64]
+    image_features: torch.Tensor  # [B, 64, 40, 128]
+    frustum_prob: torch.Tensor  # [B, M]
+    intrinsics: torch.Tensor  # [B, 4]
+    truth: list[np.ndarray]
+    initial: list[np.ndarray]
+    pivots: list[np.ndarray]
+    reward_points: list[np.ndarray]
+
+    def __len__(self) -> int:
+        return len(self.truth)
+
+    def subset(self, rows: list[int]) -> "Episodes":
+        idx = torch.as_tensor(rows, device=self.points.device)
+        pick = lambda xs: [xs[i] for i in rows]  # noqa: E731
+        return Episodes(self.points[idx], self.point_features[idx], self.image_features[idx], self.frustum_prob[idx],
+                        self.intrinsics[idx], pick(self.truth), pick(self.initial), pick(self.pivots),
+                        pick(self.reward_points))
+
+    def replace(self, rows: list[int], other: "Episodes") -> None:
+        """Overwrite entries `rows` with `other` (same order): the agent stage's rolling pool."""
+        idx = torch.as_tensor(rows, device=self.points.device)
+        for name in ("points", "point_features", "image_features", "frustum_prob", "intrinsics"):
+            getattr(self, name)[idx] = getattr(other, name)
+        for name in ("truth", "initial", "pivots", "reward_points"):
+            mine, theirs = getattr(self, name), getattr(other, name)
+            for j, r in enumerate(rows):
+                mine[r] = theirs[j]
+
+    def state(self, poses: list[np.ndarray], rows: list[int] | None = None):
+        rows = list(range(len(self))) if rows is None else rows
+        idx = torch.as_tensor(rows, device=self.points.device)
+        pose_t = torch.as_tensor(np.stack(poses), dtype=torch.float32, device=self.points.device)
+        return build_state(pose_t, self.points[idx], self.intrinsics[idx], self.point_features[idx],
+                           self.image_features[idx], self.frustum_prob[idx])
+
+
+@torch.no_grad()
+def embed(models: dict, samples: list[Sample], device: torch.device) -> Episodes:
+    points = torch.as_tensor(np.stack([s.points for s in samples]), device=device)
+    images = torch.as_tensor(np.stack([s.image for s in samples]), device=device)
+    pf = models["point_encoder"](points)
+    imf = models["image_encoder"](images)
+    prob = torch.sigmoid(models["frustum_head"](pf, imf))[:, :NUM_STATE_POINTS]
+    reward_points = []
+    for s in samples:
+        inside = s.points[s.labels].astype(np.float64)
+        reward_points.append(inside[:REWARD_POINTS] if len(inside) else s.points[:REWARD_POINTS].astype(np.float64))
+    return Episodes(points=points, point_features=pf, image_features=imf, frustum_prob=prob,
+                    intrinsics=torch.as_tensor(np.stack([s.intrinsics for s in samples]), dtype=torch.float32, device=device),
+                    truth=[s.truth for s in samples], initial=[s.initial for s in samples],
+                    pivots=[s.points.astype(np.float64).mean(axis=0) for s in samples], reward_points=reward_points)
+
+
+def embed_many(models: dict, samples: list[Sample], device: torch.device, chunk: int = 4) -> Episodes:
+    """`embed` in chunks (the point encoder's activations for 40,960 points are large)."""
+    parts = [embed(models, samples[i:i + chunk], device) for i in range(0, len(samples), chunk)]
+    cat = lambda name: torch.cat([getattr(p, name) for p in parts])  # noqa: E731
+    join = lambda name: [x for p in parts for x in getattr(p, name)]  # noqa: E731
+    return Episodes(cat("points"), cat("point_features"), cat("image_features"), cat("frustum_prob"),
+                    cat("intrinsics"), join("truth"), join("initial"), join("pivots"), join("reward_points"))
+
+
+def step_pose(pose: np.ndarray, pivot: np.ndarray, action) -> np.ndarray:
+    return g.apply_action(pose, pivot, *g.step_values(action))
+
+
+@dataclass
+class Trajectory:
+    poses: list[list[np.ndarray]]  # [T+1][B] pose before each step (and the final one)
+    actions: np.ndarray  # [T, B, 3]
+    experts: np.ndarray  # [T, B, 3]
+    log_probs: np.ndarray  # [T, B]
+    values: np.ndarray  # [T+1, B]
+    rewards: np.ndarray  # [T, B]
+    states: list | None = None  # [T] of (state_2d [B,...], state_3d [B,...]) when kept for the update
+
+
+@torch.no_grad()
+def rollout(agent, episodes: Episodes, steps: int, mode: str = "greedy", expert_mix: float = 0.0,
+            rng: np.random.Generator | None = None, generator: torch.Generator | None = None,
+            keep_states: bool = False) -> Trajectory:
+    """mode: 'greedy' (argmax), 'sample' (stochastic policy), 'expert' (greedy expert, no agent
+    needed). With expert_mix > 0, each env takes the expert's action with that probability (DAgger)."""
+    b = len(episodes)
+    poses = [list(episodes.initial)]
+    actions = np.zeros((steps, b, 3), dtype=np.int64)
+    experts = np.zeros((steps, b, 3), dtype=np.int64)
+    log_probs = np.zeros((steps, b), dtype=np.float32)
+    values = np.zeros((steps + 1, b), dtype=np.float32)
+    rewards = np.zeros((steps, b), dtype=np.float32)
+    states = [] if keep_states else None
+    for t in range(steps + 1):
+        current = poses[-1]
+        if agent is not None:
+            state = episodes.state(current)
+            logits, value = agent(*state)
+            values[t] = value[:, 0].cpu().numpy()
+            if keep_states and t < steps:
+                states.append(state)
+        if t == steps:
+            break
+        expert = np.array([g.expert_indices(p, episodes.truth[i], episodes.pivots[i]) for i, p in enumerate(current)])
+        experts[t] = expert
+        if mode == "expert" or agent is None:
+            chosen = expert
+        else:
+            dist = torch.distributions.Categorical(logits=logits)
+            if mode == "sample":
+                chosen = torch.multinomial(dist.probs.reshape(-1, logits.shape[-1]), 1, generator=generator).view(b, 3).cpu().numpy()
+            else:
+                chosen = logits.argmax(dim=-1).cpu().numpy()
+            if expert_mix > 0:
+                take = rng.random(b) < expert_mix
+                chosen = np.where(take[:, None], expert, chosen)
+            log_probs[t] = dist.log_prob(torch.as_tensor(chosen, device=logits.device)).sum(-1).cpu().numpy()
+        actions[t] = chosen
+        nxt = []
+        for i, p in enumerate(current):
+            q = step_pose(p, episodes.pivots[i], chosen[i])
+            before = g.p2p_distance(p, episodes.truth[i], episodes.reward_points[i])
+            after = g.p2p_distance(q, episodes.truth[i], episodes.reward_points[i])
+            rewards[t, i] = g.step_reward(before, after)
+            nxt.append(q)
+        poses.append(nxt)
+    return Trajectory(poses, actions, experts, log_probs, values, rewards, states)
+
+
+def gae(rewards: np.ndarray, values: np.ndarray, gamma: float, lam: float) -> tuple[np.ndarray, np.ndarray]:
+    """Advantages and returns; the episode is truncated at T, so the last value bootstraps."""
+    steps = rewards.shape[0]
+    adv = np.zeros_like(rewards)
+    running = np.zeros(rewards.shape[1], dtype=np.float32)
+    for t in reversed(range(steps)):
+        delta = rewards[t] + gamma * values[t + 1] - values[t]
+        running = delta + gamma * lam * running
+        adv[t] = running
+    return adv, adv + values[:-1]

@@ -1,0 +1,121 @@
+"""Validation with the paper's protocol on held-out frames: RTE / RRE (Euler sum and geodesic) / RR
+after each iteration 1..K for the agent (argmax policy) and for the greedy expert, plus what limits
+them: frustum-head precision/recall and embedding match accuracy.
+
+    python -m cmr.evaluate --checkpoint runs/default/best.pt --data /work/data/synth-test --out eval.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from . import geometry as g
+from .data import find_sequences, list_frames, make_sample
+from .episodes import embed, rollout
+from .models import STRIDE
+
+
+def _summarise(errors: list[dict]) -> dict:
+    rte = np.array([e["rte_m"] for e in errors])
+    eul = np.array([e["rre_euler_deg"] for e in errors])
+    geo = np.array([e["rre_geodesic_deg"] for e in errors])
+    ok = (eul < g.RR_MAX_ROTATION_DEG) & (rte < g.RR_MAX_TRANSLATION_M)
+    return dict(rte_m=float(rte.mean()), rre_euler_deg=float(eul.mean()), rre_geodesic_deg=float(geo.mean()),
+                rr=float(ok.mean()), rte_median_m=float(np.median(rte)), rre_euler_median_deg=float(np.median(eul)))
+
+
+def per_iteration(traj, truths) -> list[dict]:
+    out = []
+    for k in range(1, len(traj.poses)):
+        errs = [g.pose_error(p, t) for p, t in zip(traj.poses[k], truths)]
+        out.append(dict(iteration=k, **_summarise(errs)))
+    return out
+
+
+@torch.no_grad()
+def match_accuracy(episodes, samples, max_points: int = 512) -> float:
+    """Share of true-frustum points whose most similar image cell (over the whole 40x128 map) lies
+    within one cell of where the point really projects."""
+    hits, total = 0, 0
+    for i, s in enumerate(samples):
+        idx = np.flatnonzero(s.labels)[:max_points]
+        if len(idx) == 0:
+            continue
+        uv, _ = g.project(s.intrinsics, g.transform(s.truth, s.points[idx].astype(np.float64)))
+        cell = np.floor((uv + 0.5) / STRIDE)
+        feats = episodes.point_features[i, torch.as_tensor(idx)]
+        grid = episodes.image_features[i].flatten(1)  # [64, H*W]
+        best = (feats @ grid).argmax(dim=1).cpu().numpy()
+        w = episodes.image_features.shape[-1]
+        pred = np.stack([best % w, best // w], axis=1)
+        hits += int((np.abs(pred - cell).max(axis=1) <= 1).sum())
+        total += len(idx)
+    return hits / max(total, 1)
+
+
+@torch.no_grad()
+def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_points: int = 40960,
+             chunk: int = 4, device: torch.device | str = "cpu") -> dict:
+    device = torch.device(device)
+    for m in models.values():
+        m.eval()
+    agent_errors: list[list] = [[] for _ in range(iterations)]
+    expert_errors: list[list] = [[] for _ in range(iterations)]
+    tp = fp = fn = 0
+    match_hits = []
+    initial: list[dict] = []
+    for start in range(0, len(frames), chunk):
+        samples = [make_sample(f, np.random.default_rng([seed, start + j]), train=False, num_points=num_points)
+                   for j, f in enumerate(frames[start:start + chunk])]
+        eps = embed(models, samples, device)
+        logits = models["frustum_head"](eps.point_features, eps.image_features).cpu().numpy()
+        for s, lg in zip(samples, logits):
+            pred = lg > 0
+            tp += int((pred & s.labels).sum())
+            fp += int((pred & ~s.labels).sum())
+            fn += int((~pred & s.labels).sum())
+        match_hits.append((match_accuracy(eps, samples), len(samples)))
+        initial.extend(g.pose_error(p, t) for p, t in zip(eps.initial, eps.truth))
+        for errors, traj in ((agent_errors, rollout(models["agent"], eps, iterations, "greedy")),
+                             (expert_errors, rollout(None, eps, iterations, "expert"))):
+            for k in range(iterations):
+                errors[k].extend(g.pose_error(p, t) for p, t in zip(traj.poses[k + 1], eps.truth))
+    return dict(
+        frames=len(frames), seed=seed,
+        initial=_summarise(initial),
+        agent=[dict(iteration=k + 1, **_summarise(e)) for k, e in enumerate(agent_errors)],
+        expert=[dict(iteration=k + 1, **_summarise(e)) for k, e in enumerate(expert_errors)],
+        frustum=dict(precision=tp / max(tp + fp, 1), recall=tp / max(tp + fn, 1)),
+        match_accuracy=float(sum(a * n for a, n in match_hits) / max(sum(n for _, n in match_hits), 1)),
+    )
+
+
+def main(argv=None) -> None:
+    from .export import load_models
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--checkpoint", type=Path, required=True)
+    ap.add_argument("--data", type=Path, required=True, help="KITTI-layout root or sequence directory")
+    ap.add_argument("--frames", type=int, default=0, help="evaluate at most this many frames (0 = all)")
+    ap.add_argument("--seed", type=int, default=1234)
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+    torch.set_num_threads(2)
+    models, _ = load_models(args.checkpoint)
+    frames = list_frames(find_sequences(args.data))
+    if args.frames:
+        frames = frames[:: max(1, len(frames) // args.frames)][: args.frames]
+    result = evaluate(models, frames, seed=args.seed)
+    text = json.dumps(result, indent=2)
+    if args.out:
+        from .export import atomic_write_bytes
+        atomic_write_bytes(args.out, (text + "\n").encode())
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

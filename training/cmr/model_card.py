@@ -1,0 +1,125 @@
+"""Write `models/MODEL_CARD.md` from measured artefacts (nothing in it is typed by hand).
+
+    python -m cmr.model_card --models ../models --eval eval.json --bench bench.json \
+        --train-data /work/data/synth-dev --curves training_curves.png [--run runs/x]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from .data import find_sequences, list_frames
+from .export import atomic_write_bytes
+
+
+def data_summary(roots: list[str]) -> list[dict]:
+    """Per sequence: path, frames, and the generator's seed/style when a synth.json is present."""
+    rows = []
+    for root in roots:
+        for seq in find_sequences(Path(root)):
+            row = dict(sequence=str(seq), frames=len(list_frames([seq])))
+            meta = seq / "synth.json"
+            if meta.is_file():
+                m = json.loads(meta.read_text())
+                style = m.get("style", {})
+                row.update(seed=m.get("seed"), index=m.get("sequence"), preset=style.get("preset"),
+                           palette=style.get("palette"), time_of_day_h=style.get("time_of_day_h"),
+                           clutter=style.get("clutter"))
+            rows.append(row)
+    return rows
+
+
+def _table(rows: list[dict], keys: list[str], heads: list[str]) -> str:
+    out = ["| " + " | ".join(heads) + " |", "|" + "---|" * len(heads)]
+    for r in rows:
+        cells = []
+        for k in keys:
+            v = r.get(k)
+            cells.append(f"{v:.3f}" if isinstance(v, float) else str(v))
+        out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
+def render(manifest: dict, evaluation: dict, bench: dict, train_rows: list[dict], test_rows: list[dict],
+           curves: str, notes: str) -> str:
+    params = manifest["parameters"]
+    sizes = "\n".join(f"| {k} | {v:,} |" for k, v in params.items())
+    it_keys = ["iteration", "rte_m", "rre_euler_deg", "rre_geodesic_deg", "rr", "rte_median_m"]
+    it_heads = ["iteration", "RTE mean (m)", "RRE Euler-sum mean (deg)", "RRE geodesic mean (deg)", "RR", "RTE median (m)"]
+    seq_keys = ["sequence", "frames", "seed", "index", "preset", "palette", "time_of_day_h", "clutter"]
+    init = evaluation.get("initial", {})
+    return f"""# Model card: cmr-agent default model
+
+{notes}
+
+## Graphs and size
+Four ONNX graphs (opset 18, standard operators) described by `manifest.json` (format
+`{manifest['format']}`). Parameters:
+
+| graph | parameters |
+|---|---|
+{sizes}
+| **total** | **{sum(params.values()):,}** |
+
+Provenance: `{json.dumps(manifest['provenance'].get('training', {}))}`, git commit
+`{manifest['provenance'].get('git_commit')}`, created {manifest['provenance'].get('created')}.
+
+## Data
+Training sequences (KITTI-odometry layout written by `cmr-agent synth`):
+
+{_table(train_rows, seq_keys, seq_keys)}
+
+Held-out evaluation sequences:
+
+{_table(test_rows, seq_keys, seq_keys)}
+
+## Speed on this machine (ONNX Runtime {bench.get('onnxruntime', '')}, Python, 2 threads, median of repeats)
+`python -m cmr.bench --models ../models` (N = 40,960 points, B = 1):
+
+| stage | ms |
+|---|---|
+""" + "\n".join(f"| {k[:-3]} | {v} |" for k, v in bench.items() if k.endswith("_ms")) + f"""
+
+## Evaluation (paper protocol, held-out frames: {evaluation['frames']}, seed {evaluation['seed']})
+Initial error (before any step): RTE {init.get('rte_m', float('nan')):.2f} m, RRE {init.get('rre_euler_deg', float('nan')):.1f} deg, RR {init.get('rr', float('nan')):.3f}.
+
+Agent (argmax policy), after each iteration:
+
+{_table(evaluation['agent'], it_keys, it_heads)}
+
+Greedy expert (uses the ground truth; the imitation teacher and the ceiling of pure imitation):
+
+{_table(evaluation['expert'], it_keys, it_heads)}
+
+What limits the agent (one-shot embeddings on the same frames):
+- frustum head: precision {evaluation['frustum']['precision']:.3f}, recall {evaluation['frustum']['recall']:.3f}
+- embedding match accuracy (best of the 40x128 image cells within one cell of the true projection):
+  {evaluation['match_accuracy']:.3f}
+
+## Training curves
+![training curves]({curves})
+"""
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--models", type=Path, required=True)
+    ap.add_argument("--eval", type=Path, required=True)
+    ap.add_argument("--bench", type=Path, required=True)
+    ap.add_argument("--train-data", required=True, help="comma-separated roots")
+    ap.add_argument("--test-data", default="", help="comma-separated roots")
+    ap.add_argument("--curves", default="training_curves.png")
+    ap.add_argument("--notes", type=Path, help="markdown paragraph(s) placed under the title")
+    args = ap.parse_args(argv)
+    manifest = json.loads((args.models / "manifest.json").read_text())
+    text = render(manifest, json.loads(args.eval.read_text()), json.loads(args.bench.read_text()),
+                  data_summary([r for r in args.train_data.split(",") if r]),
+                  data_summary([r for r in args.test_data.split(",") if r]), args.curves,
+                  args.notes.read_text() if args.notes else "")
+    atomic_write_bytes(args.models / "MODEL_CARD.md", text.encode())
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,347 @@
+"""Training in two stages, resumable from the run directory.
+
+1. embed: point encoder + image encoder with the circle loss over 2D-3D correspondences, and the
+   frustum head with weighted BCE, on samples built with the paper's protocol.
+2. agent: embeddings frozen (one-shot, as at serving time). Each iteration rolls out episodes on
+   fresh samples and updates the agent with behaviour cloning of the greedy expert on the states
+   it visited (DAgger: a decaying share of steps follows the expert); after `bc_only_iters` the
+   PPO loss (GAE, point-to-point reward) joins the BC loss.
+
+    python -m cmr.train --data /work/data/synth-train --out runs/default [--set key=value ...]
+
+Re-running the same command resumes from `<out>/last.pt`. Every step appends to `<out>/log.jsonl`
+(one JSON object per line; `python -m cmr.plots <out>` draws the curves).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .data import find_sequences, list_frames, make_sample, split_frames
+from .episodes import embed, embed_many, gae, rollout
+from .export import atomic_write_bytes
+from .losses import circle_loss, weighted_bce
+from .models import STRIDE, build_all
+
+
+@dataclass
+class Config:
+    data: str = ""  # comma-separated KITTI-layout roots / sequence dirs
+    val_data: str = ""  # held-out root; when empty every `holdout_every`-th training frame
+    holdout_every: int = 10
+    out: str = "runs/default"
+    seed: int = 0
+    num_points: int = 40960
+    threads: int = 2
+    # stage 1: embeddings
+    embed_steps: int = 1500
+    embed_points: int = 16384  # N while training the encoders (speed); features are density-robust
+    embed_batch: int = 2
+    embed_lr: float = 1e-3
+    circle_points: int = 512
+    circle_radius_cells: float = 1.0
+    circle_scale: float = 10.0
+    circle_pos_margin: float = 0.1
+    circle_neg_margin: float = 1.4
+    bce_weight: float = 1.0
+    # stage 2: agent
+    agent_iters: int = 2000
+    agent_envs: int = 8
+    pool_size: int = 48  # embedded samples kept for rollouts (embedding is the slow part on CPU)
+    pool_refresh: int = 2  # samples replaced per iteration
+    rollout_steps: int = 10
+    agent_lr: float = 1e-3
+    bc_only_iters: int = 300
+    expert_mix_start: float = 0.5
+    expert_mix_iters: int = 300
+    update_epochs: int = 1
+    minibatch: int = 40
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    clip: float = 0.2
+    ppo_weight: float = 0.5
+    value_weight: float = 0.5
+    entropy_weight: float = 0.01
+    # bookkeeping
+    log_every: int = 10
+    checkpoint_every: int = 50
+    eval_every: int = 200
+    eval_frames: int = 24
+
+    @staticmethod
+    def from_overrides(base: "Config", pairs: list[str]) -> "Config":
+        fields = {f.name: f for f in dataclasses.fields(Config)}
+        values = {}
+        for pair in pairs:
+            key, _, raw = pair.partition("=")
+            if key not in fields:
+                raise SystemExit(f"unknown config key {key!r}; known: {', '.join(fields)}")
+            kind = type(getattr(base, key))
+            values[key] = kind(raw) if kind is not bool else raw.lower() in ("1", "true", "yes")
+        return dataclasses.replace(base, **values)
+
+
+class Run:
+    """Owns the models, optimisers, the run directory, logging and checkpoints."""
+
+    def __init__(self, cfg: Config):
+        self.cfg = cfg
+        self.dir = Path(cfg.out)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        torch.manual_seed(cfg.seed)
+        self.models = {k: m.to(self.device) for k, m in build_all().items()}
+        embed_params = [p for k in ("point_encoder", "image_encoder", "frustum_head") for p in self.models[k].parameters()]
+        self.opt_embed = torch.optim.Adam(embed_params, lr=cfg.embed_lr)
+        self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))
+        self.embed_step = 0
+        self.agent_iter = 0
+        self.best = None  # (rr, -rte) of the best validation so far
+        frames = list_frames([s for root in cfg.data.split(",") if root for s in find_sequences(Path(root))])
+        if cfg.val_data:
+            self.train_frames = frames
+            val = list_frames(find_sequences(Path(cfg.val_data)))
+        else:
+            self.train_frames, val = split_frames(frames, cfg.holdout_every)
+        step = max(1, len(val) // max(cfg.eval_frames, 1))
+        self.val_frames = val[::step][: cfg.eval_frames]
+        self._load(self.dir / "last.pt")
+
+    # -- persistence -------------------------------------------------------------------------
+    def meta(self) -> dict:
+        return dict(data=self.cfg.data, seeds=dict(train=self.cfg.seed), config=dataclasses.asdict(self.cfg),
+                    training=dict(embed_steps=self.embed_step, agent_iters=self.agent_iter,
+                                  train_frames=len(self.train_frames), val_frames=len(self.val_frames)))
+
+    def save(self, name: str) -> None:
+        state = dict(models={k: m.state_dict() for k, m in self.models.items()},
+                     opt_embed=self.opt_embed.state_dict(), opt_agent=self.opt_agent.state_dict(),
+                     embed_step=self.embed_step, agent_iter=self.agent_iter, best=self.best, meta=self.meta())
+        path = self.dir / name
+        tmp = path.with_suffix(".tmp")
+        torch.save(state, tmp)
+        with open(tmp, "rb+") as f:
+            import os
+            os.fsync(f.fileno())
+        tmp.replace(path)
+
+    def _load(self, path: Path) -> None:
+        if not path.exists():
+            return
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        for k, m in self.models.items():
+            m.load_state_dict(state["models"][k])
+        self.opt_embed.load_state_dict(state["opt_embed"])
+        self.opt_agent.load_state_dict(state["opt_agent"])
+        self.embed_step, self.agent_iter, self.best = state["embed_step"], state["agent_iter"], state["best"]
+        print(f"resumed from {path}: embed step {self.embed_step}, agent iteration {self.agent_iter}", flush=True)
+
+    def log(self, record: dict) -> None:
+        with open(self.dir / "log.jsonl", "a") as f:
+            f.write(json.dumps(record) + "\n")
+
+    # -- data --------------------------------------------------------------------------------
+    def samples(self, stage: int, step: int, count: int, num_points: int):
+        rng = np.random.default_rng([self.cfg.seed, stage, step])
+        picks = rng.integers(0, len(self.train_frames), count)
+        return [make_sample(self.train_frames[i], rng, train=True, num_points=num_points) for i in picks]
+
+    # -- stage 1 -----------------------------------------------------------------------------
+    def embed_losses(self, samples) -> tuple[torch.Tensor, dict]:
+        cfg, dev = self.cfg, self.device
+        pe, ie, fh = self.models["point_encoder"], self.models["image_encoder"], self.models["frustum_head"]
+        points = torch.as_tensor(np.stack([s.points for s in samples]), device=dev)
+        images = torch.as_tensor(np.stack([s.image for s in samples]), device=dev)
+        labels = torch.as_tensor(np.stack([s.labels for s in samples]), device=dev)
+        pf, imf = pe(points), ie(images)
+        logits = fh(pf, imf)
+        bce = weighted_bce(logits, labels)
+        circles = []
+        rng = np.random.default_rng([cfg.seed, 99, self.embed_step])
+        for i, s in enumerate(samples):
+            inside = np.flatnonzero(s.labels)
+            if len(inside) < 8:
+                continue
+            pick = rng.choice(inside, min(cfg.circle_points, len(inside)), replace=False)
+            p_cam = s.points[pick].astype(np.float64) @ s.truth[:3, :3].T + s.truth[:3, 3]
+            uv = np.stack([s.intrinsics[0] * p_cam[:, 0] / p_cam[:, 2] + s.intrinsics[2],
+                           s.intrinsics[1] * p_cam[:, 1] / p_cam[:, 2] + s.intrinsics[3]], axis=1)
+            # grid_sample (align_corners=False) puts feature cell c's centre at pixel 4c + 1.5.
+            norm = torch.as_tensor(np.stack([(uv[:, 0] + 0.5) / 256.0 - 1.0, (uv[:, 1] + 0.5) / 80.0 - 1.0], 1),
+                                   dtype=torch.float32, device=dev)
+            pix = F.grid_sample(imf[i:i + 1], norm.view(1, 1, -1, 2), align_corners=False).view(imf.shape[1], -1).t()
+            pix = pix / pix.norm(dim=1, keepdim=True).clamp(min=1e-6)
+            uv_cells = torch.as_tensor(uv / STRIDE, dtype=torch.float32, device=dev)
+            circles.append(circle_loss(pf[i, torch.as_tensor(pick, device=dev)], pix, uv_cells, cfg.circle_radius_cells,
+                                       cfg.circle_scale, cfg.circle_pos_margin, cfg.circle_neg_margin))
+        circle = torch.stack(circles).mean() if circles else logits.sum() * 0.0
+        with torch.no_grad():
+            pred = logits > 0
+            tp = (pred & labels).sum().item()
+            stats = dict(precision=tp / max(pred.sum().item(), 1), recall=tp / max(labels.sum().item(), 1))
+        return circle + cfg.bce_weight * bce, dict(circle=circle.item(), bce=bce.item(), **stats)
+
+    def train_embed(self, deadline: float) -> None:
+        cfg = self.cfg
+        for k in ("point_encoder", "image_encoder", "frustum_head"):
+            self.models[k].train()
+        while self.embed_step < cfg.embed_steps and time.time() < deadline:
+            t0 = time.time()
+            samples = self.samples(1, self.embed_step, cfg.embed_batch, cfg.embed_points)
+            loss, stats = self.embed_losses(samples)
+            self.opt_embed.zero_grad()
+            loss.backward()
+            self.opt_embed.step()
+            self.embed_step += 1
+            if self.embed_step % cfg.log_every == 0 or self.embed_step == 1:
+                rec = dict(stage="embed", step=self.embed_step, loss=loss.item(), **stats,
+                           samples_per_s=cfg.embed_batch / (time.time() - t0), time=time.time())
+                self.log(rec)
+                print(json.dumps(rec), flush=True)
+            if self.embed_step % cfg.checkpoint_every == 0:
+                self.save("last.pt")
+        self.save("last.pt")
+
+    # -- stage 2 -----------------------------------------------------------------------------
+    def agent_update(self, eps, traj, ppo_weight: float) -> dict:
+        cfg, agent = self.cfg, self.models["agent"]
+        steps, b = traj.actions.shape[:2]
+        adv, ret = gae(traj.rewards, traj.values, cfg.gamma, cfg.gae_lambda)
+        adv = (adv - adv.mean()) / (adv.std() + 1e-6)
+        flat = [(t, i) for t in range(steps) for i in range(b)]
+        rng = np.random.default_rng([cfg.seed, 7, self.agent_iter])
+        totals = dict(bc=0.0, policy=0.0, value=0.0, entropy=0.0, bc_accuracy=0.0)
+        updates = 0
+        agent.train()
+        for _ in range(cfg.update_epochs):
+            order = rng.permutation(len(flat))
+            for start in range(0, len(order), cfg.minibatch):
+                batch = [flat[j] for j in order[start:start + cfg.minibatch]]
+                rows = [i for _, i in batch]
+                if traj.states is not None:
+                    s2 = torch.stack([traj.states[t][0][i] for t, i in batch])
+                    s3 = torch.stack([traj.states[t][1][i] for t, i in batch])
+                else:
+                    s2, s3 = eps.state([traj.poses[t][i] for t, i in batch], rows)
+                logits, value = agent(s2, s3)
+                dev = logits.device
+                expert = torch.as_tensor(np.stack([traj.experts[t, i] for t, i in batch]), device=dev)
+                bc = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), expert.reshape(-1))
+                dist = torch.distributions.Categorical(logits=logits)
+                acts = torch.as_tensor(np.stack([traj.actions[t, i] for t, i in batch]), device=dev)
+                logp = dist.log_prob(acts).sum(-1)
+                old = torch.as_tensor([traj.log_probs[t, i] for t, i in batch], device=dev)
+                a = torch.as_tensor([adv[t, i] for t, i in batch], device=dev)
+                ratio = torch.exp(logp - old)
+                policy = -torch.min(ratio * a, ratio.clamp(1 - cfg.clip, 1 + cfg.clip) * a).mean()
+                r = torch.as_tensor([ret[t, i] for t, i in batch], device=dev)
+                value_loss = F.mse_loss(value[:, 0], r)
+                entropy = dist.entropy().sum(-1).mean()
+                loss = bc + cfg.value_weight * value_loss + ppo_weight * (policy - cfg.entropy_weight * entropy)
+                self.opt_agent.zero_grad()
+                loss.backward()
+                torch.nn.utils.clip_grad_norm_(agent.parameters(), 5.0)
+                self.opt_agent.step()
+                updates += 1
+                totals["bc"] += bc.item()
+                totals["policy"] += policy.item()
+                totals["value"] += value_loss.item()
+                totals["entropy"] += entropy.item()
+                totals["bc_accuracy"] += (logits.argmax(-1) == expert).float().mean().item()
+        agent.eval()
+        return {k: v / max(updates, 1) for k, v in totals.items()}
+
+    def train_agent(self, deadline: float) -> None:
+        cfg = self.cfg
+        for k in ("point_encoder", "image_encoder", "frustum_head"):
+            self.models[k].eval()
+        agent = self.models["agent"]
+        # The pool is rebuilt deterministically on resume (seeded by iteration), then rolls.
+        pool = embed_many(self.models, self.samples(4, self.agent_iter, cfg.pool_size, cfg.num_points), self.device)
+        while self.agent_iter < cfg.agent_iters and time.time() < deadline:
+            t0 = time.time()
+            it = self.agent_iter
+            fresh = [(it * cfg.pool_refresh + j) % cfg.pool_size for j in range(cfg.pool_refresh)]
+            pool.replace(fresh, embed(self.models, self.samples(2, it, cfg.pool_refresh, cfg.num_points), self.device))
+            rows = sorted(set(fresh) | set(np.random.default_rng([cfg.seed, 5, it]).choice(
+                cfg.pool_size, cfg.agent_envs - len(fresh), replace=False).tolist()))
+            eps = pool.subset(rows)
+            mix = cfg.expert_mix_start * max(0.0, 1.0 - it / max(cfg.expert_mix_iters, 1))
+            ppo_weight = cfg.ppo_weight if it >= cfg.bc_only_iters else 0.0
+            rng = np.random.default_rng([cfg.seed, 3, it])
+            gen = torch.Generator(device=self.device).manual_seed(cfg.seed * 100003 + it)
+            agent.eval()
+            traj = rollout(agent, eps, cfg.rollout_steps, "sample", mix, rng, gen, keep_states=True)
+            stats = self.agent_update(eps, traj, ppo_weight)
+            self.agent_iter += 1
+            if self.agent_iter % cfg.log_every == 0 or self.agent_iter == 1:
+                rec = dict(stage="agent", step=self.agent_iter, expert_mix=mix, ppo_weight=ppo_weight,
+                           reward=float(traj.rewards.mean()), **stats,
+                           samples_per_s=cfg.agent_envs / (time.time() - t0), time=time.time())
+                self.log(rec)
+                print(json.dumps(rec), flush=True)
+            if self.agent_iter % cfg.checkpoint_every == 0:
+                self.save("last.pt")
+            if cfg.eval_every and self.agent_iter % cfg.eval_every == 0:
+                self.validate()
+        self.save("last.pt")
+
+    def validate(self) -> dict:
+        from .evaluate import evaluate
+        if not self.val_frames:
+            return {}
+        result = evaluate(self.models, self.val_frames, num_points=self.cfg.num_points, device=self.device)
+        final = result["agent"][-1]
+        rec = dict(stage="val", step=self.agent_iter, embed_step=self.embed_step, time=time.time(),
+                   final=final, expert_final=result["expert"][-1], frustum=result["frustum"],
+                   match_accuracy=result["match_accuracy"])
+        self.log(rec)
+        print(json.dumps(rec), flush=True)
+        atomic_write_bytes(self.dir / f"val_{self.agent_iter:06d}.json", (json.dumps(result, indent=2) + "\n").encode())
+        score = (final["rr"], -final["rte_m"])
+        if self.best is None or score > tuple(self.best):
+            self.best = list(score)
+            self.save("best.pt")
+            atomic_write_bytes(self.dir / "best_val.json", (json.dumps(result, indent=2) + "\n").encode())
+        return result
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", help="comma-separated KITTI-layout roots or sequence directories")
+    ap.add_argument("--val-data", default=None)
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="override any Config field")
+    ap.add_argument("--hours", type=float, default=1e9, help="stop (after a checkpoint) after this long")
+    args = ap.parse_args(argv)
+    cfg = Config()
+    overrides = list(args.set)
+    for key, value in (("data", args.data), ("val_data", args.val_data), ("out", args.out)):
+        if value is not None:
+            overrides.append(f"{key}={value}")
+    cfg = Config.from_overrides(cfg, overrides)
+    if not cfg.data:
+        raise SystemExit("--data is required")
+    torch.set_num_threads(cfg.threads)
+    run = Run(cfg)
+    atomic_write_bytes(run.dir / "config.json", (json.dumps(dataclasses.asdict(cfg), indent=2) + "\n").encode())
+    deadline = time.time() + args.hours * 3600
+    run.train_embed(deadline)
+    if run.embed_step >= cfg.embed_steps:
+        run.train_agent(deadline)
+        if cfg.eval_every and run.agent_iter % cfg.eval_every:
+            run.validate()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,75 @@
+"""Export: four graphs that follow the contract, a manifest that describes them, and parity between
+PyTorch and ONNX Runtime on random inputs (relative error < 1e-4)."""
+
+import hashlib
+import json
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from cmr.export import GRAPH_IO, MANIFEST_FORMAT, example_inputs, export_models
+from cmr.models import build_all
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    torch.manual_seed(0)
+    models = build_all()
+    # Non-trivial batch-norm statistics so parity also covers the folded normalisation.
+    for m in models.values():
+        for mod in m.modules():
+            if isinstance(mod, torch.nn.BatchNorm2d):
+                mod.running_mean.uniform_(-0.2, 0.2)
+                mod.running_var.uniform_(0.5, 2.0)
+        m.eval()
+    out = tmp_path_factory.mktemp("models")
+    doc = export_models(models, out, dict(data="test", seeds={}))
+    return models, out, doc
+
+
+def test_manifest_describes_the_files(exported):
+    _, out, doc = exported
+    assert doc["format"] == MANIFEST_FORMAT
+    on_disk = json.loads((out / "manifest.json").read_text())
+    assert on_disk == doc
+    for key in ("image", "features", "points", "actions", "graphs", "provenance", "validation", "parameters"):
+        assert key in doc
+    assert doc["points"] == dict(num_points=40960, num_state_points=2048, state_xyz_scale_m=10.0)
+    assert doc["actions"]["dofs"] == ["yaw_deg", "tx_m", "tz_m"]
+    for name, spec in doc["graphs"].items():
+        data = (out / spec["file"]).read_bytes()
+        assert hashlib.sha256(data).hexdigest() == spec["sha256"]
+        sess = ort.InferenceSession(str(out / spec["file"]), providers=["CPUExecutionProvider"])
+        assert [i.name for i in sess.get_inputs()] == list(spec["inputs"])
+        assert [o.name for o in sess.get_outputs()] == list(spec["outputs"])
+
+
+@pytest.mark.parametrize("name", list(GRAPH_IO))
+def test_parity(exported, name):
+    models, out, _ = exported
+    kwargs = dict(batch=3) if name == "agent" else dict(num_points=5000) if name != "image_encoder" else {}
+    inputs = example_inputs(name, seed=11, **kwargs)
+    with torch.no_grad():
+        want = models[name](*inputs)
+    want = want if isinstance(want, tuple) else (want,)
+    sess = ort.InferenceSession(str(out / f"{name}.onnx"), providers=["CPUExecutionProvider"])
+    got = sess.run(None, {i.name: t.numpy() for i, t in zip(sess.get_inputs(), inputs)})
+    for w, g_ in zip(want, got):
+        w = w.numpy()
+        assert w.shape == g_.shape
+        rel = np.abs(w - g_).max() / max(np.abs(w).max(), 1e-6)
+        assert rel < 1e-4, f"{name}: relative error {rel}"
+
+
+def test_features_are_unit_length_and_origin_free(exported):
+    models, out, _ = exported
+    sess = ort.InferenceSession(str(out / "point_encoder.onnx"), providers=["CPUExecutionProvider"])
+    (pts,) = example_inputs("point_encoder", num_points=3000, seed=2)
+    a = sess.run(None, {"points": pts.numpy()})[0]
+    b = sess.run(None, {"points": (pts + torch.tensor([1000.0, -500.0, 20.0])).numpy()})[0]
+    assert a.shape == (1, 3000, 64)
+    assert np.allclose(np.linalg.norm(a, axis=-1), 1.0, atol=1e-4)
+    # Centring inside the graph: moving the map origin changes (almost) nothing.
+    assert np.median(np.abs(a - b)) < 1e-3
