@@ -262,3 +262,26 @@ fn committed_openapi_document_is_current() {
         "openapi/openapi.json is stale: run `./target/release/cmr-agent print-schema > openapi/openapi.json`"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cache_budget_evicts_and_reloads_from_disk() {
+    // Each prepared map holds 40,960 x (12 + 256) bytes, about 10.5 MiB: a 16 MiB budget fits one.
+    let maps = maps_dir_with_street();
+    let server = TestServer::start(&tiny_model(), maps.path(), &["--cache-mb", "16"]).await;
+    let r = server.client.put(server.url("/v1/maps/second?format=kitti_bin"))
+        .body(cmr_agent::maps::formats::write_kitti_bin(&street_cloud())).send().await.unwrap();
+    assert_eq!(r.status(), 201);
+    for map in ["street", "second", "street", "second"] {
+        let (status, body, _) = server.localize(map, &kitti_request(1)).await;
+        assert_eq!(status, 200, "{map}: {body}");
+        assert!(server.state.maps.cache.weighted_bytes() <= 16 * 1024 * 1024, "the budget holds");
+    }
+    use std::sync::atomic::Ordering::Relaxed;
+    let maps_state = &server.state.maps;
+    assert!(maps_state.cache.evictions.load(Relaxed) >= 3, "each switch evicts the other map");
+    assert!(maps_state.loaded_from_disk.load(Relaxed) >= 3, "evicted maps come back from <id>.emb");
+    assert_eq!(maps_state.computed.load(Relaxed), 1, "only street, at warm-up (no .emb yet), was computed");
+    let metrics = server.client.get(server.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    assert!(metrics.contains("cmr_cache_evictions_total") && metrics.contains("cmr_embeddings_loaded_total"));
+    server.stop().await;
+}
