@@ -53,6 +53,19 @@ async fn service_endpoints_and_a_localization() {
     assert_eq!(status, 200, "{body}");
     assert_close(&body["prior_camera_from_map"], prior, "explicit prior");
 
+    // The raw-bytes variant: the image is the body, the intrinsics are in the query.
+    let raw = c.post(server.url("/v1/maps/street/localize?fx=500&fy=500&cx=399.5&cy=149.5&max_iterations=2"))
+        .header("content-type", "image/jpeg").body(jpeg_bytes(&img)).send().await.unwrap();
+    assert_eq!(raw.status(), 200);
+    let raw: serde_json::Value = raw.json().await.unwrap();
+    assert!(raw["iterations"].as_u64().unwrap() <= 2);
+    let raw = c.post(server.url("/v1/maps/street/localize?fx=500&fy=500&cx=399.5"))
+        .header("content-type", "image/png").body(png_bytes(&img)).send().await.unwrap();
+    assert_eq!(raw.status(), 422, "cy is missing");
+    let raw = c.post(server.url("/v1/maps/street/localize?fx=500&fy=500&cx=1&cy=1&fz=3"))
+        .header("content-type", "image/png").body(png_bytes(&img)).send().await.unwrap();
+    assert_eq!(raw.status(), 422, "unknown query parameter");
+
     let metrics = c.get(server.url("/metrics")).send().await.unwrap().text().await.unwrap();
     for name in ["cmr_requests_total", "cmr_phase_seconds", "cmr_batch_size", "cmr_queue_depth", "cmr_cache_hits_total", "cmr_cache_bytes"] {
         assert!(metrics.contains(name), "/metrics lacks {name}");
