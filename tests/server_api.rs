@@ -298,3 +298,21 @@ async fn cache_budget_evicts_and_reloads_from_disk() {
     assert!(metrics.contains("cmr_cache_evictions_total") && metrics.contains("cmr_embeddings_loaded_total"));
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deadlines_and_draining_answer_503() {
+    let maps = maps_dir_with_street();
+    // A 1 ms deadline passes while the 1241x376 image is decoded: the worker refuses the job.
+    let server = TestServer::start(&tiny_model(), maps.path(), &["--request-timeout-ms", "1"]).await;
+    let (status, body, _) = server.localize("street", &kitti_request(5)).await;
+    assert_eq!(status, 503, "{body}");
+    assert_eq!(body["error_type"], "deadline_exceeded");
+
+    server.state.draining.store(true, std::sync::atomic::Ordering::SeqCst);
+    let r = server.client.get(server.url("/ready")).send().await.unwrap();
+    assert_eq!(r.status(), 503);
+    let (status, body, _) = server.localize("street", &kitti_request(1)).await;
+    assert_eq!(status, 503);
+    assert_eq!(body["error_type"], "draining");
+    server.stop().await;
+}
