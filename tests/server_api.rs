@@ -67,7 +67,7 @@ async fn service_endpoints_and_a_localization() {
     assert_eq!(raw.status(), 422, "unknown query parameter");
 
     let metrics = c.get(server.url("/metrics")).send().await.unwrap().text().await.unwrap();
-    for name in ["cmr_requests_total", "cmr_phase_seconds", "cmr_batch_size", "cmr_queue_depth", "cmr_cache_hits_total", "cmr_cache_bytes"] {
+    for name in ["cmr_http_requests_total", "cmr_requests_total", "cmr_phase_seconds", "cmr_batch_size", "cmr_queue_depth", "cmr_cache_hits_total", "cmr_cache_bytes"] {
         assert!(metrics.contains(name), "/metrics lacks {name}");
     }
     assert!(metrics.contains("outcome=\"ok\""));
