@@ -1,8 +1,8 @@
 //! Every endpoint of the real server over loopback HTTP, good and bad input.
 
-mod common;
+mod server_common;
 
-use common::*;
+use server_common::*;
 use serde_json::json;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

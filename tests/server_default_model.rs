@@ -1,11 +1,11 @@
 //! The server with the project's default model (`models/`): a localization, and overload
 //! answered fast with 429 instead of piling up.
 
-mod common;
+mod server_common;
 
 use std::time::{Duration, Instant};
 
-use common::*;
+use server_common::*;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn default_model_localizes_and_overload_gets_429() {
