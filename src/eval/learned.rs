@@ -62,6 +62,7 @@ impl Learned {
                 ("image encoder".into(), t.image_encoder_ms),
                 ("frustum head".into(), t.frustum_head_ms),
                 ("agent steps".into(), t.agent_steps_ms),
+                ("agent steps: state building".into(), t.state_build_ms),
             ],
             notes: json!({ "iterations_run": loc.steps.len(), "converged": loc.converged, "confidence": loc.confidence.score }),
         })
