@@ -124,3 +124,45 @@ fn batched_workers_match_the_synchronous_loop() {
     assert!(stats.largest_batch > 1, "requests were stepped together: {stats:?}");
     assert!(scheduler.shutdown(Duration::from_secs(5)));
 }
+
+/// `cmr-agent localize` answers with the same JSON shape as the HTTP API.
+#[test]
+fn localize_subcommand_prints_a_response() {
+    let dir = tempfile::tempdir().unwrap();
+    let cloud = cmr_agent::maps::formats::PointCloud { xyz: cloud(), intensity: None };
+    std::fs::write(dir.path().join("street.bin"), cmr_agent::maps::formats::write_kitti_bin(&cloud)).unwrap();
+    let image = image::RgbImage::from_fn(640, 200, |x, y| image::Rgb([(x % 200) as u8, (y % 100) as u8, 90]));
+    let mut png = std::io::Cursor::new(Vec::new());
+    image.write_to(&mut png, image::ImageFormat::Png).unwrap();
+    use base64::Engine;
+    let request = serde_json::json!({
+        "image": base64::engine::general_purpose::STANDARD.encode(png.into_inner()),
+        "intrinsics": {"fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 99.5},
+        "max_iterations": 3,
+    });
+    std::fs::write(dir.path().join("request.json"), request.to_string()).unwrap();
+    let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
+        .args(["localize", "--models", models.to_str().unwrap(), "--map"])
+        .arg(dir.path().join("street.bin"))
+        .arg("--request")
+        .arg(dir.path().join("request.json"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let response: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(response["map_id"], "street");
+    let iterations = response["iterations"].as_u64().unwrap();
+    assert!((1..=3).contains(&iterations));
+    assert_eq!(response["trajectory"].as_array().unwrap().len() as u64, iterations);
+
+    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
+        .args(["localize", "--models", models.to_str().unwrap(), "--map"])
+        .arg(dir.path().join("missing.bin"))
+        .arg("--request")
+        .arg(dir.path().join("request.json"))
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("missing.bin"));
+}

@@ -4,6 +4,7 @@
 pub mod config;
 pub mod decode;
 pub mod error;
+pub mod offline;
 pub mod openapi;
 pub mod routes;
 pub mod types;
