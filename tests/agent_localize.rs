@@ -166,3 +166,31 @@ fn localize_subcommand_prints_a_response() {
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("missing.bin"));
 }
+
+/// Start-up problems stop `serve` at once with one message naming the cause.
+#[test]
+fn serve_refuses_a_missing_runtime_or_an_unknown_manifest() {
+    let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model");
+    let maps = tempfile::tempdir().unwrap();
+    let run = |models: &std::path::Path, extra: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
+            .args(["serve", "--host", "127.0.0.1", "--port", "0", "--models", models.to_str().unwrap(), "--maps", maps.path().to_str().unwrap()])
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).to_string()
+    };
+    let err = run(&models, &["--ort-lib", "/nonexistent/libonnxruntime.so"]);
+    assert!(err.contains("ONNX Runtime") && err.contains("/nonexistent/libonnxruntime.so"), "{err}");
+
+    let dir = tempfile::tempdir().unwrap();
+    for entry in std::fs::read_dir(&models).unwrap() {
+        let entry = entry.unwrap();
+        std::fs::copy(entry.path(), dir.path().join(entry.file_name())).unwrap();
+    }
+    let manifest = std::fs::read_to_string(dir.path().join("manifest.json")).unwrap().replace("cmr-agent-manifest/1", "cmr-agent-manifest/9");
+    std::fs::write(dir.path().join("manifest.json"), manifest).unwrap();
+    let err = run(dir.path(), &[]);
+    assert!(err.contains("unknown format") && err.contains("cmr-agent-manifest/9"), "{err}");
+}
