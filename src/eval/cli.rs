@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 
+use super::matching::MatchStrategy;
 use super::pnp::RansacOptions;
 use super::run::{EvalConfig, run};
 
@@ -46,6 +47,10 @@ pub struct Args {
     /// RANSAC inlier threshold in pixels of the model's 512×160 crop.
     #[arg(long, default_value_t = 8.0)]
     pub inlier_px: f64,
+    /// How the one-shot baseline pairs points with image cells: `ratio` (each predicted-in-view
+    /// point's nearest cell, Lowe ratio 0.9, best 4000) or `mutual` (mutual nearest neighbours).
+    #[arg(long, value_enum, default_value = "ratio")]
+    pub matching: MatchStrategy,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -68,6 +73,7 @@ pub fn main(args: Args) -> Result<()> {
         max_cases: args.max_cases,
         num_points: 40_960,
         ransac: RansacOptions { iterations: args.ransac_iterations, inlier_px: args.inlier_px, ..RansacOptions::default() },
+        matching: args.matching,
         progress: !args.quiet,
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };

@@ -14,7 +14,7 @@ use serde_json::json;
 use crate::agent::{self, PreparedMap};
 use crate::model::Backend;
 
-use super::matching::{cell_centre, mutual_nearest};
+use super::matching::{MatchStrategy, cell_centre, find_matches};
 use super::methods::{EvalCase, Method, MethodRun, pad_to};
 use super::pnp::{Correspondence, GroundPnp, RansacOptions};
 
@@ -25,11 +25,12 @@ pub struct Learned {
     backend: Backend,
     iterations: usize,
     ransac: RansacOptions,
+    matching: MatchStrategy,
 }
 
 impl Learned {
-    pub fn new(backend: Backend, iterations: usize, ransac: RansacOptions) -> Self {
-        Learned { backend, iterations, ransac }
+    pub fn new(backend: Backend, iterations: usize, ransac: RansacOptions, matching: MatchStrategy) -> Self {
+        Learned { backend, iterations, ransac, matching }
     }
 
     /// Parameters each method runs: the agent all four graphs, the baseline all but the agent.
@@ -62,6 +63,7 @@ impl Learned {
                 ("image encoder".into(), t.image_encoder_ms),
                 ("frustum head".into(), t.frustum_head_ms),
                 ("agent steps".into(), t.agent_steps_ms),
+                ("agent steps: state building".into(), t.state_build_ms),
             ],
             notes: json!({ "iterations_run": loc.steps.len(), "converged": loc.converged, "confidence": loc.confidence.score }),
         })
@@ -80,7 +82,7 @@ impl Learned {
         let frustum_ms = ms(t);
         let t = Instant::now();
         let grid = FeatureGrid { dim: manifest.features.dim, stride: manifest.features.stride, grid_width: manifest.features.grid_width };
-        let (in_view, correspondences) = one_shot_correspondences(&map.points, &map.features, &logits, &image_features, grid);
+        let (in_view, correspondences) = one_shot_correspondences(&map.points, &map.features, &logits, &image_features, grid, self.matching);
         let matching_ms = ms(t);
         let t = Instant::now();
         let solution = GroundPnp::new(case.initial, crop_intrinsics).solve_ransac(&correspondences, &self.ransac);
@@ -117,7 +119,7 @@ pub struct FeatureGrid {
 }
 
 /// The baseline's matching stage: the points the frustum head predicts in view (logit > 0),
-/// matched to image cells by mutual nearest neighbours, each match as (map point, cell-centre
+/// matched to image cells by `strategy`, each match as (map point, cell-centre
 /// pixel in the model's crop). Returns the number of predicted-in-view points and the matches.
 pub fn one_shot_correspondences(
     points: &[[f32; 3]],
@@ -125,9 +127,10 @@ pub fn one_shot_correspondences(
     frustum_logits: &[f32],
     image_features: &[f32],
     grid: FeatureGrid,
+    strategy: MatchStrategy,
 ) -> (usize, Vec<Correspondence>) {
     let in_view: Vec<usize> = (0..frustum_logits.len().min(points.len())).filter(|&i| frustum_logits[i] > 0.0).collect();
-    let matches = mutual_nearest(point_features, grid.dim, &in_view, image_features);
+    let matches = find_matches(point_features, grid.dim, &in_view, image_features, strategy);
     let correspondences = matches
         .iter()
         .map(|m| {
@@ -226,10 +229,12 @@ mod tests {
             }
         }
         let grid = FeatureGrid { dim: 64, stride: 4, grid_width: 128 };
-        let (in_view, matches) = one_shot_correspondences(&points, &features, &logits, &image, grid);
-        assert!(in_view >= 3000 && matches.len() > 500, "{in_view} {}", matches.len());
-        let solution = GroundPnp::new(c.initial, k).solve_ransac(&matches, &RansacOptions::default()).unwrap();
-        let e = PoseError::between(&solution.camera_from_map, &c.truth);
-        assert!(e.rte_m < 0.1 && e.rre_geodesic_deg < 0.2, "{e:?}");
+        for strategy in [MatchStrategy::Mutual, MatchStrategy::Ratio] {
+            let (in_view, matches) = one_shot_correspondences(&points, &features, &logits, &image, grid, strategy);
+            assert!(in_view >= 3000 && matches.len() > 500, "{strategy:?}: {in_view} {}", matches.len());
+            let solution = GroundPnp::new(c.initial, k).solve_ransac(&matches, &RansacOptions::default()).unwrap();
+            let e = PoseError::between(&solution.camera_from_map, &c.truth);
+            assert!(e.rte_m < 0.1 && e.rre_geodesic_deg < 0.2, "{strategy:?}: {e:?}");
+        }
     }
 }

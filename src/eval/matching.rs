@@ -14,45 +14,111 @@ pub struct FeatureMatch {
     pub similarity: f32,
 }
 
-/// Rows of the point-feature matrix multiplied at once: 4096 × 5120 cells × 4 B = 84 MB.
-const BLOCK: usize = 4096;
+/// Rows of the point-feature matrix multiplied at once: 1024 × 5120 cells × 4 B = 21 MB per
+/// block; blocks run in parallel (rayon).
+const BLOCK: usize = 1024;
+
+/// How point–cell pairs are chosen.
+#[derive(Debug, Clone, Copy, PartialEq, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MatchStrategy {
+    /// Keep a pair only when each is the other's most similar partner.
+    Mutual,
+    /// Each point's most similar cell, kept when Lowe's ratio of feature distances
+    /// (best / second best, distance = sqrt(2 − 2·cos)) is below `RATIO`; the most similar
+    /// `MAX_RATIO_MATCHES` pairs are kept.
+    Ratio,
+}
+
+pub const RATIO: f32 = 0.9;
+pub const MAX_RATIO_MATCHES: usize = 4000;
+
+/// Per candidate point: best cell and similarity, and the second-best similarity.
+struct PointBest {
+    cell: usize,
+    best: f32,
+    second: f32,
+}
+
+/// Scores every candidate against every cell: per point its best two cells, per cell its best
+/// point (as an index into `candidates`).
+fn score(point_features: &[f32], dim: usize, candidates: &[usize], image: ArrayView2<f32>) -> (Vec<PointBest>, Vec<(usize, f32)>) {
+    use rayon::prelude::*;
+    let cells = image.ncols();
+    let blocks: Vec<(Vec<PointBest>, Vec<(usize, f32)>)> = candidates
+        .par_chunks(BLOCK)
+        .enumerate()
+        .map(|(block_index, block)| {
+            let mut rows = Array2::<f32>::zeros((block.len(), dim));
+            for (r, &p) in block.iter().enumerate() {
+                rows.row_mut(r).assign(&ndarray::ArrayView1::from(&point_features[p * dim..(p + 1) * dim]));
+            }
+            let similarity = rows.dot(&image);
+            let mut cell_best = vec![(usize::MAX, f32::NEG_INFINITY); cells];
+            let mut point_best = Vec::with_capacity(block.len());
+            for (r, row) in similarity.outer_iter().enumerate() {
+                let candidate = block_index * BLOCK + r;
+                let mut pb = PointBest { cell: 0, best: f32::NEG_INFINITY, second: f32::NEG_INFINITY };
+                for (c, &s) in row.iter().enumerate() {
+                    if s > pb.best {
+                        pb.second = pb.best;
+                        pb = PointBest { cell: c, best: s, second: pb.second };
+                    } else if s > pb.second {
+                        pb.second = s;
+                    }
+                    if s > cell_best[c].1 {
+                        cell_best[c] = (candidate, s);
+                    }
+                }
+                point_best.push(pb);
+            }
+            (point_best, cell_best)
+        })
+        .collect();
+    let mut best_cell_of_point = Vec::with_capacity(candidates.len());
+    let mut best_point_of_cell = vec![(usize::MAX, f32::NEG_INFINITY); cells];
+    for (points, cell_best) in blocks {
+        best_cell_of_point.extend(points);
+        for (c, (candidate, s)) in cell_best.into_iter().enumerate() {
+            if s > best_point_of_cell[c].1 {
+                best_point_of_cell[c] = (candidate, s);
+            }
+        }
+    }
+    (best_cell_of_point, best_point_of_cell)
+}
 
 /// Mutual nearest neighbours between `candidates` (indices of rows of `point_features`,
 /// [N, dim] row-major) and the cells of `image_features` ([dim, cells] channel-major).
 pub fn mutual_nearest(point_features: &[f32], dim: usize, candidates: &[usize], image_features: &[f32]) -> Vec<FeatureMatch> {
-    if dim == 0 || candidates.is_empty() || image_features.len() % dim != 0 {
+    find_matches(point_features, dim, candidates, image_features, MatchStrategy::Mutual)
+}
+
+/// Point–cell matches by `strategy` (see [`MatchStrategy`]).
+pub fn find_matches(point_features: &[f32], dim: usize, candidates: &[usize], image_features: &[f32], strategy: MatchStrategy) -> Vec<FeatureMatch> {
+    if dim == 0 || candidates.is_empty() || image_features.len() % dim != 0 || point_features.len() < dim * (candidates.iter().max().unwrap() + 1) {
         return Vec::new();
     }
     let cells = image_features.len() / dim;
     let Ok(image) = ArrayView2::from_shape((dim, cells), image_features) else { return Vec::new() };
-    let mut best_cell_of_point: Vec<(usize, f32)> = Vec::with_capacity(candidates.len());
-    let mut best_point_of_cell: Vec<(usize, f32)> = vec![(usize::MAX, f32::NEG_INFINITY); cells];
-    for (block_index, block) in candidates.chunks(BLOCK).enumerate() {
-        let mut rows = Array2::<f32>::zeros((block.len(), dim));
-        for (r, &p) in block.iter().enumerate() {
-            rows.row_mut(r).assign(&ndarray::ArrayView1::from(&point_features[p * dim..(p + 1) * dim]));
-        }
-        let similarity = rows.dot(&image);
-        for (r, row) in similarity.outer_iter().enumerate() {
-            let candidate = block_index * BLOCK + r;
-            let mut best = (0usize, f32::NEG_INFINITY);
-            for (c, &s) in row.iter().enumerate() {
-                if s > best.1 {
-                    best = (c, s);
-                }
-                if s > best_point_of_cell[c].1 {
-                    best_point_of_cell[c] = (candidate, s);
-                }
-            }
-            best_cell_of_point.push(best);
+    let (points, cells_best) = score(point_features, dim, candidates, image);
+    let matched = points.iter().enumerate().filter(|(_, pb)| pb.best.is_finite());
+    match strategy {
+        MatchStrategy::Mutual => matched
+            .filter(|(candidate, pb)| cells_best[pb.cell].0 == *candidate)
+            .map(|(candidate, pb)| FeatureMatch { point: candidates[candidate], cell: pb.cell, similarity: pb.best })
+            .collect(),
+        MatchStrategy::Ratio => {
+            let distance = |s: f32| (2.0 - 2.0 * s).max(0.0).sqrt();
+            let mut kept: Vec<FeatureMatch> = matched
+                .filter(|(_, pb)| !pb.second.is_finite() || distance(pb.best) < RATIO * distance(pb.second))
+                .map(|(candidate, pb)| FeatureMatch { point: candidates[candidate], cell: pb.cell, similarity: pb.best })
+                .collect();
+            kept.sort_by(|a, b| b.similarity.total_cmp(&a.similarity).then(a.point.cmp(&b.point)));
+            kept.truncate(MAX_RATIO_MATCHES);
+            kept
         }
     }
-    best_cell_of_point
-        .iter()
-        .enumerate()
-        .filter(|(candidate, (cell, s))| s.is_finite() && best_point_of_cell[*cell].0 == *candidate)
-        .map(|(candidate, &(cell, similarity))| FeatureMatch { point: candidates[candidate], cell, similarity })
-        .collect()
 }
 
 /// The pixel (in the model's crop) at the centre of a feature cell: cell (row, col) covers
@@ -89,6 +155,32 @@ mod tests {
         let some = mutual_nearest(&points, dim, &[3, 4], &image);
         assert_eq!(some.iter().map(|m| m.point).collect::<Vec<_>>(), vec![3, 4]);
         assert!(mutual_nearest(&points, dim, &[], &image).is_empty());
+        // Ratio test: point 4 (best 1.0 at cell 5, second 0.8 at cell 2) passes, point 1
+        // (best 1.0 at cell 1, second 0.6 at cell 5) passes, all are one-to-one here.
+        let ratio = find_matches(&points, dim, &all, &image, MatchStrategy::Ratio);
+        let mut pairs: Vec<(usize, usize)> = ratio.iter().map(|m| (m.point, m.cell)).collect();
+        pairs.sort();
+        assert_eq!(pairs, vec![(0, 0), (1, 1), (2, 2), (3, 3), (4, 5)]);
+        // An ambiguous point (equally close to two cells) fails the ratio test.
+        let ambiguous = [0.5f32.sqrt(), 0.5f32.sqrt(), 0.0, 0.0];
+        assert!(find_matches(&ambiguous, dim, &[0], &image, MatchStrategy::Ratio).is_empty());
+    }
+
+    #[test]
+    fn blocks_agree_with_a_single_pass() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
+        let (dim, cells, n) = (8, 50, 2500);
+        let image: Vec<f32> = (0..dim * cells).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let points: Vec<f32> = (0..dim * n).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let all: Vec<usize> = (0..n).collect();
+        let matches = mutual_nearest(&points, dim, &all, &image);
+        // Brute force.
+        let sim = |p: usize, c: usize| (0..dim).map(|k| points[p * dim + k] * image[k * cells + c]).sum::<f32>();
+        let best_cell = |p: usize| (0..cells).max_by(|&a, &b| sim(p, a).total_cmp(&sim(p, b))).unwrap();
+        let best_point = |c: usize| (0..n).max_by(|&a, &b| sim(a, c).total_cmp(&sim(b, c))).unwrap();
+        let expected: Vec<(usize, usize)> = (0..n).filter(|&p| best_point(best_cell(p)) == p).map(|p| (p, best_cell(p))).collect();
+        assert_eq!(matches.iter().map(|m| (m.point, m.cell)).collect::<Vec<_>>(), expected);
     }
 
     #[test]

@@ -67,6 +67,8 @@ pub struct EvalReport {
     pub cases: usize,
     pub iterations: usize,
     pub command: String,
+    /// Method settings (baseline matching and RANSAC, model provenance).
+    pub settings: serde_json::Value,
     pub created_unix_s: u64,
     pub rotation_thresholds_deg: Vec<f64>,
     pub translation_thresholds_m: Vec<f64>,
@@ -143,6 +145,7 @@ impl EvalReport {
         let _ = writeln!(md, "# Evaluation: {} cases, {} iterations\n", self.cases, self.iterations);
         let _ = writeln!(md, "Data `{}`, perturbations `{}`, models `{}`.\n", self.data, self.perturbations, self.models.as_deref().unwrap_or("–"));
         let _ = writeln!(md, "Command: `{}`\n", self.command);
+        let _ = writeln!(md, "Settings: `{}`\n", self.settings);
 
         let _ = writeln!(md, "## Table 1: registration (protocol A: RR at 10°/5 m, means ± std over registered cases)\n");
         let _ = writeln!(md, "| Method | RTE (m) | RRE (°, Euler sum) | RRE (°, geodesic) | RR (%) |");

@@ -11,6 +11,7 @@ use crate::model::{BackendOptions, ModelSet};
 
 use super::data::Dataset;
 use super::learned::{AGENT, Learned};
+use super::matching::MatchStrategy;
 use super::methods::{EvalCase, Expert, Method, NoOp};
 use super::perturbations::{PerturbationFile, write_atomic};
 use super::pnp::RansacOptions;
@@ -35,6 +36,8 @@ pub struct EvalConfig {
     /// N when no model is given (the model's manifest decides otherwise).
     pub num_points: usize,
     pub ransac: RansacOptions,
+    /// How the one-shot baseline pairs points with image cells.
+    pub matching: MatchStrategy,
     pub progress: bool,
     /// The command line, recorded in the outputs.
     pub command: String,
@@ -94,15 +97,17 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
     let mut graph_parameters = BTreeMap::new();
     let (mut num_points, mut actions) = (config.num_points, ActionSet::default());
     let mut learned_index = None;
+    let mut provenance = serde_json::Value::Null;
     if let Some(dir) = &config.models {
         let set = ModelSet::load(dir, BackendOptions { intra_threads: config.threads, ort_lib: config.ort_lib.clone() })?;
         num_points = set.manifest.points.num_points;
+        provenance = set.manifest.provenance.clone();
         actions = set.manifest.action_set();
         if let Some(map) = set.manifest.parameters.as_object() {
             graph_parameters = map.iter().filter_map(|(k, v)| v.as_u64().map(|n| (k.clone(), n))).collect();
         }
         learned_index = Some(methods.len());
-        methods.push(Box::new(Learned::new(set.backend()?, config.iterations, config.ransac)));
+        methods.push(Box::new(Learned::new(set.backend()?, config.iterations, config.ransac, config.matching)));
     }
     methods.push(Box::new(Expert { actions, iterations: config.iterations }));
     methods.push(Box::new(NoOp));
@@ -129,6 +134,13 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
         cases: file.cases.len(),
         iterations: config.iterations,
         command: config.command.clone(),
+        settings: serde_json::json!({
+            "baseline_matching": config.matching,
+            "ransac_iterations": config.ransac.iterations,
+            "ransac_inlier_px": config.ransac.inlier_px,
+            "num_points": num_points,
+            "model_provenance": provenance,
+        }),
         created_unix_s: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs()),
         rotation_thresholds_deg: rotation_thresholds(),
         translation_thresholds_m: translation_thresholds(),
@@ -194,6 +206,7 @@ pub(crate) mod tests {
             max_cases: None,
             num_points: 2048,
             ransac: RansacOptions::default(),
+            matching: MatchStrategy::Ratio,
             progress: false,
             command: "test".into(),
         }
