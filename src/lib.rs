@@ -8,9 +8,11 @@
 //! - `model`: ONNX Runtime and the model manifest;
 //! - `agent`: state building, the iterative localization loop and the batching scheduler;
 //! - `api`: the HTTP server;
-//! - `eval`: the paper's metrics and tables over a KITTI-layout data set.
+//! - `eval`: the paper's metrics and tables over a KITTI-layout data set;
+//! - `atomic_file`: the one crash-safe file writer everything uses.
 
 pub mod agent;
+pub mod atomic_file;
 pub mod api;
 pub mod eval;
 pub mod geometry;

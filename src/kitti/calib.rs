@@ -7,7 +7,8 @@ use std::path::Path;
 use anyhow::{bail, Context, Result};
 use nalgebra::{Matrix3, Vector3};
 
-use super::{atomic::write_atomic, format_kitti_number, poses::parse_floats};
+use super::{format_kitti_number, poses::parse_floats};
+use crate::atomic_file::write_atomic;
 use crate::geometry::{Intrinsics, Pose};
 
 /// The camera whose images the project uses: KITTI's left colour camera, `image_2`.
@@ -91,7 +92,7 @@ impl Calib {
     }
 
     pub fn write(&self, path: &Path) -> Result<()> {
-        write_atomic(path, self.to_text().as_bytes())
+        Ok(write_atomic(path, self.to_text().as_bytes())?)
     }
 
     fn projection(&self, camera: usize) -> Result<&[f64; 12]> {

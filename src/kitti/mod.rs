@@ -6,13 +6,11 @@
 //! The synthetic generator writes this layout and the server, evaluator, training and tests read
 //! it back through here, so real KITTI and synthetic data take the same code path.
 
-pub mod atomic;
 pub mod calib;
 pub mod poses;
 pub mod sequence;
 pub mod velodyne;
 
-pub use atomic::write_atomic;
 pub use calib::Calib;
 pub use poses::{read_poses, write_poses};
 pub use sequence::{discover_sequences, Frame, Sequence};

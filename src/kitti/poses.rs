@@ -5,7 +5,8 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 
-use super::{atomic::write_atomic, format_kitti_number};
+use super::format_kitti_number;
+use crate::atomic_file::write_atomic;
 use crate::geometry::Pose;
 
 /// Parses poses text; `origin` names the file in errors, which also give the line number.
@@ -37,7 +38,7 @@ pub fn poses_to_text(poses: &[Pose]) -> String {
 }
 
 pub fn write_poses(path: &Path, poses: &[Pose]) -> Result<()> {
-    write_atomic(path, poses_to_text(poses).as_bytes())
+    Ok(write_atomic(path, poses_to_text(poses).as_bytes())?)
 }
 
 /// Parses exactly `count` whitespace-separated floats.

@@ -161,7 +161,8 @@ pub fn discover_sequences(root: &Path) -> Result<Vec<Sequence>> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::kitti::{velodyne::write_velodyne, write_atomic, write_poses};
+    use crate::atomic_file::write_atomic;
+    use crate::kitti::{velodyne::write_velodyne, write_poses};
 
     fn write_sequence(dir: &Path, frames: usize, poses: usize) {
         std::fs::create_dir_all(dir.join("velodyne")).unwrap();

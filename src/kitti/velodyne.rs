@@ -4,7 +4,7 @@ use std::path::Path;
 
 use anyhow::{bail, Context, Result};
 
-use super::atomic::write_atomic;
+use crate::atomic_file::write_atomic;
 
 /// One LiDAR return in the velodyne frame (x forward, y left, z up), intensity in [0, 1].
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -48,7 +48,7 @@ pub fn velodyne_to_bytes(points: &[LidarPoint]) -> Vec<u8> {
 }
 
 pub fn write_velodyne(path: &Path, points: &[LidarPoint]) -> Result<()> {
-    write_atomic(path, &velodyne_to_bytes(points))
+    Ok(write_atomic(path, &velodyne_to_bytes(points))?)
 }
 
 #[cfg(test)]

@@ -1,7 +1,6 @@
 //! Map regions: point-cloud formats, the on-disk store, the embedding cache, and `Maps`, which
 //! ties them to the point encoder.
 
-pub mod atomic;
 pub mod cache;
 pub mod embeddings;
 pub mod formats;

@@ -13,7 +13,7 @@ use crate::geometry::pose::PoseMatrix;
 use crate::geometry::Pose;
 use crate::model::manifest::sha256_hex;
 
-use super::atomic::write_atomic;
+use crate::atomic_file::write_atomic;
 use super::formats::{CloudFormat, PointCloud, parse, write_kitti_bin};
 use super::{MapError, embeddings};
 

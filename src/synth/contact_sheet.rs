@@ -11,7 +11,7 @@ use nalgebra::Point3;
 use super::cli::WorldArgs;
 use super::generate::{encode_png, SequencePlan};
 use super::style::StylePreset;
-use crate::kitti::write_atomic;
+use crate::atomic_file::write_atomic;
 
 #[derive(Debug, clap::Args)]
 pub struct ContactSheetArgs {

@@ -16,7 +16,8 @@ use super::generate::{SequencePlan, GENERATOR_VERSION};
 use super::style::StylePreset;
 use crate::geometry::pose::PoseMatrix;
 use crate::geometry::PoseError;
-use crate::kitti::{velodyne_to_bytes, write_atomic, LidarPoint};
+use crate::atomic_file::write_atomic;
+use crate::kitti::{velodyne_to_bytes, LidarPoint};
 
 #[derive(Debug, clap::Args)]
 pub struct DemoArgs {
@@ -113,5 +114,5 @@ pub fn run(args: &DemoArgs) -> Result<()> {
 fn write_json(path: &Path, value: &serde_json::Value) -> Result<()> {
     let mut bytes = serde_json::to_vec_pretty(value)?;
     bytes.push(b'\n');
-    write_atomic(path, &bytes)
+    Ok(write_atomic(path, &bytes)?)
 }

@@ -18,7 +18,8 @@ use super::rig::{calibration, Trajectory};
 use super::scene::{build_street, Scene};
 use super::style::{Style, StyleOverrides, StylePreset};
 use crate::geometry::Pose;
-use crate::kitti::{write_atomic, write_poses, write_velodyne, Calib, LidarPoint};
+use crate::atomic_file::write_atomic;
+use crate::kitti::{write_poses, write_velodyne, Calib, LidarPoint};
 
 /// Bumped whenever the same flags would produce different bytes.
 pub const GENERATOR_VERSION: &str = "cmr-agent-synth/1";

@@ -1,10 +1,12 @@
 //! Crash-safe file replacement: readers see the old file or the new one, never half of one.
+//! Every writer of the project (map store, KITTI writer, generator, exporter of reports) uses it.
 
 use std::io::Write;
 use std::path::Path;
 
 /// Writes `bytes` to a temporary file in the same directory, fsyncs it, renames it over `path`,
 /// then fsyncs the directory so the rename itself is durable.
+/// Errors name the file, so callers can pass them on as they are.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
@@ -20,10 +22,10 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
         }
         Ok(())
     })();
-    if result.is_err() {
+    result.map_err(|e: std::io::Error| {
         let _ = std::fs::remove_file(&tmp);
-    }
-    result
+        std::io::Error::new(e.kind(), format!("writing {}: {e}", path.display()))
+    })
 }
 
 fn unique() -> u64 {
