@@ -3,7 +3,7 @@ PORT ?= 8080
 CARGO ?= cargo
 PYTHON := .venv/bin/python
 
-.PHONY: serve test build runtime python rust-test python-test bench-server openapi
+.PHONY: serve test build runtime python bench-server openapi
 
 serve: build runtime
 	./target/release/cmr-agent serve --port $(PORT)
