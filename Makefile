@@ -3,7 +3,7 @@ PORT ?= 8080
 CARGO ?= cargo
 PYTHON := .venv/bin/python
 
-.PHONY: serve test build runtime python rust-test python-test
+.PHONY: serve test build runtime python rust-test python-test bench-server openapi
 
 serve: build runtime
 	./target/release/cmr-agent serve --port $(PORT)
@@ -20,3 +20,11 @@ runtime:
 
 python:
 	bash scripts/setup-python.sh
+
+# Load benchmark of the server on loopback (starts its own server on a free port).
+bench-server: build runtime
+	python3 scripts/bench-server.py --spawn
+
+# Regenerates the committed OpenAPI document (a test fails when it is stale).
+openapi: build
+	./target/release/cmr-agent print-schema > openapi/openapi.json

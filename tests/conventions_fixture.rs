@@ -12,6 +12,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
 
+mod common;
+
 const FIXTURE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/conventions.json");
 
 fn random_pose(rng: &mut ChaCha8Rng) -> Pose {
@@ -86,28 +88,6 @@ fn compute() -> Value {
     })
 }
 
-fn assert_close(expected: &Value, actual: &Value, path: &str) {
-    match (expected, actual) {
-        (Value::Number(a), Value::Number(b)) => {
-            let (a, b) = (a.as_f64().unwrap(), b.as_f64().unwrap());
-            assert!((a - b).abs() <= 1e-9 * (1.0 + a.abs()), "{path}: {a} != {b}");
-        }
-        (Value::Array(a), Value::Array(b)) => {
-            assert_eq!(a.len(), b.len(), "{path}: length");
-            for (i, (x, y)) in a.iter().zip(b).enumerate() {
-                assert_close(x, y, &format!("{path}[{i}]"));
-            }
-        }
-        (Value::Object(a), Value::Object(b)) => {
-            assert_eq!(a.len(), b.len(), "{path}: keys");
-            for (key, x) in a {
-                assert_close(x, &b[key], &format!("{path}.{key}"));
-            }
-        }
-        _ => assert_eq!(expected, actual, "{path}"),
-    }
-}
-
 #[test]
 fn geometry_matches_the_shared_fixture() {
     let computed = compute();
@@ -115,5 +95,5 @@ fn geometry_matches_the_shared_fixture() {
         std::fs::write(FIXTURE, serde_json::to_string_pretty(&computed).unwrap() + "\n").unwrap();
     }
     let stored: Value = serde_json::from_str(&std::fs::read_to_string(FIXTURE).expect("fixture file")).unwrap();
-    assert_close(&stored, &computed, "fixture");
+    common::assert_json_close(&stored, &computed, 1e-9, "fixture");
 }

@@ -1,8 +1,8 @@
 //! Every endpoint of the real server over loopback HTTP, good and bad input.
 
-mod common;
+mod server_common;
 
-use common::*;
+use server_common::*;
 use serde_json::json;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -53,8 +53,21 @@ async fn service_endpoints_and_a_localization() {
     assert_eq!(status, 200, "{body}");
     assert_close(&body["prior_camera_from_map"], prior, "explicit prior");
 
+    // The raw-bytes variant: the image is the body, the intrinsics are in the query.
+    let raw = c.post(server.url("/v1/maps/street/localize?fx=500&fy=500&cx=399.5&cy=149.5&max_iterations=2"))
+        .header("content-type", "image/jpeg").body(jpeg_bytes(&img)).send().await.unwrap();
+    assert_eq!(raw.status(), 200);
+    let raw: serde_json::Value = raw.json().await.unwrap();
+    assert!(raw["iterations"].as_u64().unwrap() <= 2);
+    let raw = c.post(server.url("/v1/maps/street/localize?fx=500&fy=500&cx=399.5"))
+        .header("content-type", "image/png").body(png_bytes(&img)).send().await.unwrap();
+    assert_eq!(raw.status(), 422, "cy is missing");
+    let raw = c.post(server.url("/v1/maps/street/localize?fx=500&fy=500&cx=1&cy=1&fz=3"))
+        .header("content-type", "image/png").body(png_bytes(&img)).send().await.unwrap();
+    assert_eq!(raw.status(), 422, "unknown query parameter");
+
     let metrics = c.get(server.url("/metrics")).send().await.unwrap().text().await.unwrap();
-    for name in ["cmr_requests_total", "cmr_phase_seconds", "cmr_batch_size", "cmr_queue_depth", "cmr_cache_hits_total", "cmr_cache_bytes"] {
+    for name in ["cmr_http_requests_total", "cmr_requests_total", "cmr_phase_seconds", "cmr_batch_size", "cmr_queue_depth", "cmr_cache_hits_total", "cmr_cache_bytes"] {
         assert!(metrics.contains(name), "/metrics lacks {name}");
     }
     assert!(metrics.contains("outcome=\"ok\""));
@@ -261,4 +274,45 @@ fn committed_openapi_document_is_current() {
         committed == cmr_agent::api::openapi::schema_json(),
         "openapi/openapi.json is stale: run `./target/release/cmr-agent print-schema > openapi/openapi.json`"
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cache_budget_evicts_and_reloads_from_disk() {
+    // Each prepared map holds 40,960 x (12 + 256) bytes, about 10.5 MiB: a 16 MiB budget fits one.
+    let maps = maps_dir_with_street();
+    let server = TestServer::start(&tiny_model(), maps.path(), &["--cache-mb", "16"]).await;
+    let r = server.client.put(server.url("/v1/maps/second?format=kitti_bin"))
+        .body(cmr_agent::maps::formats::write_kitti_bin(&street_cloud())).send().await.unwrap();
+    assert_eq!(r.status(), 201);
+    for map in ["street", "second", "street", "second"] {
+        let (status, body, _) = server.localize(map, &kitti_request(1)).await;
+        assert_eq!(status, 200, "{map}: {body}");
+        assert!(server.state.maps.cache.weighted_bytes() <= 16 * 1024 * 1024, "the budget holds");
+    }
+    use std::sync::atomic::Ordering::Relaxed;
+    let maps_state = &server.state.maps;
+    assert!(maps_state.cache.evictions.load(Relaxed) >= 3, "each switch evicts the other map");
+    assert!(maps_state.loaded_from_disk.load(Relaxed) >= 3, "evicted maps come back from <id>.emb");
+    assert_eq!(maps_state.computed.load(Relaxed), 1, "only street, at warm-up (no .emb yet), was computed");
+    let metrics = server.client.get(server.url("/metrics")).send().await.unwrap().text().await.unwrap();
+    assert!(metrics.contains("cmr_cache_evictions_total") && metrics.contains("cmr_embeddings_loaded_total"));
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn deadlines_and_draining_answer_503() {
+    let maps = maps_dir_with_street();
+    // A 1 ms deadline passes while the 1241x376 image is decoded: the worker refuses the job.
+    let server = TestServer::start(&tiny_model(), maps.path(), &["--request-timeout-ms", "1"]).await;
+    let (status, body, _) = server.localize("street", &kitti_request(5)).await;
+    assert_eq!(status, 503, "{body}");
+    assert_eq!(body["error_type"], "deadline_exceeded");
+
+    server.state.draining.store(true, std::sync::atomic::Ordering::SeqCst);
+    let r = server.client.get(server.url("/ready")).send().await.unwrap();
+    assert_eq!(r.status(), 503);
+    let (status, body, _) = server.localize("street", &kitti_request(1)).await;
+    assert_eq!(status, 503);
+    assert_eq!(body["error_type"], "draining");
+    server.stop().await;
 }

@@ -72,8 +72,12 @@ impl StateLayout {
 /// Reusable buffers so a step allocates nothing.
 #[derive(Default)]
 pub struct ScatterScratch {
+    /// Per-cell feature sums, cell-major; all zero between calls.
     sums: Vec<f32>,
+    /// Per-cell point counts; all zero between calls.
     counts: Vec<u32>,
+    /// Cells that received a point in this call.
+    touched: Vec<u32>,
 }
 
 /// Writes one state into `state_2d` (len `state_2d_len`) and `state_3d` (len `state_3d_len`).
@@ -92,10 +96,13 @@ pub fn write_state(
 ) {
     let (d, cells) = (layout.dim, layout.cells());
     debug_assert_eq!(point_features.len(), points.len() * d);
-    scratch.sums.clear();
-    scratch.sums.resize(cells * d, 0.0);
-    scratch.counts.clear();
-    scratch.counts.resize(cells, 0);
+    // The buffers stay zeroed between calls; only touched cells are reset at the end, so a
+    // step costs work proportional to the points in view, not to the grid size.
+    if scratch.counts.len() != cells || scratch.sums.len() != cells * d {
+        scratch.sums = vec![0.0; cells * d];
+        scratch.counts = vec![0; cells];
+    }
+    scratch.touched.clear();
 
     // One pass over the points: transform with a plain matrix (cheaper than the quaternion),
     // project once, accumulate features, and fill the state rows of the first M points.
@@ -112,6 +119,9 @@ pub fn write_state(
         );
         let cell = layout.cell_of(k, &p_cam);
         if let Some(cell) = cell {
+            if scratch.counts[cell] == 0 {
+                scratch.touched.push(cell as u32);
+            }
             scratch.counts[cell] += 1;
             let sum = &mut scratch.sums[cell * d..(cell + 1) * d];
             for (s, f) in sum.iter_mut().zip(&point_features[i * d..(i + 1) * d]) {
@@ -130,19 +140,16 @@ pub fn write_state(
 
     let (image_part, points_part) = state_2d.split_at_mut(d * cells);
     image_part.copy_from_slice(image_features);
-    for cell in 0..cells {
-        let count = scratch.counts[cell];
-        if count == 0 {
-            for c in 0..d {
-                points_part[c * cells + cell] = 0.0;
-            }
-            continue;
+    points_part.fill(0.0);
+    for &cell in &scratch.touched {
+        let cell = cell as usize;
+        let inv = 1.0 / scratch.counts[cell] as f32;
+        let sum = &mut scratch.sums[cell * d..(cell + 1) * d];
+        for (c, s) in sum.iter_mut().enumerate() {
+            points_part[c * cells + cell] = *s * inv;
+            *s = 0.0;
         }
-        let inv = 1.0 / count as f32;
-        let sum = &scratch.sums[cell * d..(cell + 1) * d];
-        for c in 0..d {
-            points_part[c * cells + cell] = sum[c] * inv;
-        }
+        scratch.counts[cell] = 0;
     }
 }
 
@@ -178,7 +185,12 @@ mod tests {
         let image = vec![0.5f32; layout.image_feature_len()];
         let mut s2 = vec![f32::NAN; layout.state_2d_len()];
         let mut s3 = vec![f32::NAN; layout.state_3d_len()];
-        write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut Default::default(), &mut s2, &mut s3);
+        let mut scratch = ScatterScratch::default();
+        write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut scratch, &mut s2, &mut s3);
+        // A second call with the same scratch buffers gives the same state.
+        let (first_2d, first_3d) = (s2.clone(), s3.clone());
+        write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut scratch, &mut s2, &mut s3);
+        assert_eq!((&first_2d, &first_3d), (&s2, &s3));
         let cells = layout.cells();
         assert!(s2[..2 * cells].iter().all(|v| *v == 0.5));
         let f = &s2[2 * cells..];
@@ -210,5 +222,45 @@ mod tests {
         assert_eq!(layout.cell_of(&k, &Point3::new(11.49, 7.49, 10.0)), Some(5));
         assert_eq!(layout.cell_of(&k, &Point3::new(11.5, 0.0, 10.0)), None);
         assert_eq!(layout.cell_of(&k, &Point3::new(0.0, 0.0, 0.05)), None);
+    }
+}
+
+#[cfg(test)]
+mod timing {
+    use super::*;
+
+    /// Manual timing, not a speed test: `cargo test --release --lib state_build_timing -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn state_build_timing() {
+        use rand::{Rng, SeedableRng};
+        let layout = StateLayout { dim: 64, stride: 4, grid_height: 40, grid_width: 128, image_width: 512, image_height: 160, num_state_points: 2048, xyz_scale_m: 10.0 };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let points: Vec<[f32; 3]> = (0..40960).map(|_| [rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(-2.0..3.0)]).collect();
+        let features: Vec<f32> = (0..40960 * 64).map(|_| rng.random_range(-0.2..0.2)).collect();
+        let probs = vec![0.5f32; 40960];
+        let image = vec![0.1f32; layout.image_feature_len()];
+        let k = Intrinsics { fx: 359.4, fy: 359.4, cx: 249.8, cy: 78.1 };
+        let r = nalgebra::Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
+        let pose = Pose::from_rt(r, nalgebra::Vector3::new(0.0, -0.08, -0.27));
+        let mut s2 = vec![0f32; layout.state_2d_len()];
+        let mut s3 = vec![0f32; layout.state_3d_len()];
+        let mut scratch = ScatterScratch::default();
+        // CPU time of this thread (the machine is shared, so wall time overstates the cost).
+        let cpu_ms = || -> f64 {
+            let stat = std::fs::read_to_string("/proc/thread-self/stat").unwrap_or_default();
+            let fields: Vec<&str> = stat.rsplit(')').next().unwrap_or("").split_whitespace().collect();
+            fields.get(11).and_then(|v| v.parse::<f64>().ok()).unwrap_or(f64::NAN) * 10.0
+        };
+        let (t, c) = (std::time::Instant::now(), cpu_ms());
+        let reps = 200;
+        for _ in 0..reps {
+            write_state(&layout, &points, &features, &probs, &image, &k, &pose, &mut scratch, &mut s2, &mut s3);
+        }
+        println!(
+            "write_state (N = 40960): {:.3} ms wall, {:.3} ms CPU per state",
+            t.elapsed().as_secs_f64() * 1000.0 / reps as f64,
+            (cpu_ms() - c) / reps as f64
+        );
     }
 }

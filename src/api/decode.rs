@@ -8,19 +8,24 @@ use image::{ImageFormat, ImageReader, Limits, RgbImage};
 
 use super::error::ApiError;
 
-pub fn decode_image(base64_text: &str, max_side: u32) -> Result<RgbImage, ApiError> {
+pub fn decode_base64_image(base64_text: &str, max_side: u32) -> Result<RgbImage, ApiError> {
     let bytes = base64::engine::general_purpose::STANDARD
         .decode(base64_text.trim().as_bytes())
         .map_err(|e| ApiError::BadRequest(format!("image is not valid base64: {e}")))?;
+    decode_image(&bytes, max_side)
+}
+
+/// Decodes JPEG or PNG bytes (the format is taken from the bytes, not from any header).
+pub fn decode_image(bytes: &[u8], max_side: u32) -> Result<RgbImage, ApiError> {
     if bytes.is_empty() {
         return Err(ApiError::CorruptImage("image is empty".into()));
     }
-    let format = image::guess_format(&bytes)
+    let format = image::guess_format(bytes)
         .map_err(|_| ApiError::UnsupportedMediaType("image must be JPEG or PNG".into()))?;
     if !matches!(format, ImageFormat::Jpeg | ImageFormat::Png) {
         return Err(ApiError::UnsupportedMediaType(format!("image must be JPEG or PNG, got {format:?}")));
     }
-    let mut reader = ImageReader::with_format(Cursor::new(&bytes), format);
+    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
     let mut limits = Limits::default();
     limits.max_image_width = Some(max_side);
     limits.max_image_height = Some(max_side);
@@ -35,7 +40,7 @@ pub fn decode_image(base64_text: &str, max_side: u32) -> Result<RgbImage, ApiErr
     if w > max_side || h > max_side {
         return Err(ApiError::PayloadTooLarge(format!("image is {w}x{h}; the limit is {max_side} pixels per side")));
     }
-    let mut reader = ImageReader::with_format(Cursor::new(&bytes), format);
+    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
     reader.limits(limits);
     let decoded = reader.decode().map_err(|e| classify(e, "cannot decode the image"))?;
     Ok(decoded.to_rgb8())

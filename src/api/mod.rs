@@ -125,8 +125,25 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/maps/{id}/metadata", put(routes::put_metadata).layer(DefaultBodyLimit::max(1024 * 1024)))
         .route("/v1/maps/{id}/localize", post(routes::localize).layer(DefaultBodyLimit::max(body_limit)))
         .fallback(routes::not_found)
+        .layer(axum::middleware::from_fn(count_requests))
         .layer(tower_http::trace::TraceLayer::new_for_http())
         .with_state(state)
+}
+
+/// Counts every HTTP request by route template, method and status, with its latency.
+async fn count_requests(request: axum::extract::Request, next: axum::middleware::Next) -> axum::response::Response {
+    let route = request
+        .extensions()
+        .get::<axum::extract::MatchedPath>()
+        .map(|p| p.as_str().to_string())
+        .unwrap_or_else(|| "unmatched".into());
+    let method = request.method().to_string();
+    let started = std::time::Instant::now();
+    let response = next.run(request).await;
+    let status = response.status().as_u16().to_string();
+    metrics::counter!("cmr_http_requests_total", "route" => route.clone(), "method" => method, "status" => status).increment(1);
+    metrics::histogram!("cmr_http_request_seconds", "route" => route).record(started.elapsed().as_secs_f64());
+    response
 }
 
 /// Prepares every stored map (from `<id>.emb` when valid) and runs one inference per graph, then

@@ -21,7 +21,7 @@ use crate::maps::{MapMetadata, validate_id};
 
 use super::AppState;
 use super::config::MAX_ITERATIONS;
-use super::decode::decode_image;
+use super::decode::{decode_base64_image, decode_image};
 use super::error::{ApiError, ErrorBody};
 use super::types::*;
 
@@ -177,20 +177,23 @@ pub async fn delete_map(State(st): Shared, Path(id): Path<String>, headers: Head
 }
 
 /// Localizes a camera image in a map region: the pose, the agent's trajectory, a confidence
-/// signal and per-phase timings (also in the `Server-Timing` header).
-#[utoipa::path(post, path = "/v1/maps/{id}/localize", params(("id" = String, Path, description = "map id")),
-    request_body = LocalizeRequest,
+/// signal and per-phase timings (also in the `Server-Timing` header). The body is either the JSON
+/// request, or the raw JPEG/PNG bytes (`content-type: image/jpeg|image/png`) with the intrinsics
+/// in the query.
+#[utoipa::path(post, path = "/v1/maps/{id}/localize", params(("id" = String, Path, description = "map id"), RawLocalizeParams),
+    request_body(content((LocalizeRequest = "application/json"), (Vec<u8> = "image/jpeg"), (Vec<u8> = "image/png"))),
     responses((status = 200, body = LocalizeResponse), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody),
         (status = 413, body = ErrorBody), (status = 415, body = ErrorBody), (status = 422, body = ErrorBody),
         (status = 429, body = ErrorBody), (status = 503, body = ErrorBody)))]
 pub async fn localize(
     State(st): Shared,
     Path(id): Path<String>,
+    query: axum::extract::RawQuery,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Response {
     let started = Instant::now();
-    let result = localize_inner(&st, &id, &headers, body, started).await;
+    let result = localize_inner(&st, &id, query.0.as_deref(), &headers, body, started).await;
     let outcome = match &result {
         Ok(_) => "ok",
         Err(e) => e.error_type(),
@@ -203,9 +206,40 @@ pub async fn localize(
     }
 }
 
+/// The image as sent: base64 text from the JSON body, or the raw body bytes.
+enum ImagePayload {
+    Base64(String),
+    Raw(Bytes),
+}
+
+/// Reads either request variant into one shape.
+fn read_request(query: Option<&str>, headers: &HeaderMap, body: Bytes) -> Result<(LocalizeRequest, ImagePayload), ApiError> {
+    let ct = headers.get(header::CONTENT_TYPE).map(|v| v.to_str().unwrap_or("").to_ascii_lowercase()).unwrap_or_default();
+    if ct.starts_with("image/jpeg") || ct.starts_with("image/png") {
+        let q: RawLocalizeParams = serde_urlencoded_query(query.unwrap_or(""))?;
+        let need = |v: Option<f64>, name: &str| v.ok_or_else(|| ApiError::Invalid(format!("query parameter {name} is required with a raw image body")));
+        let intrinsics = IntrinsicsBody { fx: need(q.fx, "fx")?, fy: need(q.fy, "fy")?, cx: need(q.cx, "cx")?, cy: need(q.cy, "cy")? };
+        let request = LocalizeRequest { image: String::new(), intrinsics, prior_camera_from_map: None, max_iterations: q.max_iterations };
+        return Ok((request, ImagePayload::Raw(body)));
+    }
+    if !(ct.is_empty() || ct.starts_with("application/json")) {
+        return Err(ApiError::UnsupportedMediaType(format!("content-type must be application/json, image/jpeg or image/png, got {ct:?}")));
+    }
+    let mut request: LocalizeRequest = parse_json(&body)?;
+    let image = std::mem::take(&mut request.image);
+    Ok((request, ImagePayload::Base64(image)))
+}
+
+/// Query strings through the same deserializer axum's `Query` uses.
+fn serde_urlencoded_query<T: serde::de::DeserializeOwned>(query: &str) -> Result<T, ApiError> {
+    let uri: axum::http::Uri = format!("/?{query}").parse().map_err(|_| ApiError::BadRequest("malformed query string".into()))?;
+    Query::<T>::try_from_uri(&uri).map(|q| q.0).map_err(|e| ApiError::Invalid(format!("query: {}", e.body_text())))
+}
+
 async fn localize_inner(
     st: &Arc<AppState>,
     id: &str,
+    query: Option<&str>,
     headers: &HeaderMap,
     body: Result<Bytes, BytesRejection>,
     started: Instant,
@@ -216,14 +250,8 @@ async fn localize_inner(
     if !st.is_ready() {
         return Err(ApiError::NotReady("models are still loading; retry shortly".into()));
     }
-    if let Some(ct) = headers.get(header::CONTENT_TYPE) {
-        let ct = ct.to_str().unwrap_or("");
-        if !ct.starts_with("application/json") {
-            return Err(ApiError::UnsupportedMediaType(format!("content-type must be application/json, got {ct:?}")));
-        }
-    }
     let body = body.map_err(ApiError::from_body)?;
-    let request: LocalizeRequest = parse_json(&body)?;
+    let (request, payload) = read_request(query, headers, body)?;
     validate_id(id)?;
     let entry = st.maps.store.get(id)?;
 
@@ -242,9 +270,11 @@ async fn localize_inner(
     let t = Instant::now();
     let manifest = st.models.manifest.clone();
     let max_side = st.config.max_image_side;
-    let image_b64 = request.image;
     let (tensor, crop_k) = tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
-        let image = decode_image(&image_b64, max_side)?;
+        let image = match payload {
+            ImagePayload::Base64(text) => decode_base64_image(&text, max_side)?,
+            ImagePayload::Raw(bytes) => decode_image(&bytes, max_side)?,
+        };
         agent::prepare_image(&image, &intrinsics, &manifest).map_err(|e| ApiError::Invalid(format!("{e:#}")))
     })
     .await

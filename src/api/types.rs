@@ -217,6 +217,18 @@ pub struct UploadParams {
     pub description: Option<String>,
 }
 
+/// Query of the raw-image variant of localize (body = the JPEG/PNG bytes).
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct RawLocalizeParams {
+    pub fx: Option<f64>,
+    pub fy: Option<f64>,
+    pub cx: Option<f64>,
+    pub cy: Option<f64>,
+    /// 1..=50; default 10. The prior is the map's `initial_camera_from_map`.
+    pub max_iterations: Option<u32>,
+}
+
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct Health {
     pub status: String,

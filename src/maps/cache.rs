@@ -1,6 +1,7 @@
-//! Prepared maps in memory, bounded by bytes with LRU-style eviction (moka's TinyLFU window).
+//! Prepared maps in memory, bounded by bytes with least-recently-used eviction (moka).
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 use moka::notification::RemovalCause;
 use moka::sync::Cache;
@@ -10,21 +11,28 @@ use crate::agent::PreparedMap;
 pub struct MapCache {
     inner: Cache<String, Arc<PreparedMap>>,
     budget_bytes: u64,
+    /// This cache's own counters (the Prometheus ones are process-wide).
+    pub evictions: Arc<AtomicU64>,
 }
 
 impl MapCache {
     pub fn new(budget_bytes: u64) -> Self {
+        let evictions = Arc::new(AtomicU64::new(0));
+        let counter = evictions.clone();
         // The weigher counts KiB so a single large map fits moka's u32 weights.
         let inner = Cache::builder()
             .max_capacity((budget_bytes / 1024).max(1))
+            // Plain LRU: a freshly uploaded map is always admitted (TinyLFU could refuse it).
+            .eviction_policy(moka::policy::EvictionPolicy::lru())
             .weigher(|_id: &String, map: &Arc<PreparedMap>| (map.size_bytes() / 1024).clamp(1, u32::MAX as usize) as u32)
-            .eviction_listener(|_id, _map, cause| {
+            .eviction_listener(move |_id, _map, cause| {
                 if matches!(cause, RemovalCause::Size | RemovalCause::Expired) {
+                    counter.fetch_add(1, Ordering::Relaxed);
                     metrics::counter!("cmr_cache_evictions_total").increment(1);
                 }
             })
             .build();
-        Self { inner, budget_bytes }
+        Self { inner, budget_bytes, evictions }
     }
 
     pub fn get(&self, id: &str) -> Option<Arc<PreparedMap>> {

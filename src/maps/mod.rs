@@ -7,6 +7,7 @@ pub mod embeddings;
 pub mod formats;
 pub mod store;
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
@@ -47,12 +48,15 @@ pub struct Maps {
     /// The point encoder used for registrations and cache misses (not the agent workers').
     encoder: Mutex<Backend>,
     model_sha: String,
+    /// Prepared maps read back from `<id>.emb`, and computed by the point encoder.
+    pub loaded_from_disk: AtomicU64,
+    pub computed: AtomicU64,
 }
 
 impl Maps {
     pub fn new(store: MapStore, cache: MapCache, encoder: Backend) -> Self {
         let model_sha = encoder.manifest().point_encoder_sha256().to_string();
-        Self { store, cache, encoder: Mutex::new(encoder), model_sha }
+        Self { store, cache, encoder: Mutex::new(encoder), model_sha, loaded_from_disk: AtomicU64::new(0), computed: AtomicU64::new(0) }
     }
 
     /// The prepared map: from memory, else from `<id>.emb`, else computed (and persisted). Blocking.
@@ -66,10 +70,12 @@ impl Maps {
     fn load_or_compute(&self, id: &str) -> Result<PreparedMap, MapError> {
         let (cloud, source_sha, _) = self.store.read_cloud(id)?;
         if let Some(map) = self.store.load_embeddings(id, &self.model_sha, &source_sha) {
+            self.loaded_from_disk.fetch_add(1, Ordering::Relaxed);
             metrics::counter!("cmr_embeddings_loaded_total").increment(1);
             return Ok(map);
         }
         let map = self.encode(&cloud)?;
+        self.computed.fetch_add(1, Ordering::Relaxed);
         metrics::counter!("cmr_embeddings_computed_total").increment(1);
         if let Err(e) = self.store.save_embeddings(id, &map, &self.model_sha, &source_sha) {
             tracing::warn!("could not persist embeddings of {id:?}: {e}");

@@ -1,0 +1,92 @@
+//! Pins the agent's observation across languages: the server builds it in Rust
+//! (`agent::state::write_state`), training builds it in PyTorch (`training/cmr/state.py`), and
+//! the policy only works if both produce the same tensors. `fixtures/state.json` holds a small
+//! scene and the Rust result (sparse: occupied cells of F_k, and state_3d);
+//! `training/tests/test_state_fixture.py` checks Python against it. Regenerate with
+//! `REGENERATE_FIXTURES=1 cargo test --release --test state_fixture`.
+
+use cmr_agent::agent::state::{StateLayout, write_state};
+use cmr_agent::geometry::{Intrinsics, Pose};
+use nalgebra::{Matrix3, Point3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::{Value, json};
+
+mod common;
+
+const FIXTURE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/state.json");
+const NUM_POINTS: usize = 96;
+const DIM: usize = 64;
+
+fn layout() -> StateLayout {
+    StateLayout {
+        dim: DIM,
+        stride: 4,
+        grid_height: 40,
+        grid_width: 128,
+        image_width: 512,
+        image_height: 160,
+        num_state_points: 2048,
+        xyz_scale_m: 10.0,
+    }
+}
+
+/// Points are kept away from cell borders so f32 (PyTorch) and f64 (Rust) agree on their cell.
+fn far_from_cell_borders(k: &Intrinsics, p: &Point3<f64>) -> bool {
+    match k.project(p) {
+        None => true,
+        Some((u, v)) => [u, v].iter().all(|x| {
+            let f = ((x + 0.5) / 4.0).fract();
+            f > 0.01 && f < 0.99
+        }),
+    }
+}
+
+fn compute() -> Value {
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    let layout = layout();
+    let k = Intrinsics { fx: 359.4, fy: 359.4, cx: 249.8, cy: 78.1 };
+    let rig = Pose::from_rt(Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0), Vector3::new(0.06, -0.08, -0.27));
+    let pose = rig.compose(&Pose::ground_motion(0.4, 1.5, -2.0));
+    let mut points = Vec::new();
+    while points.len() < NUM_POINTS {
+        // Mostly ahead of the camera (several points share cells), some behind or outside.
+        let p = Point3::new(rng.random_range(-5.0..25.0), rng.random_range(-12.0..12.0), rng.random_range(-1.7..2.0));
+        let p_cam = pose.transform(&p);
+        if far_from_cell_borders(&k, &p_cam) {
+            points.push([p.x as f32, p.y as f32, p.z as f32]);
+        }
+    }
+    let features: Vec<f32> = (0..NUM_POINTS * DIM).map(|_| rng.random_range(-1.0..1.0)).collect();
+    let probs: Vec<f32> = (0..NUM_POINTS).map(|_| rng.random_range(0.0..1.0)).collect();
+    let image: Vec<f32> = (0..layout.image_feature_len()).map(|i| (i % 7) as f32 * 0.1).collect();
+    let mut state_2d = vec![f32::NAN; layout.state_2d_len()];
+    let mut state_3d = vec![f32::NAN; NUM_POINTS * 5];
+    write_state(&layout, &points, &features, &probs, &image, &k, &pose, &mut Default::default(), &mut state_2d, &mut state_3d);
+
+    let cells = layout.cells();
+    let image_part_ok = state_2d[..DIM * cells].iter().zip(&image).all(|(a, b)| a == b);
+    assert!(image_part_ok, "state_2d must start with the image features");
+    let projected = &state_2d[DIM * cells..];
+    let occupied: Vec<Value> = (0..cells)
+        .filter(|&c| (0..DIM).any(|ch| projected[ch * cells + c] != 0.0))
+        .map(|c| json!({"cell": c, "mean": (0..DIM).map(|ch| projected[ch * cells + c]).collect::<Vec<_>>()}))
+        .collect();
+    json!({
+        "about": "Agent observation built by src/agent/state.rs; read by training/tests/test_state_fixture.py.",
+        "intrinsics": k, "camera_from_map": pose.to_rows(), "points_map": points,
+        "point_features": features, "frustum_probs": probs,
+        "occupied_cells": occupied, "state_3d": state_3d,
+    })
+}
+
+#[test]
+fn state_building_matches_the_shared_fixture() {
+    let computed = compute();
+    if std::env::var_os("REGENERATE_FIXTURES").is_some() {
+        std::fs::write(FIXTURE, serde_json::to_string(&computed).unwrap() + "\n").unwrap();
+    }
+    let stored: Value = serde_json::from_str(&std::fs::read_to_string(FIXTURE).expect("fixture file")).unwrap();
+    common::assert_json_close(&stored, &computed, 1e-6, "state");
+    assert!(computed["occupied_cells"].as_array().unwrap().len() > 10, "the scene must exercise the scatter");
+}

@@ -1,0 +1,34 @@
+"""The PyTorch state builder must produce the observation the Rust server builds (fixtures/state.json)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cmr.models import FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH
+from cmr.state import build_state
+
+FIXTURE = json.loads((Path(__file__).resolve().parents[2] / "fixtures" / "state.json").read_text())
+
+
+def test_state_matches_rust():
+    k = FIXTURE["intrinsics"]
+    points = torch.tensor(FIXTURE["points_map"], dtype=torch.float32)[None]
+    n = points.shape[1]
+    features = torch.tensor(FIXTURE["point_features"], dtype=torch.float32).view(1, n, FEATURE_DIM)
+    cells = GRID_HEIGHT * GRID_WIDTH
+    image = (torch.arange(FEATURE_DIM * cells) % 7).float().mul(0.1).view(1, FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH)
+    probs = torch.tensor(FIXTURE["frustum_probs"], dtype=torch.float32)[None]
+    pose = torch.tensor(FIXTURE["camera_from_map"], dtype=torch.float32)[None]
+    kk = torch.tensor([[k["fx"], k["fy"], k["cx"], k["cy"]]], dtype=torch.float32)
+
+    state_2d, state_3d = build_state(pose, points, kk, features, image, probs)
+
+    assert torch.equal(state_2d[0, :FEATURE_DIM], image[0])
+    projected = state_2d[0, FEATURE_DIM:].reshape(FEATURE_DIM, cells)
+    expected = np.zeros((FEATURE_DIM, cells), dtype=np.float32)
+    for entry in FIXTURE["occupied_cells"]:
+        expected[:, entry["cell"]] = entry["mean"]
+    assert np.allclose(projected.numpy(), expected, atol=1e-5)
+    assert np.allclose(state_3d[0].numpy().ravel(), FIXTURE["state_3d"], atol=1e-5)
