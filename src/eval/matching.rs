@@ -46,10 +46,13 @@ struct PointBest {
 
 /// Scores every candidate against every cell: per point its best two cells, per cell its best
 /// point (as an index into `candidates`).
-fn score(point_features: &[f32], dim: usize, candidates: &[usize], image: ArrayView2<f32>, grid_width: usize) -> (Vec<PointBest>, Vec<(usize, f32)>) {
+/// Per candidate its best cells, and per cell its best candidate (index, similarity).
+type Scores = (Vec<PointBest>, Vec<(usize, f32)>);
+
+fn score(point_features: &[f32], dim: usize, candidates: &[usize], image: ArrayView2<f32>, grid_width: usize) -> Scores {
     use rayon::prelude::*;
     let cells = image.ncols();
-    let blocks: Vec<(Vec<PointBest>, Vec<(usize, f32)>)> = candidates
+    let blocks: Vec<Scores> = candidates
         .par_chunks(BLOCK)
         .enumerate()
         .map(|(block_index, block)| {
@@ -100,7 +103,7 @@ fn score(point_features: &[f32], dim: usize, candidates: &[usize], image: ArrayV
 /// Mutual nearest neighbours between `candidates` (indices of rows of `point_features`,
 /// [N, dim] row-major) and the cells of `image_features` ([dim, cells] channel-major).
 pub fn mutual_nearest(point_features: &[f32], dim: usize, candidates: &[usize], image_features: &[f32]) -> Vec<FeatureMatch> {
-    let cells = if dim == 0 { 0 } else { image_features.len() / dim };
+    let cells = image_features.len().checked_div(dim).unwrap_or(0);
     find_matches(point_features, dim, candidates, image_features, cells.max(1), MatchStrategy::Mutual)
 }
 
