@@ -17,6 +17,8 @@ enum Command {
     Serve(cmr_agent::api::ServeArgs),
     /// Evaluate on a KITTI-odometry directory with the paper's protocol: agent, baselines, tables, plots.
     Eval(cmr_agent::eval::cli::Args),
+    /// Localize one request file against one map file, without HTTP (prints the response JSON).
+    Localize(cmr_agent::api::offline::LocalizeArgs),
     /// Print the OpenAPI document (the committed openapi/openapi.json).
     PrintSchema,
 }
@@ -31,6 +33,7 @@ fn main() -> anyhow::Result<()> {
         Command::Synth(args) => cmr_agent::synth::cli::run(args),
         Command::Serve(args) => cmr_agent::api::run_serve(args),
         Command::Eval(args) => cmr_agent::eval::cli::main(args),
+        Command::Localize(args) => cmr_agent::api::offline::run(args),
         Command::PrintSchema => {
             print!("{}", cmr_agent::api::openapi::schema_json());
             Ok(())

@@ -124,3 +124,73 @@ fn batched_workers_match_the_synchronous_loop() {
     assert!(stats.largest_batch > 1, "requests were stepped together: {stats:?}");
     assert!(scheduler.shutdown(Duration::from_secs(5)));
 }
+
+/// `cmr-agent localize` answers with the same JSON shape as the HTTP API.
+#[test]
+fn localize_subcommand_prints_a_response() {
+    let dir = tempfile::tempdir().unwrap();
+    let cloud = cmr_agent::maps::formats::PointCloud { xyz: cloud(), intensity: None };
+    std::fs::write(dir.path().join("street.bin"), cmr_agent::maps::formats::write_kitti_bin(&cloud)).unwrap();
+    let image = image::RgbImage::from_fn(640, 200, |x, y| image::Rgb([(x % 200) as u8, (y % 100) as u8, 90]));
+    let mut png = std::io::Cursor::new(Vec::new());
+    image.write_to(&mut png, image::ImageFormat::Png).unwrap();
+    use base64::Engine;
+    let request = serde_json::json!({
+        "image": base64::engine::general_purpose::STANDARD.encode(png.into_inner()),
+        "intrinsics": {"fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 99.5},
+        "max_iterations": 3,
+    });
+    std::fs::write(dir.path().join("request.json"), request.to_string()).unwrap();
+    let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
+        .args(["localize", "--models", models.to_str().unwrap(), "--map"])
+        .arg(dir.path().join("street.bin"))
+        .arg("--request")
+        .arg(dir.path().join("request.json"))
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let response: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(response["map_id"], "street");
+    let iterations = response["iterations"].as_u64().unwrap();
+    assert!((1..=3).contains(&iterations));
+    assert_eq!(response["trajectory"].as_array().unwrap().len() as u64, iterations);
+
+    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
+        .args(["localize", "--models", models.to_str().unwrap(), "--map"])
+        .arg(dir.path().join("missing.bin"))
+        .arg("--request")
+        .arg(dir.path().join("request.json"))
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("missing.bin"));
+}
+
+/// Start-up problems stop `serve` at once with one message naming the cause.
+#[test]
+fn serve_refuses_a_missing_runtime_or_an_unknown_manifest() {
+    let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model");
+    let maps = tempfile::tempdir().unwrap();
+    let run = |models: &std::path::Path, extra: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
+            .args(["serve", "--host", "127.0.0.1", "--port", "0", "--models", models.to_str().unwrap(), "--maps", maps.path().to_str().unwrap()])
+            .args(extra)
+            .output()
+            .unwrap();
+        assert!(!out.status.success());
+        String::from_utf8_lossy(&out.stderr).to_string()
+    };
+    let err = run(&models, &["--ort-lib", "/nonexistent/libonnxruntime.so"]);
+    assert!(err.contains("ONNX Runtime") && err.contains("/nonexistent/libonnxruntime.so"), "{err}");
+
+    let dir = tempfile::tempdir().unwrap();
+    for entry in std::fs::read_dir(&models).unwrap() {
+        let entry = entry.unwrap();
+        std::fs::copy(entry.path(), dir.path().join(entry.file_name())).unwrap();
+    }
+    let manifest = std::fs::read_to_string(dir.path().join("manifest.json")).unwrap().replace("cmr-agent-manifest/1", "cmr-agent-manifest/9");
+    std::fs::write(dir.path().join("manifest.json"), manifest).unwrap();
+    let err = run(dir.path(), &[]);
+    assert!(err.contains("unknown format") && err.contains("cmr-agent-manifest/9"), "{err}");
+}

@@ -216,7 +216,9 @@ impl Worker {
                 return; // closed, nothing queued, nothing running
             };
             for (job, enqueued) in admitted {
-                if let Some(active) = self.admit(job, enqueued) {
+                // On a panic the job is dropped, so its client gets an internal error at once.
+                let admitted = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.admit(job, enqueued)));
+                if let Ok(Some(active)) = admitted {
                     self.queue.active.fetch_add(1, Ordering::SeqCst);
                     batch.push(active);
                 }
@@ -224,7 +226,15 @@ impl Worker {
             if batch.is_empty() {
                 continue;
             }
-            self.step(&mut batch);
+            // A bug in one step must not take the worker (and every later request) down: the
+            // requests in the batch get an error and the worker goes on.
+            let stepped = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.step(&mut batch)));
+            if stepped.is_err() {
+                tracing::error!("agent step panicked; failing the {} requests in the batch", batch.len());
+                for a in batch.iter_mut() {
+                    a.failed = Some("internal error in the agent step".into());
+                }
+            }
             self.retire(&mut batch);
         }
     }

@@ -53,3 +53,30 @@ fn classify(e: image::ImageError, context: &str) -> ApiError {
         other => ApiError::CorruptImage(format!("{context}: {other}")),
     }
 }
+
+#[cfg(test)]
+mod timing {
+    /// Manual timing: `cargo test --release --lib decode_timing -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn decode_timing() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("examples/localize-demo.json");
+        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap();
+        let text = v["image"].as_str().unwrap();
+        let manifest = crate::model::Manifest::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models")).unwrap();
+        let k = crate::geometry::Intrinsics { fx: 700.0, fy: 700.0, cx: 620.0, cy: 188.0 };
+        let reps = 20;
+        let t = std::time::Instant::now();
+        for _ in 0..reps {
+            super::decode_base64_image(text, 8192).unwrap();
+        }
+        let decode = t.elapsed().as_secs_f64() * 1000.0 / reps as f64;
+        let image = super::decode_base64_image(text, 8192).unwrap();
+        let t = std::time::Instant::now();
+        for _ in 0..reps {
+            crate::agent::prepare_image(&image, &k, &manifest).unwrap();
+        }
+        let prep = t.elapsed().as_secs_f64() * 1000.0 / reps as f64;
+        println!("base64 + JPEG decode {decode:.2} ms, resize + crop + normalise {prep:.2} ms ({:?})", image.dimensions());
+    }
+}

@@ -4,6 +4,7 @@
 pub mod config;
 pub mod decode;
 pub mod error;
+pub mod offline;
 pub mod openapi;
 pub mod routes;
 pub mod types;
@@ -87,6 +88,7 @@ pub fn metrics_handle() -> PrometheusHandle {
 /// Loads models and maps and starts the workers. Model problems fail here, with one message.
 pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
     let options = BackendOptions { intra_threads: config.intra_threads(), ort_lib: config.ort_lib.clone() };
+    crate::model::runtime::environment(config.ort_lib.as_deref())?;
     let models = ModelSet::load(&config.models, options).with_context(|| format!("cannot load the models in {}", config.models.display()))?;
     let (store, warnings) = MapStore::open(&config.maps).map_err(|e| anyhow::anyhow!("{e}"))?;
     for w in warnings {

@@ -82,6 +82,7 @@ impl MapStore {
         std::fs::create_dir_all(dir).map_err(|e| MapError::Io(format!("cannot create {}: {e}", dir.display())))?;
         let store = MapStore { dir: dir.to_path_buf(), registry: RwLock::new(BTreeMap::new()), writes: Mutex::new(()) };
         let mut warnings = Vec::new();
+        remove_stale_temp_files(dir);
         let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
             .map_err(|e| MapError::Io(format!("cannot list {}: {e}", dir.display())))?
             .filter_map(|e| e.ok().map(|e| e.path()))
@@ -208,9 +209,35 @@ impl MapStore {
     }
 }
 
+/// Temp files left by a crash in the middle of `write_atomic` (`.<name>.tmp-<pid>-<n>`).
+fn remove_stale_temp_files(dir: &Path) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let name = name.to_string_lossy();
+        if name.starts_with('.') && name.contains(".tmp-") {
+            tracing::info!("removing stale temporary file {}", entry.path().display());
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn opening_removes_stale_temp_files_and_skips_bad_names() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join(".a.bin.tmp-1-0"), b"half").unwrap();
+        std::fs::write(dir.path().join("Bad.bin"), [0u8; 16]).unwrap();
+        std::fs::write(dir.path().join("broken.bin"), [0u8; 5]).unwrap();
+        std::fs::write(dir.path().join("ok.bin"), [0u8; 32]).unwrap();
+        let (store, warnings) = MapStore::open(dir.path()).unwrap();
+        assert!(!dir.path().join(".a.bin.tmp-1-0").exists());
+        assert_eq!(store.list().iter().map(|e| e.id.as_str()).collect::<Vec<_>>(), ["ok"]);
+        assert_eq!(warnings.len(), 2, "{warnings:?}");
+    }
 
     #[test]
     fn ids() {

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 from pathlib import Path
 
@@ -43,6 +44,7 @@ def bench(models_dir: Path, repeats: int = 20, threads: int = 2) -> dict:
         feeds = {n: t.numpy() for n, t in zip(names, example_inputs(name, **kwargs))}
         out[f"{name}_ms"] = round(time_graph(sess, feeds, repeats), 2)
     out["onnxruntime"] = ort.__version__
+    out["load_average_1min"] = os.getloadavg()[0]  # the machine is shared: read timings with this
     return out
 
 

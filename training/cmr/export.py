@@ -79,6 +79,7 @@ def example_inputs(name: str, num_points: int = 4096, batch: int = 1, seed: int 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    os.fchmod(fd, 0o644)  # mkstemp creates 0600; models are read by other users (e.g. a service account)
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)

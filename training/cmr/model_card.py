@@ -82,6 +82,8 @@ Held-out evaluation sequences:
 |---|---|
 """ + "\n".join(f"| {k[:-3]} | {v} |" for k, v in bench.items() if k.endswith("_ms")) + f"""
 
+Load average (1 min) on this shared machine during the measurement: {bench.get('load_average_1min', 'not recorded')}.
+
 ## Evaluation (paper protocol, held-out frames: {evaluation['frames']}, seed {evaluation['seed']})
 Initial error (before any step): RTE {init.get('rte_m', float('nan')):.2f} m, RRE {init.get('rre_euler_deg', float('nan')):.1f} deg, RR {init.get('rr', float('nan')):.3f}.
 
