@@ -130,7 +130,7 @@ pub fn one_shot_correspondences(
     strategy: MatchStrategy,
 ) -> (usize, Vec<Correspondence>) {
     let in_view: Vec<usize> = (0..frustum_logits.len().min(points.len())).filter(|&i| frustum_logits[i] > 0.0).collect();
-    let matches = find_matches(point_features, grid.dim, &in_view, image_features, strategy);
+    let matches = find_matches(point_features, grid.dim, &in_view, image_features, grid.grid_width, strategy);
     let correspondences = matches
         .iter()
         .map(|m| {

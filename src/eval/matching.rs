@@ -25,15 +25,19 @@ pub enum MatchStrategy {
     /// Keep a pair only when each is the other's most similar partner.
     Mutual,
     /// Each point's most similar cell, kept when Lowe's ratio of feature distances
-    /// (best / second best, distance = sqrt(2 − 2·cos)) is below `RATIO`; the most similar
+    /// (best / second best, distance = sqrt(2 − 2·cos)) is below `RATIO`, where the second best
+    /// is taken outside the best cell's (2·`RATIO_EXCLUSION_CELLS` + 1)² neighbourhood (image
+    /// features vary smoothly, so a neighbour of the right cell is no rival); the most similar
     /// `MAX_RATIO_MATCHES` pairs are kept.
     Ratio,
 }
 
 pub const RATIO: f32 = 0.9;
 pub const MAX_RATIO_MATCHES: usize = 4000;
+pub const RATIO_EXCLUSION_CELLS: usize = 2;
 
-/// Per candidate point: best cell and similarity, and the second-best similarity.
+/// Per candidate point: best cell and similarity, and the best similarity outside the best
+/// cell's neighbourhood.
 struct PointBest {
     cell: usize,
     best: f32,
@@ -42,10 +46,13 @@ struct PointBest {
 
 /// Scores every candidate against every cell: per point its best two cells, per cell its best
 /// point (as an index into `candidates`).
-fn score(point_features: &[f32], dim: usize, candidates: &[usize], image: ArrayView2<f32>) -> (Vec<PointBest>, Vec<(usize, f32)>) {
+/// Per candidate its best cells, and per cell its best candidate (index, similarity).
+type Scores = (Vec<PointBest>, Vec<(usize, f32)>);
+
+fn score(point_features: &[f32], dim: usize, candidates: &[usize], image: ArrayView2<f32>, grid_width: usize) -> Scores {
     use rayon::prelude::*;
     let cells = image.ncols();
-    let blocks: Vec<(Vec<PointBest>, Vec<(usize, f32)>)> = candidates
+    let blocks: Vec<Scores> = candidates
         .par_chunks(BLOCK)
         .enumerate()
         .map(|(block_index, block)| {
@@ -61,13 +68,18 @@ fn score(point_features: &[f32], dim: usize, candidates: &[usize], image: ArrayV
                 let mut pb = PointBest { cell: 0, best: f32::NEG_INFINITY, second: f32::NEG_INFINITY };
                 for (c, &s) in row.iter().enumerate() {
                     if s > pb.best {
-                        pb.second = pb.best;
-                        pb = PointBest { cell: c, best: s, second: pb.second };
-                    } else if s > pb.second {
-                        pb.second = s;
+                        pb.cell = c;
+                        pb.best = s;
                     }
                     if s > cell_best[c].1 {
                         cell_best[c] = (candidate, s);
+                    }
+                }
+                let (best_row, best_col) = (pb.cell / grid_width, pb.cell % grid_width);
+                for (c, &s) in row.iter().enumerate() {
+                    let near = (c / grid_width).abs_diff(best_row) <= RATIO_EXCLUSION_CELLS && (c % grid_width).abs_diff(best_col) <= RATIO_EXCLUSION_CELLS;
+                    if !near && s > pb.second {
+                        pb.second = s;
                     }
                 }
                 point_best.push(pb);
@@ -91,17 +103,33 @@ fn score(point_features: &[f32], dim: usize, candidates: &[usize], image: ArrayV
 /// Mutual nearest neighbours between `candidates` (indices of rows of `point_features`,
 /// [N, dim] row-major) and the cells of `image_features` ([dim, cells] channel-major).
 pub fn mutual_nearest(point_features: &[f32], dim: usize, candidates: &[usize], image_features: &[f32]) -> Vec<FeatureMatch> {
-    find_matches(point_features, dim, candidates, image_features, MatchStrategy::Mutual)
+    let cells = image_features.len().checked_div(dim).unwrap_or(0);
+    find_matches(point_features, dim, candidates, image_features, cells.max(1), MatchStrategy::Mutual)
 }
 
-/// Point–cell matches by `strategy` (see [`MatchStrategy`]).
-pub fn find_matches(point_features: &[f32], dim: usize, candidates: &[usize], image_features: &[f32], strategy: MatchStrategy) -> Vec<FeatureMatch> {
-    if dim == 0 || candidates.is_empty() || image_features.len() % dim != 0 || point_features.len() < dim * (candidates.iter().max().unwrap() + 1) {
+/// Point–cell matches by `strategy` (see [`MatchStrategy`]); cells are `grid_width` per row.
+pub fn find_matches(
+    point_features: &[f32],
+    dim: usize,
+    candidates: &[usize],
+    image_features: &[f32],
+    grid_width: usize,
+    strategy: MatchStrategy,
+) -> Vec<FeatureMatch> {
+    if dim == 0 || grid_width == 0 || candidates.is_empty() || image_features.len() % dim != 0 || point_features.len() < dim * (candidates.iter().max().unwrap() + 1) {
         return Vec::new();
     }
     let cells = image_features.len() / dim;
     let Ok(image) = ArrayView2::from_shape((dim, cells), image_features) else { return Vec::new() };
-    let (points, cells_best) = score(point_features, dim, candidates, image);
+    let (points, cells_best) = score(point_features, dim, candidates, image, grid_width);
+    if tracing::enabled!(tracing::Level::DEBUG) {
+        let mut best: Vec<f32> = points.iter().map(|p| p.best).collect();
+        let mut gap: Vec<f32> = points.iter().map(|p| p.best - p.second).collect();
+        best.sort_by(f32::total_cmp);
+        gap.sort_by(f32::total_cmp);
+        let distinct = cells_best.iter().filter(|(c, _)| *c != usize::MAX).map(|(c, _)| *c).collect::<std::collections::BTreeSet<_>>().len();
+        tracing::debug!(candidates = points.len(), median_best = best[best.len() / 2], median_gap = gap[gap.len() / 2], distinct_points_chosen_by_cells = distinct, "matching similarity");
+    }
     let matched = points.iter().enumerate().filter(|(_, pb)| pb.best.is_finite());
     match strategy {
         MatchStrategy::Mutual => matched
@@ -157,13 +185,16 @@ mod tests {
         assert!(mutual_nearest(&points, dim, &[], &image).is_empty());
         // Ratio test: point 4 (best 1.0 at cell 5, second 0.8 at cell 2) passes, point 1
         // (best 1.0 at cell 1, second 0.6 at cell 5) passes, all are one-to-one here.
-        let ratio = find_matches(&points, dim, &all, &image, MatchStrategy::Ratio);
+        let ratio = find_matches(&points, dim, &all, &image, 1, MatchStrategy::Ratio);
         let mut pairs: Vec<(usize, usize)> = ratio.iter().map(|m| (m.point, m.cell)).collect();
         pairs.sort();
         assert_eq!(pairs, vec![(0, 0), (1, 1), (2, 2), (3, 3), (4, 5)]);
-        // An ambiguous point (equally close to two cells) fails the ratio test.
-        let ambiguous = [0.5f32.sqrt(), 0.5f32.sqrt(), 0.0, 0.0];
-        assert!(find_matches(&ambiguous, dim, &[0], &image, MatchStrategy::Ratio).is_empty());
+        // A point equally close to cells 0 and 3 fails the ratio test when the two cells are
+        // far apart (one row of 6: 3 columns apart), and passes when they are neighbours (two
+        // rows of 3: cell 3 sits right below cell 0), since a neighbour is no rival.
+        let ambiguous = [0.5f32.sqrt(), 0.0, 0.0, 0.5f32.sqrt()];
+        assert!(find_matches(&ambiguous, dim, &[0], &image, 6, MatchStrategy::Ratio).is_empty());
+        assert_eq!(find_matches(&ambiguous, dim, &[0], &image, 3, MatchStrategy::Ratio).len(), 1);
     }
 
     #[test]

@@ -36,14 +36,16 @@ fn register_font() {
 /// One line per method: (name, y values in 0..1 at `xs`).
 pub fn success_plot(path: &Path, title: &str, x_label: &str, xs: &[f64], series: &[(String, Vec<f64>)]) -> Result<()> {
     register_font();
-    let (w, h) = (800u32, 520u32);
+    let (w, h) = (960u32, 520u32);
     let mut buffer = vec![0u8; (w * h * 3) as usize];
     let x_max = xs.last().copied().unwrap_or(1.0);
     {
         let root = BitMapBackend::with_buffer(&mut buffer, (w, h)).into_drawing_area();
         let err = |e| anyhow!("plotting {}: {e:?}", path.display());
         root.fill(&WHITE).map_err(err)?;
-        let mut chart = ChartBuilder::on(&root)
+        // Plot on the left, legend on the right, so no curve is hidden behind the legend.
+        let (plot_area, legend_area) = root.split_horizontally(720);
+        let mut chart = ChartBuilder::on(&plot_area)
             .caption(title, ("sans-serif", 24))
             .margin(16)
             .x_label_area_size(48)
@@ -58,22 +60,18 @@ pub fn success_plot(path: &Path, title: &str, x_label: &str, xs: &[f64], series:
             .axis_desc_style(("sans-serif", 17))
             .draw()
             .map_err(err)?;
-        for (i, (name, ys)) in series.iter().enumerate() {
+        for (i, (_, ys)) in series.iter().enumerate() {
             let color = PALETTE[i % PALETTE.len()];
             chart
                 .draw_series(LineSeries::new(xs.iter().zip(ys).map(|(x, y)| (*x, 100.0 * y)), color.stroke_width(3)))
-                .map_err(err)?
-                .label(name.as_str())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 24, y)], color.stroke_width(3)));
+                .map_err(err)?;
         }
-        chart
-            .configure_series_labels()
-            .label_font(("sans-serif", 16))
-            .background_style(WHITE.mix(0.85))
-            .border_style(BLACK)
-            .position(SeriesLabelPosition::LowerRight)
-            .draw()
-            .map_err(err)?;
+        for (i, (name, _)) in series.iter().enumerate() {
+            let color = PALETTE[i % PALETTE.len()];
+            let y = 70 + 28 * i as i32;
+            legend_area.draw(&PathElement::new(vec![(4, y), (30, y)], color.stroke_width(3))).map_err(err)?;
+            legend_area.draw(&Text::new(name.clone(), (36, y - 8), ("sans-serif", 15))).map_err(err)?;
+        }
         root.present().map_err(err)?;
     }
     let image = image::RgbImage::from_raw(w, h, buffer).ok_or_else(|| anyhow!("plot buffer has the wrong size"))?;
@@ -115,7 +113,7 @@ mod tests {
         let ys: Vec<f64> = xs.iter().map(|x| x / 10.0).collect();
         success_plot(&path, "title", "x (m)", &xs, &[("a".into(), ys.clone()), ("b".into(), ys.iter().map(|y| y * y).collect())]).unwrap();
         let img = image::open(&path).unwrap().to_rgb8();
-        assert_eq!(img.dimensions(), (800, 520));
+        assert_eq!(img.dimensions(), (960, 520));
         // Red line pixels and dark text pixels both exist.
         assert!(img.pixels().any(|p| p.0 == [214, 39, 40]));
         assert!(img.pixels().filter(|p| p.0[0] < 60 && p.0[1] < 60 && p.0[2] < 60).count() > 200);
