@@ -12,6 +12,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
+use crate::atomic_file::write_atomic;
 use crate::geometry::Pose;
 
 pub const FORMAT: &str = "cmr-agent-perturbations/1";
@@ -99,7 +100,10 @@ impl PerturbationFile {
     /// Writes atomically (temporary file in the same directory, fsync, rename).
     pub fn write(&self, path: &Path) -> Result<()> {
         let json = serde_json::to_string_pretty(self)?;
-        write_atomic(path, json.as_bytes())
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+        }
+        Ok(write_atomic(path, json.as_bytes())?)
     }
 
     /// Reads `path` when it exists; otherwise draws the cases for `frames` from `seed` and
@@ -119,25 +123,6 @@ impl PerturbationFile {
 /// Rounds to 1e-6 (µm, µdeg): short, exact-looking numbers in the file.
 fn micro(x: f64) -> f64 {
     (x * 1e6).round() / 1e6
-}
-
-/// Temporary file in the same directory, fsync, rename: readers see the old or the new file.
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    use std::io::Write;
-    let dir = path.parent().filter(|d| !d.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let name = path.file_name().context("output path has no file name")?.to_string_lossy();
-    let tmp = dir.join(format!(".{name}.tmp-{}", std::process::id()));
-    let result = (|| -> std::io::Result<()> {
-        let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result.with_context(|| format!("writing {}", path.display()))
 }
 
 #[cfg(test)]

@@ -7,7 +7,7 @@ use std::sync::Once;
 use anyhow::{Result, anyhow};
 use plotters::prelude::*;
 
-use super::perturbations::write_atomic;
+use crate::atomic_file::write_atomic;
 use super::report::EvalReport;
 
 /// DejaVu Sans (Bitstream Vera licence, see assets/fonts/DejaVuSans.LICENSE): plotters'
@@ -77,7 +77,7 @@ pub fn success_plot(path: &Path, title: &str, x_label: &str, xs: &[f64], series:
     let image = image::RgbImage::from_raw(w, h, buffer).ok_or_else(|| anyhow!("plot buffer has the wrong size"))?;
     let mut png = Vec::new();
     image.write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)?;
-    write_atomic(path, &png)
+    Ok(write_atomic(path, &png)?)
 }
 
 /// The two Fig. 5 panels for every method of the report, at each method's last iteration.
