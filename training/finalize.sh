@@ -2,7 +2,7 @@
 # Turn a run's checkpoint into the shipped model: evaluate on held-out frames, export the four
 # graphs + manifest, time them in ONNX Runtime, plot the curves, write models/MODEL_CARD.md.
 # The background trainer (pid in <run>/pid) is paused meanwhile so the timings are not disturbed.
-#   bash finalize.sh runs/dev1 best.pt /work/data/synth-test 40 "/work/data/synth-dev,/work/data/synth-train"
+#   bash finalize.sh runs/dev1 best.pt ../data/synth-test 40 "../data/synth-dev,../data/synth-train"
 set -euo pipefail
 cd "$(dirname "$0")"
 RUN=$1 CKPT=$2 TEST=$3 FRAMES=$4 TRAIN=$5

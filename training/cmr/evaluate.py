@@ -2,7 +2,7 @@
 after each iteration 1..K for the agent (argmax policy) and for the greedy expert, plus what limits
 them: frustum-head precision/recall and embedding match accuracy.
 
-    python -m cmr.evaluate --checkpoint runs/default/best.pt --data /work/data/synth-test --out eval.json
+    python -m cmr.evaluate --checkpoint runs/default/best.pt --data ../data/synth-test --out eval.json
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Write `models/MODEL_CARD.md` from measured artefacts (nothing in it is typed by hand).
 
     python -m cmr.model_card --models ../models --eval eval.json --bench bench.json \
-        --train-data /work/data/synth-dev --curves training_curves.png [--run runs/x]
+        --train-data ../data/synth-dev --curves training_curves.png [--run runs/x]
 """
 
 from __future__ import annotations

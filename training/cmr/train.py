@@ -7,7 +7,7 @@
    it visited (DAgger: a decaying share of steps follows the expert); after `bc_only_iters` the
    PPO loss (GAE, point-to-point reward) joins the BC loss.
 
-    python -m cmr.train --data /work/data/synth-train --out runs/default [--set key=value ...]
+    python -m cmr.train --data ../data/synth-train --out runs/default [--set key=value ...]
 
 Re-running the same command resumes from `<out>/last.pt`. Every step appends to `<out>/log.jsonl`
 (one JSON object per line; `python -m cmr.plots <out>` draws the curves).
