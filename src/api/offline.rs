@@ -67,15 +67,7 @@ pub fn run(args: LocalizeArgs) -> Result<()> {
     };
     let iterations = args.max_iterations.or(request.max_iterations).unwrap_or(10).clamp(1, super::config::MAX_ITERATIONS);
     let loc = agent::localize(&mut backend, &map, &tensor, crop_k, prior, iterations as usize)?;
-    let timings = TimingsMs {
-        queue: 0.0,
-        decode: decode_ms,
-        image_encoder: loc.timings.image_encoder_ms,
-        frustum_head: loc.timings.frustum_head_ms,
-        agent_steps: loc.timings.agent_steps_ms,
-        agent_state_build: loc.timings.state_build_ms,
-        total: agent::ms(started),
-    };
+    let timings = TimingsMs::new(0.0, decode_ms, &loc.timings, agent::ms(started));
     let id = args.map.file_stem().and_then(|s| s.to_str()).unwrap_or("map");
     println!("{}", serde_json::to_string_pretty(&LocalizeResponse::new(id, &loc, timings))?);
     Ok(())

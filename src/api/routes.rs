@@ -305,15 +305,7 @@ async fn localize_inner(
         Err(_) => return Err(ApiError::DeadlineExceeded),
     };
     let loc = &finished.localization;
-    let timings = TimingsMs {
-        queue: finished.queue_ms,
-        decode: decode_ms,
-        image_encoder: loc.timings.image_encoder_ms,
-        frustum_head: loc.timings.frustum_head_ms,
-        agent_steps: loc.timings.agent_steps_ms,
-        agent_state_build: loc.timings.state_build_ms,
-        total: agent::ms(started),
-    };
+    let timings = TimingsMs::new(finished.queue_ms, decode_ms, &loc.timings, agent::ms(started));
     metrics::histogram!("cmr_iterations").record(loc.iterations() as f64);
     let body = LocalizeResponse::new(id, loc, timings);
     let mut response = Json(body).into_response();

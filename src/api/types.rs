@@ -128,6 +128,19 @@ pub struct TimingsMs {
 }
 
 impl TimingsMs {
+    /// The response's breakdown: the caller's own phases plus the agent's.
+    pub fn new(queue: f64, decode: f64, agent: &crate::agent::Timings, total: f64) -> Self {
+        TimingsMs {
+            queue,
+            decode,
+            image_encoder: agent.image_encoder_ms,
+            frustum_head: agent.frustum_head_ms,
+            agent_steps: agent.agent_steps_ms,
+            agent_state_build: agent.state_build_ms,
+            total,
+        }
+    }
+
     /// The `Server-Timing` header value.
     pub fn header(&self) -> String {
         format!(
