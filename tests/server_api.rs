@@ -4,6 +4,7 @@ mod server_common;
 
 use server_common::*;
 use serde_json::json;
+use std::time::Duration;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn service_endpoints_and_a_localization() {
@@ -314,5 +315,46 @@ async fn deadlines_and_draining_answer_503() {
     let (status, body, _) = server.localize("street", &kitti_request(1)).await;
     assert_eq!(status, 503);
     assert_eq!(body["error_type"], "draining");
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_trickled_upload_gets_408_and_leaves_the_region_intact() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let maps = maps_dir_with_street();
+    let before = std::fs::read(maps.path().join("street.bin")).unwrap();
+    let server = TestServer::start(&tiny_model(), maps.path(), &["--body-timeout-ms", "400"]).await;
+    let addr = server.base.trim_start_matches("http://").to_string();
+    let stream = tokio::net::TcpStream::connect(&addr).await.unwrap();
+    let (mut reader, mut writer) = stream.into_split();
+    // A client that keeps sending a few bytes at a time: each gap is short, the whole is too slow.
+    let trickle = tokio::spawn(async move {
+        let head = format!("PUT /v1/maps/street?format=kitti_bin HTTP/1.1\r\nhost: {addr}\r\ncontent-length: 160000\r\n\r\n");
+        writer.write_all(head.as_bytes()).await.ok();
+        for _ in 0..100 {
+            if writer.write_all(&[0u8; 16]).await.is_err() {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+    });
+    let started = std::time::Instant::now();
+    let mut response = Vec::new();
+    let mut buf = [0u8; 4096];
+    while !String::from_utf8_lossy(&response).contains("}") {
+        let n = tokio::time::timeout(Duration::from_secs(5), reader.read(&mut buf)).await.expect("answered in time").unwrap();
+        if n == 0 {
+            break;
+        }
+        response.extend_from_slice(&buf[..n]);
+    }
+    trickle.abort();
+    let text = String::from_utf8_lossy(&response);
+    assert!(text.starts_with("HTTP/1.1 408"), "{text}");
+    assert!(text.contains("\"error_type\":\"body_timeout\""), "{text}");
+    assert!(started.elapsed() < Duration::from_secs(3), "answered at the deadline, not when the client gave up");
+    assert_eq!(std::fs::read(maps.path().join("street.bin")).unwrap(), before);
+    let (status, _, _) = server.localize("street", &kitti_request(1)).await;
+    assert_eq!(status, 200);
     server.stop().await;
 }

@@ -33,6 +33,9 @@ pub struct ServeArgs {
     /// Per-request deadline for a localization, milliseconds.
     #[arg(long, env = "CMR_REQUEST_TIMEOUT_MS", default_value_t = 10_000)]
     pub request_timeout_ms: u64,
+    /// How long a client may take to send a whole request body (a map upload included), ms.
+    #[arg(long, env = "CMR_BODY_TIMEOUT_MS", default_value_t = 30_000)]
+    pub body_timeout_ms: u64,
     /// Memory budget of the prepared-map cache, MiB.
     #[arg(long, env = "CMR_CACHE_MB", default_value_t = 1024)]
     pub cache_mb: u64,

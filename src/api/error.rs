@@ -33,6 +33,8 @@ pub enum ApiError {
     NotReady(String),
     #[error("the server is shutting down")]
     Draining,
+    #[error("{0}")]
+    BodyTimeout(String),
     #[error("the request's deadline passed before the agent finished")]
     DeadlineExceeded,
     #[error("{0}")]
@@ -53,6 +55,7 @@ impl ApiError {
         match self {
             ApiError::BadRequest(_) | ApiError::MalformedJson(_) | ApiError::CorruptImage(_) => StatusCode::BAD_REQUEST,
             ApiError::Unauthorized => StatusCode::UNAUTHORIZED,
+            ApiError::BodyTimeout(_) => StatusCode::REQUEST_TIMEOUT,
             ApiError::NotFound(_) => StatusCode::NOT_FOUND,
             ApiError::PayloadTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
             ApiError::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
@@ -76,14 +79,18 @@ impl ApiError {
             ApiError::QueueFull => "queue_full",
             ApiError::NotReady(_) => "not_ready",
             ApiError::Draining => "draining",
+            ApiError::BodyTimeout(_) => "body_timeout",
             ApiError::DeadlineExceeded => "deadline_exceeded",
             ApiError::Internal(_) => "internal",
         }
     }
 
-    /// Maps a body-extraction failure (size limit, broken stream) to our error shape.
+    /// Maps a body-extraction failure (size limit, too slow, broken stream) to our error shape.
     pub fn from_body(rejection: axum::extract::rejection::BytesRejection) -> Self {
-        if rejection.status() == StatusCode::PAYLOAD_TOO_LARGE {
+        if super::body_deadline::is_body_deadline(&rejection) {
+            let cause = std::error::Error::source(&rejection).map(|e| e.to_string()).unwrap_or_default();
+            ApiError::BodyTimeout(format!("request body too slow: {cause}"))
+        } else if rejection.status() == StatusCode::PAYLOAD_TOO_LARGE {
             ApiError::PayloadTooLarge(format!("request body is too large: {}", rejection.body_text()))
         } else {
             ApiError::BadRequest(format!("cannot read the request body: {}", rejection.body_text()))

@@ -1,6 +1,7 @@
 //! The HTTP API: routes, errors, configuration and the server's lifecycle (start-up, warm-up,
 //! readiness, graceful shutdown).
 
+pub mod body_deadline;
 pub mod config;
 pub mod decode;
 pub mod error;
@@ -127,6 +128,10 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/maps/{id}/metadata", put(routes::put_metadata).layer(DefaultBodyLimit::max(1024 * 1024)))
         .route("/v1/maps/{id}/localize", post(routes::localize).layer(DefaultBodyLimit::max(body_limit)))
         .fallback(routes::not_found)
+        .layer(axum::middleware::from_fn_with_state(
+            Duration::from_millis(state.config.body_timeout_ms),
+            body_deadline::limit_body_time,
+        ))
         .layer(axum::middleware::from_fn(count_requests))
         .layer(tower_http::trace::TraceLayer::new_for_http())
         .with_state(state)

@@ -68,6 +68,7 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             queue_capacity: c.queue_capacity,
             max_batch: c.max_batch,
             request_timeout_ms: c.request_timeout_ms,
+            body_timeout_ms: c.body_timeout_ms,
             cache_budget_bytes: st.maps.cache.budget_bytes(),
         },
         workers: c.workers.max(1),
@@ -99,7 +100,8 @@ pub async fn get_map(State(st): Shared, Path(id): Path<String>) -> Result<Json<M
 #[utoipa::path(put, path = "/v1/maps/{id}", params(("id" = String, Path, description = "map id"), UploadParams),
     request_body(content = Vec<u8>, content_type = "application/octet-stream"),
     responses((status = 201, body = RegisterResponse), (status = 200, body = RegisterResponse),
-        (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 413, body = ErrorBody), (status = 422, body = ErrorBody)),
+        (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 408, body = ErrorBody),
+        (status = 413, body = ErrorBody), (status = 422, body = ErrorBody)),
     security(("bearer" = [])))]
 pub async fn put_map(
     State(st): Shared,
@@ -145,7 +147,7 @@ pub async fn put_map(
 #[utoipa::path(put, path = "/v1/maps/{id}/metadata", params(("id" = String, Path, description = "map id")),
     request_body = MapMetadata,
     responses((status = 200, body = MapSummary), (status = 400, body = ErrorBody), (status = 401, body = ErrorBody),
-        (status = 404, body = ErrorBody), (status = 422, body = ErrorBody)),
+        (status = 404, body = ErrorBody), (status = 408, body = ErrorBody), (status = 422, body = ErrorBody)),
     security(("bearer" = [])))]
 pub async fn put_metadata(
     State(st): Shared,
@@ -183,7 +185,7 @@ pub async fn delete_map(State(st): Shared, Path(id): Path<String>, headers: Head
 #[utoipa::path(post, path = "/v1/maps/{id}/localize", params(("id" = String, Path, description = "map id"), RawLocalizeParams),
     request_body(content((LocalizeRequest = "application/json"), (Vec<u8> = "image/jpeg"), (Vec<u8> = "image/png"))),
     responses((status = 200, body = LocalizeResponse), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody),
-        (status = 413, body = ErrorBody), (status = 415, body = ErrorBody), (status = 422, body = ErrorBody),
+        (status = 408, body = ErrorBody), (status = 413, body = ErrorBody), (status = 415, body = ErrorBody), (status = 422, body = ErrorBody),
         (status = 429, body = ErrorBody), (status = 503, body = ErrorBody)))]
 pub async fn localize(
     State(st): Shared,

@@ -264,6 +264,8 @@ pub struct Limits {
     pub queue_capacity: usize,
     pub max_batch: usize,
     pub request_timeout_ms: u64,
+    /// How long a client may take to send a whole request body.
+    pub body_timeout_ms: u64,
     pub cache_budget_bytes: u64,
 }
 
