@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Turn a run's checkpoint into the shipped model: evaluate on held-out frames, export the four
-# graphs + manifest, time them in ONNX Runtime, plot the curves, write models/MODEL_CARD.md.
+# graphs + manifest, measure the 2D state's alignment signal, time the graphs in ONNX Runtime, plot the curves, write models/MODEL_CARD.md.
 # The background trainer (pid in <run>/pid) is paused meanwhile so the timings are not disturbed.
 #   bash finalize.sh runs/dev1 best.pt ../data/synth-test 40 "../data/synth-dev,../data/synth-train"
 set -euo pipefail
@@ -14,10 +14,11 @@ trap resume EXIT
 [ -n "$PID" ] && kill -STOP "$PID" 2>/dev/null || true
 $PY -m cmr.evaluate --checkpoint "$RUN/$CKPT" --data "$TEST" --frames "$FRAMES" --out "$RUN/final_eval.json" > /dev/null
 $PY -m cmr.export --checkpoint "$RUN/$CKPT" --out "$OUT" --validation "$RUN/final_eval.json" > /dev/null
+$PY -m cmr.diagnose --checkpoint "$RUN/$CKPT" --data "$TEST" --frames "$FRAMES" > "$RUN/diagnose.json"
 $PY -m cmr.bench --models "$OUT" --repeats 30 > "$RUN/bench.json"
 $PY -m cmr.plots "$RUN" --out "$OUT/training_curves.png"
 NOTES=()
 [ -f "$RUN/notes.md" ] && NOTES=(--notes "$RUN/notes.md")
 $PY -m cmr.model_card --models "$OUT" --eval "$RUN/final_eval.json" --bench "$RUN/bench.json" \
-    --train-data "$TRAIN" --test-data "$TEST" --curves training_curves.png "${NOTES[@]}"
+    --train-data "$TRAIN" --test-data "$TEST" --curves training_curves.png --diagnose "$RUN/diagnose.json" "${NOTES[@]}"
 du -sh "$OUT"

@@ -94,7 +94,7 @@ class Trajectory:
     log_probs: np.ndarray  # [T, B]
     values: np.ndarray  # [T+1, B]
     rewards: np.ndarray  # [T, B]
-    states: list | None = None  # [T] of (state_2d [B,...], state_3d [B,...]) when kept for the update
+    states: list | None = None  # [T] of the agent's observation (Agent.correlate volume, state_3d) for the update
 
 
 @torch.no_grad()
@@ -114,11 +114,12 @@ def rollout(agent, episodes: Episodes, steps: int, mode: str = "greedy", expert_
     for t in range(steps + 1):
         current = poses[-1]
         if agent is not None:
-            state = episodes.state(current)
-            logits, value = agent(*state)
+            state_2d, state_3d = episodes.state(current)
+            observation = (agent.correlate(state_2d), state_3d)
+            logits, value = agent.decide(*observation)
             values[t] = value[:, 0].cpu().numpy()
             if keep_states and t < steps:
-                states.append(state)
+                states.append(observation)
         if t == steps:
             break
         expert = np.array([g.expert_indices(p, episodes.truth[i], episodes.pivots[i]) for i, p in enumerate(current)])

@@ -42,8 +42,22 @@ def _table(rows: list[dict], keys: list[str], heads: list[str]) -> str:
     return "\n".join(out)
 
 
+def _alignment(diagnosis: dict | None) -> str:
+    if not diagnosis:
+        return ""
+    rows = [dict(perturbation=k, truth_wins=v, median_margin=diagnosis["median_margin"][k])
+            for k, v in diagnosis["truth_wins"].items()]
+    return f"""
+Alignment signal of the 2D state (`python -m cmr.diagnose`, {diagnosis['frames']} held-out frames): how
+often the true pose's mean point-to-image-cell cosine similarity beats the truth perturbed by a
+yaw (degrees) or shift (metres, camera frame); 0.5 = no signal, 1.0 = always.
+
+{_table(rows, ["perturbation", "truth_wins", "median_margin"], ["perturbation", "truth wins", "median margin"])}
+"""
+
+
 def render(manifest: dict, evaluation: dict, bench: dict, train_rows: list[dict], test_rows: list[dict],
-           curves: str, notes: str) -> str:
+           curves: str, notes: str, diagnosis: dict | None = None) -> str:
     params = manifest["parameters"]
     sizes = "\n".join(f"| {k} | {v:,} |" for k, v in params.items())
     it_keys = ["iteration", "rte_m", "rre_euler_deg", "rre_geodesic_deg", "rr", "rte_median_m"]
@@ -99,7 +113,7 @@ What limits the agent (one-shot embeddings on the same frames):
 - frustum head: precision {evaluation['frustum']['precision']:.3f}, recall {evaluation['frustum']['recall']:.3f}
 - embedding match accuracy (best of the 40x128 image cells within one cell of the true projection):
   {evaluation['match_accuracy']:.3f}
-
+{_alignment(diagnosis)}
 ## Training curves
 ![training curves]({curves})
 """
@@ -114,12 +128,14 @@ def main(argv=None) -> None:
     ap.add_argument("--test-data", default="", help="comma-separated roots")
     ap.add_argument("--curves", default="training_curves.png")
     ap.add_argument("--notes", type=Path, help="markdown paragraph(s) placed under the title")
+    ap.add_argument("--diagnose", type=Path, help="output of `python -m cmr.diagnose` (JSON)")
     args = ap.parse_args(argv)
     manifest = json.loads((args.models / "manifest.json").read_text())
     text = render(manifest, json.loads(args.eval.read_text()), json.loads(args.bench.read_text()),
                   data_summary([r for r in args.train_data.split(",") if r]),
                   data_summary([r for r in args.test_data.split(",") if r]), args.curves,
-                  args.notes.read_text() if args.notes else "")
+                  args.notes.read_text() if args.notes else "",
+                  json.loads(args.diagnose.read_text()) if args.diagnose else None)
     atomic_write_bytes(args.models / "MODEL_CARD.md", text.encode())
 
 

@@ -129,30 +129,95 @@ class FrustumHead(nn.Module):
         return self.readout(torch.cat([hidden, best], dim=-1)).squeeze(-1)
 
 
+# Horizontal and vertical cell offsets at which the agent correlates projected point features with
+# image features. One degree of yaw moves the image by about 1.6 cells (fx ~ 359 px at the nominal
+# scale, 4 px per cell), so +-24 cells covers about +-15 degrees; larger errors are the 3D branch's job.
+CORRELATION_SHIFTS = [(0, d) for d in (-24, -16, -10, -6, -3, -1, 0, 1, 3, 6, 10, 16, 24)] + \
+    [(d, 0) for d in (-4, -2, 2, 4)]
+BEARING_BINS = 24  # 15 degrees each, around the camera's vertical axis
+
+
+def shifted_dot(a: torch.Tensor, b: torch.Tensor, dr: int, dc: int) -> torch.Tensor:
+    """sum over channels of a[:, :, r, c] * b[:, :, r + dr, c + dc], zero where (r + dr, c + dc) is
+    off the grid: [B, C, H, W] x2 -> [B, 1, H, W]. Slicing before multiplying (rather than padding b)
+    keeps it to one product over the overlap, the memory-bound part on CPU."""
+    h, w = a.shape[-2:]
+    ra, rb = slice(max(0, -dr), h - max(0, dr)), slice(max(0, dr), h - max(0, -dr))
+    ca, cb = slice(max(0, -dc), w - max(0, dc)), slice(max(0, dc), w - max(0, -dc))
+    overlap = (a[:, :, ra, ca] * b[:, :, rb, cb]).sum(1, keepdim=True)
+    return F.pad(overlap, (max(0, -dc), max(0, dc), max(0, -dr), max(0, dr)))
+
+
 class Agent(nn.Module):
-    """Actor-critic on the hybrid state: a 2D CNN that reduces channels at once and pools early,
-    and a PointNet on the M state points; 128 features each, concatenated."""
+    """Actor-critic on the hybrid state.
+
+    The 2D state holds image features next to the point features projected at the current pose.
+    A plain CNN over the concatenation would have to learn multiplication to compare them, so the
+    agent first builds a small correlation volume: at every occupied cell, the cosine similarity
+    of its projected point feature with the image feature a few cells away (rows and columns).
+    Where along the shifts the similarity peaks says which way the projection must move.
+
+    The 3D state gives each state point's position in the current camera frame, the frustum
+    head's probability that it is in the true view, and whether it is in the current view. A
+    PointNet sees them raw; explicit pooled features add, per bearing bin around the camera, the
+    share of points predicted in view, which points straight at large yaw errors."""
 
     def __init__(self, state_dim: int = 128):
         super().__init__()
+        s = len(CORRELATION_SHIFTS)
         self.cnn = nn.Sequential(
-            nn.Conv2d(2 * FEATURE_DIM, 16, 1), nn.ReLU(inplace=True),
-            nn.Conv2d(16, 32, 3, 2, 1), nn.ReLU(inplace=True),   # 20 x 64
-            nn.Conv2d(32, 48, 3, 2, 1), nn.ReLU(inplace=True),   # 10 x 32
-            nn.Conv2d(48, 32, 3, 2, 1), nn.ReLU(inplace=True),   # 5 x 16
+            nn.Conv2d(s + 1, 32, 3, 2, 1), nn.ReLU(inplace=True),  # 20 x 64
+            nn.Conv2d(32, 48, 3, 2, 1), nn.ReLU(inplace=True),     # 10 x 32
+            nn.Conv2d(48, 48, 3, 2, 1), nn.ReLU(inplace=True),     # 5 x 16
         )
-        self.fc2d = nn.Sequential(nn.Linear(32 * 5 * 16, state_dim), nn.ReLU(inplace=True))
+        self.fc2d = nn.Sequential(nn.Linear(48 * 5 * 16 + s, state_dim), nn.ReLU(inplace=True))
         self.pointnet = nn.Sequential(point_mlp(5, 64), point_mlp(64, 128))
-        self.fc3d = nn.Sequential(nn.Linear(128, state_dim), nn.ReLU(inplace=True))
+        angles = torch.arange(BEARING_BINS, dtype=torch.float32) * (2 * torch.pi / BEARING_BINS)
+        self.register_buffer("bin_dirs", torch.stack([torch.sin(angles), torch.cos(angles)]), persistent=False)
+        self.fc3d = nn.Sequential(nn.Linear(128 + 2 * BEARING_BINS + 6, state_dim), nn.ReLU(inplace=True))
         self.trunk = nn.Sequential(nn.Linear(2 * state_dim, 256), nn.ReLU(inplace=True))
         self.policy = nn.Linear(256, NUM_DOFS * NUM_STEPS)
         self.value = nn.Linear(256, 1)
 
-    def forward(self, state_2d: torch.Tensor, state_3d: torch.Tensor):
-        f2 = self.fc2d(self.cnn(state_2d).flatten(1))
-        f3 = self.fc3d(self.pointnet(state_3d).amax(dim=1))
-        z = self.trunk(torch.cat([f2, f3], dim=1))
+    @staticmethod
+    def correlate(state_2d: torch.Tensor) -> torch.Tensor:
+        """[B, 128, 40, 128] -> [B, shifts + 1, 40, 128]: the correlation volume at occupied cells and
+        the occupancy. Parameter-free, so training computes it once per visited state."""
+        image, projected = state_2d[:, :FEATURE_DIM], state_2d[:, FEATURE_DIM:]
+        # Scatter-mean features are not unit length; empty cells are exactly zero.
+        norm = torch.sqrt((projected * projected).sum(1, keepdim=True))
+        occupied = (norm > 1e-6).float()
+        unit = projected / (norm + 1e-6)
+        corr = torch.cat([shifted_dot(unit, image, dr, dc) for dr, dc in CORRELATION_SHIFTS], 1)
+        return torch.cat([corr * occupied, occupied], 1)
+
+    def branch_2d(self, volume: torch.Tensor) -> torch.Tensor:
+        corr, occupied = volume[:, :-1], volume[:, -1:]
+        # Mean similarity per shift over the occupied cells: the alignment profile as one vector.
+        profile = corr.sum(dim=(2, 3)) / (occupied.sum(dim=(2, 3)) + 1.0)
+        return self.fc2d(torch.cat([self.cnn(volume).flatten(1), profile], 1))
+
+    def branch_3d(self, state_3d: torch.Tensor) -> torch.Tensor:
+        xyz, prob, inside = state_3d[..., :3], state_3d[..., 3:4], state_3d[..., 4:5]
+        ground = torch.cat([xyz[..., 0:1], xyz[..., 2:3]], -1)
+        unit = ground / torch.sqrt((ground * ground).sum(-1, keepdim=True) + 1e-6)
+        # Soft bearing bins (about 15 degrees wide): which directions hold the predicted view.
+        weight = torch.exp(20.0 * (unit @ self.bin_dirs - 1.0))  # [B, M, K]
+        per_bin = weight.sum(1) + 1e-3
+        predicted_share = (weight * prob).sum(1) / per_bin
+        density = per_bin / per_bin.sum(-1, keepdim=True)
+        mass = prob.sum(1) + 1e-3
+        centroids = torch.cat([(xyz * prob).sum(1) / mass, (xyz * inside).sum(1) / (inside.sum(1) + 1e-3)], -1)
+        pooled = self.pointnet(state_3d).amax(dim=1)
+        return self.fc3d(torch.cat([pooled, predicted_share, density, centroids], -1))
+
+    def decide(self, volume: torch.Tensor, state_3d: torch.Tensor):
+        """Policy logits [B, 3, 11] and value [B, 1] from `correlate`'s volume and the 3D state."""
+        z = self.trunk(torch.cat([self.branch_2d(volume), self.branch_3d(state_3d)], dim=1))
         return self.policy(z).view(-1, NUM_DOFS, NUM_STEPS), self.value(z)
+
+    def forward(self, state_2d: torch.Tensor, state_3d: torch.Tensor):
+        return self.decide(self.correlate(state_2d), state_3d)
 
 
 def build_all() -> dict[str, nn.Module]:

@@ -233,7 +233,8 @@ class Run:
                     s3 = torch.stack([traj.states[t][1][i] for t, i in batch])
                 else:
                     s2, s3 = eps.state([traj.poses[t][i] for t, i in batch], rows)
-                logits, value = agent(s2, s3)
+                    s2 = agent.correlate(s2)
+                logits, value = agent.decide(s2, s3)
                 dev = logits.device
                 expert = torch.as_tensor(np.stack([traj.experts[t, i] for t, i in batch]), device=dev)
                 bc = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), expert.reshape(-1))

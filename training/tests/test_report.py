@@ -20,3 +20,35 @@ def test_evaluation_and_model_card(tmp_path, tiny_dataset):
     text = render(doc, result, {"agent_ms": 1.0}, data_summary([str(tiny_dataset)]), [], "curves.png", "note")
     assert "| 3 |" in text and "Greedy expert" in text and str(sum(doc["parameters"].values())) not in ("0",)
     assert json.loads((tmp_path / "manifest.json").read_text())["validation"]["final"]["iteration"] == 3
+
+
+def test_alignment_diagnosis_rewards_a_perfect_embedding(tiny_dataset):
+    """With point features equal to the (random) image feature at each point's true projection, the
+    true pose scores ~1 and beats every perturbation, where points land on unrelated cells."""
+    import numpy as np
+    import torch
+
+    from cmr.diagnose import PERTURBATIONS, alignment_score
+    from cmr.data import make_sample
+    from cmr.episodes import embed
+    from cmr.state import frustum_cells, to_camera
+
+    models = build_all()
+    frames = list_frames(find_sequences(tiny_dataset))[:2]
+    samples = [make_sample(f, np.random.default_rng(i), train=False, num_points=4096) for i, f in enumerate(frames)]
+    eps = embed(models, samples, torch.device("cpu"))
+    gen = torch.Generator().manual_seed(0)
+    for row, s in enumerate(samples):
+        grid = torch.nn.functional.normalize(torch.randn(64, 40 * 128, generator=gen), dim=0)
+        eps.image_features[row] = grid.view(64, 40, 128)
+        cell, inside = frustum_cells(eps.intrinsics[row:row + 1],
+                                     to_camera(torch.as_tensor(s.truth[None], dtype=torch.float32), eps.points[row:row + 1]))
+        feats = torch.nn.functional.normalize(torch.randn(len(s.points), 64, generator=gen), dim=1)
+        feats[inside[0]] = grid[:, cell[0][inside[0]]].t()
+        eps.point_features[row] = feats
+    from cmr import geometry as g
+    for row, s in enumerate(samples):
+        truth = alignment_score(eps, row, s.truth)
+        assert truth > 0.99
+        for _, yaw, tx, tz in PERTURBATIONS:
+            assert alignment_score(eps, row, g.apply_action(s.truth, eps.pivots[row], yaw, tx, tz)) < truth
