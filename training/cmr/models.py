@@ -132,20 +132,36 @@ class FrustumHead(nn.Module):
 # Horizontal and vertical cell offsets at which the agent correlates projected point features with
 # image features. One degree of yaw moves the image by about 1.6 cells (fx ~ 359 px at the nominal
 # scale, 4 px per cell), so +-24 cells covers about +-15 degrees; larger errors are the 3D branch's job.
-CORRELATION_SHIFTS = [(0, d) for d in (-24, -16, -10, -6, -3, -1, 0, 1, 3, 6, 10, 16, 24)] + \
-    [(d, 0) for d in (-4, -2, 2, 4)]
+ROW_SHIFTS = (-24, -16, -10, -6, -3, -1, 0, 1, 3, 6, 10, 16, 24)  # columns, along each row
+COLUMN_SHIFTS = (-4, -2, 2, 4)  # rows, along each column
 BEARING_BINS = 24  # 15 degrees each, around the camera's vertical axis
 
 
-def shifted_dot(a: torch.Tensor, b: torch.Tensor, dr: int, dc: int) -> torch.Tensor:
-    """sum over channels of a[:, :, r, c] * b[:, :, r + dr, c + dc], zero where (r + dr, c + dc) is
-    off the grid: [B, C, H, W] x2 -> [B, 1, H, W]. Slicing before multiplying (rather than padding b)
-    keeps it to one product over the overlap, the memory-bound part on CPU."""
-    h, w = a.shape[-2:]
-    ra, rb = slice(max(0, -dr), h - max(0, dr)), slice(max(0, dr), h - max(0, -dr))
-    ca, cb = slice(max(0, -dc), w - max(0, dc)), slice(max(0, dc), w - max(0, -dc))
-    overlap = (a[:, :, ra, ca] * b[:, :, rb, cb]).sum(1, keepdim=True)
-    return F.pad(overlap, (max(0, -dc), max(0, dc), max(0, -dr), max(0, dr)))
+class ShiftCorrelation(nn.Module):
+    """out[:, k, r, c] = a[:, r, c] . b[:, r, c + s_k] for the row shifts, then a[:, r, c] . b[:, r + s_k, c]
+    for the column shifts; zero where the shifted cell is off the grid. Inputs [B, H, W, C].
+
+    Along rows: one matrix product per row gives every offset at once, and a Gather keeps the
+    wanted diagonals. Along columns (few offsets): a multiply-and-sum over whole shifted rows,
+    which are contiguous in this layout. In ONNX Runtime this is 2-3x faster than one shifted
+    multiply-and-sum per offset, whose strided slices and reductions dominated the agent's time."""
+
+    def __init__(self, width: int = GRID_WIDTH):
+        super().__init__()
+        index = torch.tensor([[i * width + min(max(i + d, 0), width - 1) for i in range(width)] for d in ROW_SHIFTS])
+        valid = torch.tensor([[float(0 <= i + d < width) for i in range(width)] for d in ROW_SHIFTS])
+        self.register_buffer("row_index", index.flatten(), persistent=False)
+        self.register_buffer("row_valid", valid, persistent=False)
+
+    def forward(self, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        batch, h, w, _ = a.shape
+        along_rows = torch.matmul(a, b.transpose(-1, -2)).reshape(batch, h, w * w)
+        rows = along_rows.index_select(2, self.row_index).reshape(batch, h, len(ROW_SHIFTS), w) * self.row_valid
+        columns = []
+        for d in COLUMN_SHIFTS:
+            overlap = (a[:, max(0, -d): h - max(0, d)] * b[:, max(0, d): h - max(0, -d)]).sum(-1)
+            columns.append(F.pad(overlap, (0, 0, max(0, -d), max(0, d))).unsqueeze(1))
+        return torch.cat([rows.permute(0, 2, 1, 3)] + columns, 1)
 
 
 class Agent(nn.Module):
@@ -164,7 +180,8 @@ class Agent(nn.Module):
 
     def __init__(self, state_dim: int = 128):
         super().__init__()
-        s = len(CORRELATION_SHIFTS)
+        s = len(ROW_SHIFTS) + len(COLUMN_SHIFTS)
+        self.correlation = ShiftCorrelation()
         self.cnn = nn.Sequential(
             nn.Conv2d(s + 1, 32, 3, 2, 1), nn.ReLU(inplace=True),  # 20 x 64
             nn.Conv2d(32, 48, 3, 2, 1), nn.ReLU(inplace=True),     # 10 x 32
@@ -179,17 +196,16 @@ class Agent(nn.Module):
         self.policy = nn.Linear(256, NUM_DOFS * NUM_STEPS)
         self.value = nn.Linear(256, 1)
 
-    @staticmethod
-    def correlate(state_2d: torch.Tensor) -> torch.Tensor:
+    def correlate(self, state_2d: torch.Tensor) -> torch.Tensor:
         """[B, 128, 40, 128] -> [B, shifts + 1, 40, 128]: the correlation volume at occupied cells and
         the occupancy. Parameter-free, so training computes it once per visited state."""
-        image, projected = state_2d[:, :FEATURE_DIM], state_2d[:, FEATURE_DIM:]
+        hwc = state_2d.permute(0, 2, 3, 1)
+        image, projected = hwc[..., :FEATURE_DIM], hwc[..., FEATURE_DIM:]
         # Scatter-mean features are not unit length; empty cells are exactly zero.
-        norm = torch.sqrt((projected * projected).sum(1, keepdim=True))
-        occupied = (norm > 1e-6).float()
+        norm = torch.sqrt((projected * projected).sum(-1, keepdim=True))
         unit = projected / (norm + 1e-6)
-        corr = torch.cat([shifted_dot(unit, image, dr, dc) for dr, dc in CORRELATION_SHIFTS], 1)
-        return torch.cat([corr * occupied, occupied], 1)
+        occupied = (norm > 1e-6).float().permute(0, 3, 1, 2)
+        return torch.cat([self.correlation(unit, image) * occupied, occupied], 1)
 
     def branch_2d(self, volume: torch.Tensor) -> torch.Tensor:
         corr, occupied = volume[:, :-1], volume[:, -1:]
