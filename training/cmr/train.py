@@ -61,6 +61,7 @@ class Config:
     pool_refresh: int = 2  # samples replaced per iteration
     rollout_steps: int = 10
     agent_lr: float = 1e-3
+    agent_lr_min: float = 5e-5  # cosine decay from agent_lr over agent_iters (equal values: constant)
     bc_only_iters: int = 300
     expert_mix_start: float = 0.5
     expert_mix_iters: int = 300
@@ -277,6 +278,9 @@ class Run:
             rows = sorted(set(fresh) | set(np.random.default_rng([cfg.seed, 5, it]).choice(
                 cfg.pool_size, cfg.agent_envs - len(fresh), replace=False).tolist()))
             eps = pool.subset(rows)
+            lr = cfg.agent_lr_min + 0.5 * (cfg.agent_lr - cfg.agent_lr_min) * (1 + math.cos(math.pi * min(1.0, it / cfg.agent_iters)))
+            for group in self.opt_agent.param_groups:
+                group["lr"] = lr
             mix = cfg.expert_mix_start * max(0.0, 1.0 - it / max(cfg.expert_mix_iters, 1))
             ppo_weight = cfg.ppo_weight if it >= cfg.bc_only_iters else 0.0
             rng = np.random.default_rng([cfg.seed, 3, it])
@@ -286,7 +290,7 @@ class Run:
             stats = self.agent_update(eps, traj, ppo_weight)
             self.agent_iter += 1
             if self.agent_iter % cfg.log_every == 0 or self.agent_iter == 1:
-                rec = dict(stage="agent", step=self.agent_iter, expert_mix=mix, ppo_weight=ppo_weight,
+                rec = dict(stage="agent", step=self.agent_iter, lr=lr, expert_mix=mix, ppo_weight=ppo_weight,
                            reward=float(traj.rewards.mean()), **stats,
                            samples_per_s=cfg.agent_envs / (time.time() - t0), time=time.time())
                 self.log(rec)
