@@ -60,7 +60,12 @@ impl Maps {
 
     /// The prepared map: from memory, else from `<id>.emb`, else computed (and persisted). Blocking.
     pub fn prepared(&self, id: &str) -> Result<Arc<PreparedMap>, MapError> {
-        self.store.get(id)?;
+        let refreshed = self.store.refresh(id);
+        if matches!(refreshed, Ok((_, true)) | Err(MapError::NotFound(_))) {
+            // Replaced or deleted by another replica sharing the directory.
+            self.cache.invalidate(id);
+        }
+        refreshed?;
         self.cache
             .get_or_load(id, || self.load_or_compute(id).map(Arc::new))
             .map_err(|e| (*e).clone())

@@ -1,10 +1,15 @@
 //! Map regions on disk: `<id>.bin` (KITTI float32 x, y, z, intensity: the one canonical format
 //! whatever was uploaded), `<id>.json` (metadata sidecar) and `<id>.emb` (cached embeddings).
 //! Every write is atomic, so a failed upload leaves the previous region intact.
+//!
+//! The directory may be shared by several replicas (DESIGN §9): the in-memory registry is a cache
+//! of the files, checked against each region's file stamps (size and modification times) on
+//! every lookup, so a region another replica registered, replaced or deleted is seen at once.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, RwLock};
+use std::time::SystemTime;
 
 use serde::{Deserialize, Serialize};
 
@@ -68,9 +73,17 @@ pub struct MapEntry {
     pub metadata: MapMetadata,
 }
 
+/// What changes when any replica rewrites a region: `<id>.bin` (size, mtime) and `<id>.json` (mtime).
+/// Atomic writes replace the file, so a rewrite always moves the modification time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Stamp {
+    bin: (u64, SystemTime),
+    json: Option<SystemTime>,
+}
+
 pub struct MapStore {
     dir: PathBuf,
-    registry: RwLock<BTreeMap<String, MapEntry>>,
+    registry: RwLock<BTreeMap<String, (MapEntry, Stamp)>>,
     /// Serialises writers so two uploads of one id cannot interleave their files.
     writes: Mutex<()>,
 }
@@ -95,11 +108,8 @@ impl MapStore {
                 warnings.push(format!("{}: not a valid map id, skipped", path.display()));
                 continue;
             }
-            match store.load_entry(&id) {
-                Ok(entry) => {
-                    store.registry.write().expect("registry").insert(id, entry);
-                }
-                Err(e) => warnings.push(format!("{}: {e}; skipped", path.display())),
+            if let Err(e) = store.refresh(&id) {
+                warnings.push(format!("{}: {e}; skipped", path.display()));
             }
         }
         Ok((store, warnings))
@@ -134,13 +144,55 @@ impl MapStore {
         Ok((cloud.xyz, sha256_hex(&bytes), bytes.len() as u64))
     }
 
+    fn stamp(&self, id: &str) -> Option<Stamp> {
+        let bin = std::fs::metadata(self.path(id, "bin")).ok()?;
+        let json = std::fs::metadata(self.path(id, "json")).and_then(|m| m.modified()).ok();
+        Some(Stamp { bin: (bin.len(), bin.modified().ok()?), json })
+    }
+
+    /// The region as the files say now: (entry, whether it differs from what was registered).
+    /// Re-reads a region whose stamp moved, forgets one whose files are gone.
+    pub fn refresh(&self, id: &str) -> Result<(MapEntry, bool), MapError> {
+        validate_id(id)?;
+        let Some(stamp) = self.stamp(id) else {
+            self.registry.write().expect("registry").remove(id);
+            return Err(MapError::NotFound(id.to_string()));
+        };
+        let known = self.registry.read().expect("registry").get(id).cloned();
+        match known {
+            Some((entry, seen)) if seen == stamp => Ok((entry, false)),
+            known => {
+                let entry = self.load_entry(id)?;
+                let changed = known.is_some_and(|(old, _)| old.source_sha256 != entry.source_sha256);
+                self.registry.write().expect("registry").insert(id.to_string(), (entry.clone(), stamp));
+                Ok((entry, changed))
+            }
+        }
+    }
+
+    /// Every region in the directory (including those other replicas added), by id.
     pub fn list(&self) -> Vec<MapEntry> {
-        self.registry.read().expect("registry").values().cloned().collect()
+        let on_disk: Vec<String> = std::fs::read_dir(&self.dir)
+            .map(|rd| {
+                rd.filter_map(|e| e.ok())
+                    .filter_map(|e| e.file_name().to_str().and_then(|n| n.strip_suffix(".bin")).map(str::to_string))
+                    .filter(|id| validate_id(id).is_ok())
+                    .collect()
+            })
+            .unwrap_or_default();
+        let mut ids: std::collections::BTreeSet<String> = on_disk.into_iter().collect();
+        ids.extend(self.registry.read().expect("registry").keys().cloned());
+        ids.iter().filter_map(|id| self.refresh(id).ok().map(|(entry, _)| entry)).collect()
     }
 
     pub fn get(&self, id: &str) -> Result<MapEntry, MapError> {
-        validate_id(id)?;
-        self.registry.read().expect("registry").get(id).cloned().ok_or_else(|| MapError::NotFound(id.to_string()))
+        self.refresh(id).map(|(entry, _)| entry)
+    }
+
+    fn register(&self, id: &str, entry: &MapEntry) {
+        if let Some(stamp) = self.stamp(id) {
+            self.registry.write().expect("registry").insert(id.to_string(), (entry.clone(), stamp));
+        }
     }
 
     /// Stores a region: cloud, embeddings, then metadata (each atomically), then registers it.
@@ -166,7 +218,7 @@ impl MapStore {
         write_atomic(&self.path(id, "emb"), &embeddings::encode(prepared, model_sha, &sha)).map_err(io)?;
         write_atomic(&self.path(id, "json"), &serde_json::to_vec_pretty(&metadata).expect("metadata serialises")).map_err(io)?;
         let entry = MapEntry { id: id.to_string(), num_points: cloud.xyz.len(), file_bytes: bin.len() as u64, source_sha256: sha, metadata };
-        self.registry.write().expect("registry").insert(id.to_string(), entry.clone());
+        self.register(id, &entry);
         Ok(entry)
     }
 
@@ -177,14 +229,15 @@ impl MapStore {
         write_atomic(&self.path(id, "json"), &serde_json::to_vec_pretty(&metadata).expect("metadata serialises"))
             .map_err(|e| MapError::Io(e.to_string()))?;
         entry.metadata = metadata;
-        self.registry.write().expect("registry").insert(id.to_string(), entry.clone());
+        self.register(id, &entry);
         Ok(entry)
     }
 
     pub fn delete(&self, id: &str) -> Result<(), MapError> {
         validate_id(id)?;
         let _guard = self.writes.lock().expect("writes");
-        if self.registry.write().expect("registry").remove(id).is_none() {
+        let known = self.registry.write().expect("registry").remove(id).is_some();
+        if !known && self.stamp(id).is_none() {
             return Err(MapError::NotFound(id.to_string()));
         }
         for ext in ["bin", "emb", "json"] {
@@ -237,6 +290,37 @@ mod tests {
         assert!(!dir.path().join(".a.bin.tmp-1-0").exists());
         assert_eq!(store.list().iter().map(|e| e.id.as_str()).collect::<Vec<_>>(), ["ok"]);
         assert_eq!(warnings.len(), 2, "{warnings:?}");
+    }
+
+    #[test]
+    fn replicas_sharing_a_directory_see_each_others_changes() {
+        use crate::maps::formats::PointCloud;
+        let dir = tempfile::tempdir().unwrap();
+        let (a, _) = MapStore::open(dir.path()).unwrap();
+        let (b, _) = MapStore::open(dir.path()).unwrap();
+        let cloud = |n: usize| PointCloud { xyz: (0..n).map(|i| [i as f32, 1.0, -1.0]).collect(), intensity: None };
+        let prepared = PreparedMap { points: vec![[0.0; 3]], features: vec![0.0; 64], pivot: nalgebra::Point3::origin(), source_points: 1 };
+        assert!(matches!(b.get("yard"), Err(MapError::NotFound(_))));
+
+        a.put("yard", &cloud(10), None, &prepared, "model").unwrap();
+        assert_eq!(b.get("yard").unwrap().num_points, 10, "registered by the other replica");
+        assert_eq!(b.list().len(), 1);
+        assert!(!b.refresh("yard").unwrap().1, "unchanged since the last look");
+
+        std::thread::sleep(std::time::Duration::from_millis(20)); // a distinct mtime on coarse clocks
+        a.put("yard", &cloud(12), None, &prepared, "model").unwrap();
+        let (entry, changed) = b.refresh("yard").unwrap();
+        assert!(changed && entry.num_points == 12, "replaced by the other replica");
+
+        let mut meta = MapMetadata::default();
+        meta.description = Some("moved".into());
+        std::thread::sleep(std::time::Duration::from_millis(20));
+        b.set_metadata("yard", meta).unwrap();
+        assert_eq!(a.get("yard").unwrap().metadata.description.as_deref(), Some("moved"));
+
+        a.delete("yard").unwrap();
+        assert!(matches!(b.get("yard"), Err(MapError::NotFound(_))));
+        assert!(b.list().is_empty());
     }
 
     #[test]
