@@ -358,3 +358,46 @@ async fn a_trickled_upload_gets_408_and_leaves_the_region_intact() {
     assert_eq!(status, 200);
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_replicas_on_one_map_directory_stay_consistent() {
+    let maps = maps_dir_with_street();
+    let a = TestServer::start(&tiny_model(), maps.path(), &[]).await;
+    let b = TestServer::start(&tiny_model(), maps.path(), &[]).await;
+    let cloud = |n: usize| {
+        let mut c = street_cloud();
+        c.xyz.truncate(n);
+        c.intensity = None;
+        cmr_agent::maps::formats::write_kitti_bin(&c)
+    };
+    let count = |server: &TestServer| {
+        let url = server.url("/v1/maps/yard");
+        let client = server.client.clone();
+        async move {
+            let r = client.get(url).send().await.unwrap();
+            (r.status().as_u16(), r.json::<serde_json::Value>().await.unwrap_or_default()["num_points"].as_u64())
+        }
+    };
+    // Uploaded through one replica: the other serves it.
+    let r = a.client.put(a.url("/v1/maps/yard?format=kitti_bin")).body(cloud(5000)).send().await.unwrap();
+    assert_eq!(r.status(), 201);
+    assert_eq!(count(&b).await, (200, Some(5000)));
+    let (status, first, _) = b.localize("yard", &kitti_request(2)).await;
+    assert_eq!(status, 200, "{first}");
+    // Replaced through one replica: the other drops its prepared copy and serves the new cloud.
+    tokio::time::sleep(Duration::from_millis(20)).await; // a distinct mtime on coarse clocks
+    let r = a.client.put(a.url("/v1/maps/yard?format=kitti_bin")).body(cloud(7000)).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(count(&b).await, (200, Some(7000)));
+    let (status, _, _) = b.localize("yard", &kitti_request(2)).await;
+    assert_eq!(status, 200);
+    assert_eq!(b.state.maps.cache.get("yard").map(|m| m.source_points), Some(7000), "B re-prepared the new cloud");
+    // Deleted through one replica: gone on the other.
+    let r = a.client.delete(a.url("/v1/maps/yard")).send().await.unwrap();
+    assert_eq!(r.status(), 204);
+    assert_eq!(count(&b).await.0, 404);
+    let (status, _, _) = b.localize("yard", &kitti_request(2)).await;
+    assert_eq!(status, 404);
+    a.stop().await;
+    b.stop().await;
+}

@@ -47,6 +47,10 @@ pub struct Maps {
     /// The point encoder used for registrations and cache misses (not the agent workers').
     encoder: Mutex<Backend>,
     model_sha: String,
+    /// The sha256 of the cloud each cached prepared map was made from. The store's files may be
+    /// rewritten by another replica sharing the directory; a mismatch with the stored cloud's
+    /// sha256 drops the cached copy, whoever noticed the change first.
+    prepared_from: Mutex<std::collections::HashMap<String, String>>,
     /// Prepared maps read back from `<id>.emb`, and computed by the point encoder.
     pub loaded_from_disk: AtomicU64,
     pub computed: AtomicU64,
@@ -55,17 +59,30 @@ pub struct Maps {
 impl Maps {
     pub fn new(store: MapStore, cache: MapCache, encoder: Backend) -> Self {
         let model_sha = encoder.manifest().point_encoder_sha256().to_string();
-        Self { store, cache, encoder: Mutex::new(encoder), model_sha, loaded_from_disk: AtomicU64::new(0), computed: AtomicU64::new(0) }
+        Self {
+            store,
+            cache,
+            encoder: Mutex::new(encoder),
+            model_sha,
+            prepared_from: Mutex::new(Default::default()),
+            loaded_from_disk: AtomicU64::new(0),
+            computed: AtomicU64::new(0),
+        }
     }
 
     /// The prepared map: from memory, else from `<id>.emb`, else computed (and persisted). Blocking.
     pub fn prepared(&self, id: &str) -> Result<Arc<PreparedMap>, MapError> {
-        let refreshed = self.store.refresh(id);
-        if matches!(refreshed, Ok((_, true)) | Err(MapError::NotFound(_))) {
-            // Replaced or deleted by another replica sharing the directory.
+        let entry = match self.store.get(id) {
+            Ok(entry) => entry,
+            Err(e) => {
+                self.cache.invalidate(id); // deleted, possibly by another replica
+                return Err(e);
+            }
+        };
+        let from = self.prepared_from.lock().expect("prepared_from").get(id).cloned();
+        if from.as_deref() != Some(entry.source_sha256.as_str()) {
             self.cache.invalidate(id);
         }
-        refreshed?;
         self.cache
             .get_or_load(id, || self.load_or_compute(id).map(Arc::new))
             .map_err(|e| (*e).clone())
@@ -73,6 +90,7 @@ impl Maps {
 
     fn load_or_compute(&self, id: &str) -> Result<PreparedMap, MapError> {
         let (cloud, source_sha, _) = self.store.read_cloud(id)?;
+        self.prepared_from.lock().expect("prepared_from").insert(id.to_string(), source_sha.clone());
         if let Some(map) = self.store.load_embeddings(id, &self.model_sha, &source_sha) {
             self.loaded_from_disk.fetch_add(1, Ordering::Relaxed);
             metrics::counter!("cmr_embeddings_loaded_total").increment(1);
@@ -119,6 +137,7 @@ impl Maps {
         let encode_ms = agent::ms(t);
         let t = Instant::now();
         let entry = self.store.put(id, &cloud, metadata, &prepared, &self.model_sha)?;
+        self.prepared_from.lock().expect("prepared_from").insert(id.to_string(), entry.source_sha256.clone());
         self.cache.insert(id, Arc::new(prepared));
         let store_ms = agent::ms(t);
         Ok((entry, RegisterTimings { parse_ms, encode_ms, store_ms }))
