@@ -285,8 +285,7 @@ async fn localize_inner(
     metrics::histogram!("cmr_phase_seconds", "phase" => "decode").record(decode_ms / 1000.0);
 
     let maps = st.maps.clone();
-    let id_owned = id.to_string();
-    let map = tokio::task::spawn_blocking(move || maps.prepared(&id_owned))
+    let map = tokio::task::spawn_blocking(move || maps.prepared_for(&entry))
         .await
         .map_err(|e| ApiError::Internal(e.to_string()))??;
 

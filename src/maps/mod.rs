@@ -72,13 +72,19 @@ impl Maps {
 
     /// The prepared map: from memory, else from `<id>.emb`, else computed (and persisted). Blocking.
     pub fn prepared(&self, id: &str) -> Result<Arc<PreparedMap>, MapError> {
-        let entry = match self.store.get(id) {
-            Ok(entry) => entry,
+        match self.store.get(id) {
+            Ok(entry) => self.prepared_for(&entry),
             Err(e) => {
                 self.cache.invalidate(id); // deleted, possibly by another replica
-                return Err(e);
+                Err(e)
             }
-        };
+        }
+    }
+
+    /// `prepared` for an entry the caller has just looked up (`MapStore::get`), so the hot path
+    /// checks the files once per request.
+    pub fn prepared_for(&self, entry: &MapEntry) -> Result<Arc<PreparedMap>, MapError> {
+        let id = entry.id.as_str();
         let from = self.prepared_from.lock().expect("prepared_from").get(id).cloned();
         if from.as_deref() != Some(entry.source_sha256.as_str()) {
             self.cache.invalidate(id);

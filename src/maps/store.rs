@@ -108,7 +108,7 @@ impl MapStore {
                 warnings.push(format!("{}: not a valid map id, skipped", path.display()));
                 continue;
             }
-            if let Err(e) = store.refresh(&id) {
+            if let Err(e) = store.get(&id) {
                 warnings.push(format!("{}: {e}; skipped", path.display()));
             }
         }
@@ -150,24 +150,22 @@ impl MapStore {
         Some(Stamp { bin: (bin.len(), bin.modified().ok()?), json })
     }
 
-    /// The region as the files say now: (entry, whether it differs from what was registered).
-    /// Re-reads a region whose stamp moved, forgets one whose files are gone.
-    pub fn refresh(&self, id: &str) -> Result<(MapEntry, bool), MapError> {
+    /// The region as the files say now: re-reads a region whose stamp moved since it was
+    /// registered (or one registered by another replica), forgets one whose files are gone.
+    pub fn get(&self, id: &str) -> Result<MapEntry, MapError> {
         validate_id(id)?;
         let Some(stamp) = self.stamp(id) else {
             self.registry.write().expect("registry").remove(id);
             return Err(MapError::NotFound(id.to_string()));
         };
-        let known = self.registry.read().expect("registry").get(id).cloned();
-        match known {
-            Some((entry, seen)) if seen == stamp => Ok((entry, false)),
-            known => {
-                let entry = self.load_entry(id)?;
-                let changed = known.is_some_and(|(old, _)| old.source_sha256 != entry.source_sha256);
-                self.registry.write().expect("registry").insert(id.to_string(), (entry.clone(), stamp));
-                Ok((entry, changed))
+        if let Some((entry, seen)) = self.registry.read().expect("registry").get(id) {
+            if *seen == stamp {
+                return Ok(entry.clone());
             }
         }
+        let entry = self.load_entry(id)?;
+        self.registry.write().expect("registry").insert(id.to_string(), (entry.clone(), stamp));
+        Ok(entry)
     }
 
     /// Every region in the directory (including those other replicas added), by id.
@@ -182,11 +180,7 @@ impl MapStore {
             .unwrap_or_default();
         let mut ids: std::collections::BTreeSet<String> = on_disk.into_iter().collect();
         ids.extend(self.registry.read().expect("registry").keys().cloned());
-        ids.iter().filter_map(|id| self.refresh(id).ok().map(|(entry, _)| entry)).collect()
-    }
-
-    pub fn get(&self, id: &str) -> Result<MapEntry, MapError> {
-        self.refresh(id).map(|(entry, _)| entry)
+        ids.iter().filter_map(|id| self.get(id).ok()).collect()
     }
 
     fn register(&self, id: &str, entry: &MapEntry) {
@@ -303,14 +297,15 @@ mod tests {
         assert!(matches!(b.get("yard"), Err(MapError::NotFound(_))));
 
         a.put("yard", &cloud(10), None, &prepared, "model").unwrap();
-        assert_eq!(b.get("yard").unwrap().num_points, 10, "registered by the other replica");
+        let first = b.get("yard").unwrap();
+        assert_eq!(first.num_points, 10, "registered by the other replica");
         assert_eq!(b.list().len(), 1);
-        assert!(!b.refresh("yard").unwrap().1, "unchanged since the last look");
 
         std::thread::sleep(std::time::Duration::from_millis(20)); // a distinct mtime on coarse clocks
         a.put("yard", &cloud(12), None, &prepared, "model").unwrap();
-        let (entry, changed) = b.refresh("yard").unwrap();
-        assert!(changed && entry.num_points == 12, "replaced by the other replica");
+        let entry = b.get("yard").unwrap();
+        assert_eq!(entry.num_points, 12, "replaced by the other replica");
+        assert_ne!(entry.source_sha256, first.source_sha256);
 
         let mut meta = MapMetadata::default();
         meta.description = Some("moved".into());
