@@ -142,13 +142,16 @@ fn localize_subcommand_prints_a_response() {
     });
     std::fs::write(dir.path().join("request.json"), request.to_string()).unwrap();
     let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model");
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
-        .args(["localize", "--models", models.to_str().unwrap(), "--map"])
-        .arg(dir.path().join("street.bin"))
-        .arg("--request")
-        .arg(dir.path().join("request.json"))
-        .output()
-        .unwrap();
+    let localize = |map: &str| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
+            .args(["localize", "--models", models.to_str().unwrap(), "--map"])
+            .arg(dir.path().join(map))
+            .arg("--request")
+            .arg(dir.path().join("request.json"))
+            .output()
+            .unwrap()
+    };
+    let out = localize("street.bin");
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let response: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(response["map_id"], "street");
@@ -156,13 +159,7 @@ fn localize_subcommand_prints_a_response() {
     assert!((1..=3).contains(&iterations));
     assert_eq!(response["trajectory"].as_array().unwrap().len() as u64, iterations);
 
-    let bad = std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
-        .args(["localize", "--models", models.to_str().unwrap(), "--map"])
-        .arg(dir.path().join("missing.bin"))
-        .arg("--request")
-        .arg(dir.path().join("request.json"))
-        .output()
-        .unwrap();
+    let bad = localize("missing.bin");
     assert!(!bad.status.success());
     assert!(String::from_utf8_lossy(&bad.stderr).contains("missing.bin"));
 }

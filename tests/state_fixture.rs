@@ -83,10 +83,7 @@ fn compute() -> Value {
 #[test]
 fn state_building_matches_the_shared_fixture() {
     let computed = compute();
-    if std::env::var_os("REGENERATE_FIXTURES").is_some() {
-        std::fs::write(FIXTURE, serde_json::to_string(&computed).unwrap() + "\n").unwrap();
-    }
-    let stored: Value = serde_json::from_str(&std::fs::read_to_string(FIXTURE).expect("fixture file")).unwrap();
+    let stored = common::stored_fixture(FIXTURE, &computed, |v| serde_json::to_string(v).unwrap());
     common::assert_json_close(&stored, &computed, 1e-6, "state");
     assert!(computed["occupied_cells"].as_array().unwrap().len() > 10, "the scene must exercise the scatter");
 }

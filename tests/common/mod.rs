@@ -25,3 +25,13 @@ pub fn assert_json_close(expected: &Value, actual: &Value, rel_tol: f64, path: &
         _ => assert_eq!(expected, actual, "{path}"),
     }
 }
+
+/// The stored cross-language fixture at `path`, first rewritten from `computed` when
+/// `REGENERATE_FIXTURES` is set (then commit the file; pytest reads the same one).
+pub fn stored_fixture(path: &str, computed: &Value, text: impl Fn(&Value) -> String) -> Value {
+    if std::env::var_os("REGENERATE_FIXTURES").is_some() {
+        std::fs::write(path, text(computed) + "\n").unwrap();
+    }
+    serde_json::from_str(&std::fs::read_to_string(path).expect("fixture file")).unwrap()
+}
+
