@@ -20,6 +20,7 @@ import torch
 from . import geometry as g
 from .data import find_sequences, list_frames, make_sample
 from .episodes import embed
+from .evaluate import frustum_confusion, precision_recall
 from .state import frustum_cells, to_camera
 
 # (name, yaw degrees, tx metres, tz metres) in the camera frame, applied about the scan centroid.
@@ -46,17 +47,14 @@ def diagnose(models: dict, frames, seed: int = 4321, num_points: int = 40960, ch
         m.eval()
     wins = {name: 0 for name, *_ in PERTURBATIONS}
     margins = {name: [] for name, *_ in PERTURBATIONS}
-    tp = fp = fn = 0
+    confusion = np.zeros(3, dtype=np.int64)
     for start in range(0, len(frames), chunk):
         samples = [make_sample(f, np.random.default_rng([seed, start + j]), train=False, num_points=num_points)
                    for j, f in enumerate(frames[start:start + chunk])]
         eps = embed(models, samples, torch.device("cpu"))
         logits = models["frustum_head"](eps.point_features, eps.image_features).numpy()
+        confusion += frustum_confusion(logits, samples)
         for row, s in enumerate(samples):
-            pred = logits[row] > 0
-            tp += int((pred & s.labels).sum())
-            fp += int((pred & ~s.labels).sum())
-            fn += int((~pred & s.labels).sum())
             truth_score = alignment_score(eps, row, s.truth)
             for name, yaw, tx, tz in PERTURBATIONS:
                 moved = g.apply_action(s.truth, eps.pivots[row], yaw, tx, tz)
@@ -64,7 +62,7 @@ def diagnose(models: dict, frames, seed: int = 4321, num_points: int = 40960, ch
                 wins[name] += margin > 0
                 margins[name].append(margin)
     n = len(frames)
-    return dict(frames=n, frustum=dict(precision=tp / max(tp + fp, 1), recall=tp / max(tp + fn, 1)),
+    return dict(frames=n, frustum=precision_recall(confusion),
                 truth_wins={k: v / n for k, v in wins.items()},
                 median_margin={k: float(np.median(v)) for k, v in margins.items()})
 

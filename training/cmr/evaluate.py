@@ -37,6 +37,21 @@ def per_iteration(traj, truths) -> list[dict]:
     return out
 
 
+def frustum_confusion(logits: np.ndarray, samples) -> np.ndarray:
+    """[true positives, false positives, false negatives] of the frustum head (logit > 0) against
+    the samples' in-view labels, summed over the batch."""
+    counts = np.zeros(3, dtype=np.int64)
+    for s, lg in zip(samples, logits):
+        pred = lg > 0
+        counts += [int((pred & s.labels).sum()), int((pred & ~s.labels).sum()), int((~pred & s.labels).sum())]
+    return counts
+
+
+def precision_recall(counts: np.ndarray) -> dict:
+    tp, fp, fn = (int(c) for c in counts)
+    return dict(precision=tp / max(tp + fp, 1), recall=tp / max(tp + fn, 1))
+
+
 @torch.no_grad()
 def match_accuracy(episodes, samples, max_points: int = 512) -> float:
     """Share of true-frustum points whose most similar image cell (over the whole 40x128 map) lies
@@ -66,7 +81,7 @@ def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_p
         m.eval()
     agent_errors: list[list] = [[] for _ in range(iterations)]
     expert_errors: list[list] = [[] for _ in range(iterations)]
-    tp = fp = fn = 0
+    confusion = np.zeros(3, dtype=np.int64)
     match_hits = []
     initial: list[dict] = []
     for start in range(0, len(frames), chunk):
@@ -74,11 +89,7 @@ def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_p
                    for j, f in enumerate(frames[start:start + chunk])]
         eps = embed(models, samples, device)
         logits = models["frustum_head"](eps.point_features, eps.image_features).cpu().numpy()
-        for s, lg in zip(samples, logits):
-            pred = lg > 0
-            tp += int((pred & s.labels).sum())
-            fp += int((pred & ~s.labels).sum())
-            fn += int((~pred & s.labels).sum())
+        confusion += frustum_confusion(logits, samples)
         match_hits.append((match_accuracy(eps, samples), len(samples)))
         initial.extend(g.pose_error(p, t) for p, t in zip(eps.initial, eps.truth))
         for errors, traj in ((agent_errors, rollout(models["agent"], eps, iterations, "greedy")),
@@ -90,7 +101,7 @@ def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_p
         initial=_summarise(initial),
         agent=[dict(iteration=k + 1, **_summarise(e)) for k, e in enumerate(agent_errors)],
         expert=[dict(iteration=k + 1, **_summarise(e)) for k, e in enumerate(expert_errors)],
-        frustum=dict(precision=tp / max(tp + fp, 1), recall=tp / max(tp + fn, 1)),
+        frustum=precision_recall(confusion),
         match_accuracy=float(sum(a * n for a, n in match_hits) / max(sum(n for _, n in match_hits), 1)),
     )
 
