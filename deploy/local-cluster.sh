@@ -56,6 +56,11 @@ nginx -c "$work/nginx.conf" -p "$work"
 echo "replicas ready on ports $base_port..$((base_port + replicas - 1)); nginx on $proxy_port"
 
 proxy="http://127.0.0.1:$proxy_port"
+# localize ID [curl options]: the demo request through the proxy.
+localize() {
+    local id=$1; shift
+    curl -s "$@" -H 'content-type: application/json' --data-binary @examples/localize-demo.json "$proxy/v1/maps/$id/localize"
+}
 upstream_of() { tr -d '\r' | awk 'tolower($1) == "x-cmr-upstream:" { $1 = ""; sub(/^ /, ""); print }'; }
 echo
 echo "== register four regions through the proxy (each lands on its ring owner) =="
@@ -67,8 +72,7 @@ echo
 echo "== localize each region three times: always the same replica =="
 for id in demo region-a region-b region-c region-d; do
     ups=$(for _ in 1 2 3; do
-        curl -s -D - -o /dev/null -H 'content-type: application/json' --data-binary @examples/localize-demo.json \
-            "$proxy/v1/maps/$id/localize" | upstream_of
+        localize "$id" -D - -o /dev/null | upstream_of
     done | sort -u | tr '\n' ' ')
     echo "$id -> $ups"
 done
@@ -78,14 +82,12 @@ for i in $(seq 0 $((replicas - 1))); do
     echo "replica $i: $(curl -s "http://127.0.0.1:$((base_port + i))/v1/maps" | python3 -c 'import json,sys; print(sorted(m["id"] for m in json.load(sys.stdin)["maps"]))')"
 done
 echo
-victim_port=$(curl -s -D - -o /dev/null -H 'content-type: application/json' --data-binary @examples/localize-demo.json \
-    "$proxy/v1/maps/region-a/localize" | upstream_of | sed 's/.*://')
+victim_port=$(localize region-a -D - -o /dev/null | upstream_of | sed 's/.*://')
 echo "== stop the replica that owns region-a (port $victim_port) and localize region-a again =="
 for i in "${!pids[@]}"; do
     if [ $((base_port + i)) = "$victim_port" ]; then kill "${pids[$i]}"; wait "${pids[$i]}" 2>/dev/null || true; fi
 done
 for _ in 1 2; do
-    curl -s -D "$work/headers.txt" -o "$work/response.json" -H 'content-type: application/json' --data-binary @examples/localize-demo.json \
-        "$proxy/v1/maps/region-a/localize" || true
+    localize region-a -D "$work/headers.txt" -o "$work/response.json" || true
     echo "status $(head -1 "$work/headers.txt" | awk '{print $2}'), upstream $(upstream_of < "$work/headers.txt"), iterations $(python3 -c 'import json,sys; print(json.load(open(sys.argv[1])).get("iterations"))' "$work/response.json")"
 done
