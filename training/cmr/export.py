@@ -154,6 +154,8 @@ def load_models(checkpoint: Path | None) -> tuple[dict[str, torch.nn.Module], di
         for name, module in models.items():
             if name in state["models"]:
                 module.load_state_dict(state["models"][name])
+        if "agent_ema" in state:  # runs with agent_ema ship the averaged agent (train.Run.shipped_models)
+            models["agent"].load_state_dict(state["agent_ema"])
         meta = state.get("meta", {})
     for m in models.values():
         m.eval()

@@ -16,6 +16,7 @@ Re-running the same command resumes from `<out>/last.pt`. Every step appends to 
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 import math
@@ -73,6 +74,10 @@ class Config:
     ppo_weight: float = 0.5
     value_weight: float = 0.5
     entropy_weight: float = 0.01
+    # Exponential moving average of the agent's weights, per iteration (0: off). Validation,
+    # best.pt and export use the average: nearby checkpoints of the live weights differ by several
+    # RR points, and the average smooths that update noise away.
+    agent_ema: float = 0.0
     # bookkeeping
     log_every: int = 10
     checkpoint_every: int = 50
@@ -105,6 +110,7 @@ class Run:
         embed_params = [p for k in ("point_encoder", "image_encoder", "frustum_head") for p in self.models[k].parameters()]
         self.opt_embed = torch.optim.Adam(embed_params, lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))
+        self.agent_ema = copy.deepcopy(self.models["agent"]).eval() if cfg.agent_ema > 0 else None
         self.embed_step = 0
         self.agent_iter = 0
         self.best = None  # (rr, -rte) of the best validation so far
@@ -128,6 +134,8 @@ class Run:
         state = dict(models={k: m.state_dict() for k, m in self.models.items()},
                      opt_embed=self.opt_embed.state_dict(), opt_agent=self.opt_agent.state_dict(),
                      embed_step=self.embed_step, agent_iter=self.agent_iter, best=self.best, meta=self.meta())
+        if self.agent_ema is not None:
+            state["agent_ema"] = self.agent_ema.state_dict()
         path = self.dir / name
         tmp = path.with_suffix(".tmp")
         torch.save(state, tmp)
@@ -145,6 +153,9 @@ class Run:
         self.opt_embed.load_state_dict(state["opt_embed"])
         self.opt_agent.load_state_dict(state["opt_agent"])
         self.embed_step, self.agent_iter, self.best = state["embed_step"], state["agent_iter"], state["best"]
+        if self.agent_ema is not None:
+            # A run that turns the average on starts it from the live weights.
+            self.agent_ema.load_state_dict(state.get("agent_ema", state["models"]["agent"]))
         print(f"resumed from {path}: embed step {self.embed_step}, agent iteration {self.agent_iter}", flush=True)
 
     def log(self, record: dict) -> None:
@@ -288,6 +299,7 @@ class Run:
             agent.eval()
             traj = rollout(agent, eps, cfg.rollout_steps, "sample", mix, rng, gen, keep_states=True)
             stats = self.agent_update(eps, traj, ppo_weight)
+            self.update_agent_ema()
             self.agent_iter += 1
             if self.agent_iter % cfg.log_every == 0 or self.agent_iter == 1:
                 rec = dict(stage="agent", step=self.agent_iter, lr=lr, expert_mix=mix, ppo_weight=ppo_weight,
@@ -301,11 +313,26 @@ class Run:
                 self.validate()
         self.save("last.pt")
 
+    @torch.no_grad()
+    def update_agent_ema(self) -> None:
+        if self.agent_ema is None:
+            return
+        live = self.models["agent"].state_dict()
+        for name, avg in self.agent_ema.state_dict().items():
+            if avg.dtype.is_floating_point:
+                avg.lerp_(live[name], 1.0 - self.cfg.agent_ema)
+            else:
+                avg.copy_(live[name])
+
+    def shipped_models(self) -> dict:
+        """The graphs validation, best.pt and export see: the averaged agent when there is one."""
+        return self.models if self.agent_ema is None else {**self.models, "agent": self.agent_ema}
+
     def validate(self) -> dict:
         from .evaluate import evaluate
         if not self.val_frames:
             return {}
-        result = evaluate(self.models, self.val_frames, num_points=self.cfg.num_points, device=self.device)
+        result = evaluate(self.shipped_models(), self.val_frames, num_points=self.cfg.num_points, device=self.device)
         final = result["agent"][-1]
         rec = dict(stage="val", step=self.agent_iter, embed_step=self.embed_step, time=time.time(),
                    final=final, expert_final=result["expert"][-1], frustum=result["frustum"],

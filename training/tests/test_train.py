@@ -82,3 +82,20 @@ def test_cli_run_checkpoints_and_resumes(tmp_path, tiny_dataset):
     log = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
     assert [r["stage"] for r in log].count("embed") == 2
     assert [r["step"] for r in log if r["stage"] == "agent"] == [1, 2]
+
+
+def test_averaged_agent_lags_the_live_one_and_is_what_ships(tmp_path, tiny_dataset):
+    from cmr.export import load_models
+    args = ["--data", str(tiny_dataset), "--out", str(tmp_path), "--set"] + [f"{k}={v}" for k, v in SMALL.items()]
+    main(args + ["embed_steps=1", "agent_iters=2", "agent_ema=0.5"])
+    state = torch.load(tmp_path / "last.pt", map_location="cpu", weights_only=False)
+    live, avg = state["models"]["agent"], state["agent_ema"]
+    moved = [k for k in live if live[k].dtype.is_floating_point and not torch.equal(live[k], avg[k])]
+    assert moved, "two updates at decay 0.5 must leave the average behind the live weights"
+    shipped, _ = load_models(tmp_path / "last.pt")
+    assert all(torch.equal(v, avg[k]) for k, v in shipped["agent"].state_dict().items())
+    main(args + ["embed_steps=1", "agent_iters=3", "agent_ema=0.5"])  # resume keeps averaging, not restarting
+    resumed = torch.load(tmp_path / "last.pt", map_location="cpu", weights_only=False)
+    for k in moved:
+        expected = avg[k].lerp(resumed["models"]["agent"][k], 0.5)
+        assert torch.allclose(resumed["agent_ema"][k], expected), k
