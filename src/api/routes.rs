@@ -27,6 +27,16 @@ use super::types::*;
 
 type Shared = State<Arc<AppState>>;
 
+/// Runs `work` on tokio's blocking pool. Even a store lookup belongs there: it stats the region's
+/// files, and re-reads and hashes a cloud that another replica has rewritten.
+async fn blocking<T, E>(work: impl FnOnce() -> Result<T, E> + Send + 'static) -> Result<T, ApiError>
+where
+    T: Send + 'static,
+    E: Into<ApiError> + Send + 'static,
+{
+    tokio::task::spawn_blocking(work).await.map_err(|e| ApiError::Internal(e.to_string()))?.map_err(Into::into)
+}
+
 /// Liveness: the process is up.
 #[utoipa::path(get, path = "/health", responses((status = 200, body = Health)))]
 pub async fn health() -> Json<Health> {
@@ -78,19 +88,23 @@ pub async fn info(State(st): Shared) -> Json<Info> {
 
 /// Lists the stored map regions.
 #[utoipa::path(get, path = "/v1/maps", responses((status = 200, body = MapList)))]
-pub async fn list_maps(State(st): Shared) -> Json<MapList> {
-    let maps = st.maps.store.list().into_iter().map(|e| {
+pub async fn list_maps(State(st): Shared) -> Result<Json<MapList>, ApiError> {
+    let maps = st.maps.clone();
+    let entries = blocking(move || Ok::<_, ApiError>(maps.store.list())).await?;
+    let maps = entries.into_iter().map(|e| {
         let cached = st.maps.cache.contains(&e.id);
         MapSummary::new(e, cached)
     });
-    Json(MapList { maps: maps.collect() })
+    Ok(Json(MapList { maps: maps.collect() }))
 }
 
 /// One map region.
 #[utoipa::path(get, path = "/v1/maps/{id}", params(("id" = String, Path, description = "map id")),
     responses((status = 200, body = MapSummary), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody)))]
 pub async fn get_map(State(st): Shared, Path(id): Path<String>) -> Result<Json<MapSummary>, ApiError> {
-    let entry = st.maps.store.get(&id)?;
+    let maps = st.maps.clone();
+    let id2 = id.clone();
+    let entry = blocking(move || maps.store.get(&id2)).await?;
     let cached = st.maps.cache.contains(&id);
     Ok(Json(MapSummary::new(entry, cached)))
 }
@@ -120,18 +134,20 @@ pub async fn put_map(
         Some("ply") => Some(CloudFormat::Ply),
         Some(other) => return Err(ApiError::Invalid(format!("unknown format {other:?}; use kitti_bin, pcd or ply"))),
     };
-    let replaced = st.maps.store.get(&id).is_ok();
-    let metadata = params.description.map(|d| {
-        let mut m = st.maps.store.get(&id).map(|e| e.metadata).unwrap_or_default();
-        m.description = Some(d);
-        m
-    });
     let t = Instant::now();
     let maps = st.maps.clone();
-    let id2 = id.clone();
-    let (entry, timings) = tokio::task::spawn_blocking(move || maps.register(&id2, &body, format, metadata))
-        .await
-        .map_err(|e| ApiError::Internal(e.to_string()))??;
+    let (entry, timings, replaced) = blocking(move || {
+        let existing = maps.store.get(&id).ok();
+        let replaced = existing.is_some();
+        let metadata = params.description.map(|d| {
+            let mut m = existing.map(|e| e.metadata).unwrap_or_default();
+            m.description = Some(d);
+            m
+        });
+        let (entry, timings) = maps.register(&id, &body, format, metadata)?;
+        Ok::<_, ApiError>((entry, timings, replaced))
+    })
+    .await?;
     let total = agent::ms(t);
     metrics::histogram!("cmr_map_register_seconds").record(total / 1000.0);
     let status = if replaced { StatusCode::OK } else { StatusCode::CREATED };
@@ -160,9 +176,7 @@ pub async fn put_metadata(
     let metadata: MapMetadata = parse_json(&body)?;
     let maps = st.maps.clone();
     let id2 = id.clone();
-    let entry = tokio::task::spawn_blocking(move || maps.store.set_metadata(&id2, metadata))
-        .await
-        .map_err(|e| ApiError::Internal(e.to_string()))??;
+    let entry = blocking(move || maps.store.set_metadata(&id2, metadata)).await?;
     let cached = st.maps.cache.contains(&id);
     Ok(Json(MapSummary::new(entry, cached)))
 }
@@ -174,7 +188,7 @@ pub async fn put_metadata(
 pub async fn delete_map(State(st): Shared, Path(id): Path<String>, headers: HeaderMap) -> Result<StatusCode, ApiError> {
     st.authorize(&headers)?;
     let maps = st.maps.clone();
-    tokio::task::spawn_blocking(move || maps.delete(&id)).await.map_err(|e| ApiError::Internal(e.to_string()))??;
+    blocking(move || maps.delete(&id)).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -255,7 +269,9 @@ async fn localize_inner(
     let body = body.map_err(ApiError::from_body)?;
     let (request, payload) = read_request(query, headers, body)?;
     validate_id(id)?;
-    let entry = st.maps.store.get(id)?;
+    let maps = st.maps.clone();
+    let id2 = id.to_string();
+    let entry = blocking(move || maps.store.get(&id2)).await?;
 
     let k = request.intrinsics;
     let intrinsics = Intrinsics { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy };
@@ -272,22 +288,19 @@ async fn localize_inner(
     let t = Instant::now();
     let manifest = st.models.manifest.clone();
     let max_side = st.config.max_image_side;
-    let (tensor, crop_k) = tokio::task::spawn_blocking(move || -> Result<_, ApiError> {
+    let (tensor, crop_k) = blocking(move || -> Result<_, ApiError> {
         let image = match payload {
             ImagePayload::Base64(text) => decode_base64_image(&text, max_side)?,
             ImagePayload::Raw(bytes) => decode_image(&bytes, max_side)?,
         };
         agent::prepare_image(&image, &intrinsics, &manifest).map_err(|e| ApiError::Invalid(format!("{e:#}")))
     })
-    .await
-    .map_err(|e| ApiError::Internal(e.to_string()))??;
+    .await?;
     let decode_ms = agent::ms(t);
     metrics::histogram!("cmr_phase_seconds", "phase" => "decode").record(decode_ms / 1000.0);
 
     let maps = st.maps.clone();
-    let map = tokio::task::spawn_blocking(move || maps.prepared_for(&entry))
-        .await
-        .map_err(|e| ApiError::Internal(e.to_string()))??;
+    let map = blocking(move || maps.prepared_for(&entry)).await?;
 
     let timeout = Duration::from_millis(st.config.request_timeout_ms);
     let (reply, answer) = oneshot::channel();
