@@ -34,12 +34,16 @@ def plot(run_dir: Path, out: Path) -> None:
         ax.plot([r["step"] for r in agent], [r[key] for r in agent], label=key)
     ax.set_title("agent: BC loss / accuracy, value loss, mean reward"), ax.set_xlabel("iteration"), ax.legend()
     ax = axes[1, 1]
+    # A run may change its validation set size on resume; each size is its own series.
+    for frames in sorted({r.get("frames") for r in val}, key=lambda n: n or 0):
+        part = [r for r in val if r.get("frames") == frames]
+        steps = [r["step"] for r in part]
+        tag = f" ({frames} frames)" if frames else ""
+        ax.plot(steps, [r["final"]["rr"] for r in part], "o-", label=f"RR (agent, 10 it.){tag}")
+        ax.plot(steps, [min(r["final"]["rte_m"], 20) / 20 for r in part], "s-", label=f"RTE / 20 m{tag}")
+        ax.plot(steps, [r["match_accuracy"] for r in part], "^-", label=f"match accuracy{tag}")
     if val:
-        steps = [r["step"] for r in val]
-        ax.plot(steps, [r["final"]["rr"] for r in val], "o-", label="RR (agent, 10 it.)")
-        ax.plot(steps, [min(r["final"]["rte_m"], 20) / 20 for r in val], "s-", label="RTE / 20 m")
-        ax.plot(steps, [r["match_accuracy"] for r in val], "^-", label="match accuracy")
-        ax.legend()
+        ax.legend(fontsize=7)
     ax.set_title("validation (held-out frames)"), ax.set_xlabel("agent iteration"), ax.set_ylim(0, 1.05)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -334,7 +334,7 @@ class Run:
             return {}
         result = evaluate(self.shipped_models(), self.val_frames, num_points=self.cfg.num_points, device=self.device)
         final = result["agent"][-1]
-        rec = dict(stage="val", step=self.agent_iter, embed_step=self.embed_step, time=time.time(),
+        rec = dict(stage="val", step=self.agent_iter, embed_step=self.embed_step, frames=len(self.val_frames), time=time.time(),
                    final=final, expert_final=result["expert"][-1], frustum=result["frustum"],
                    match_accuracy=result["match_accuracy"])
         self.log(rec)
