@@ -154,7 +154,8 @@ def colour_jitter(rgb: np.ndarray, rng: np.random.Generator, strength: float = 0
 
 
 def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points: int = 40960,
-                max_shift_m: float = 10.0) -> Sample:
+                max_shift_m: float = 10.0, motion: np.ndarray | None = None) -> Sample:
+    """`motion`: a given Q (a frozen test case) instead of a random one."""
     resized, xyz, (w, h) = _decoded(frame.image_path, frame.scan_path)
     rh, rw = resized.shape[:2]
     crop = (int(rng.integers(0, rw - OUT_W + 1)), int(rng.integers(0, rh - OUT_H + 1))) if train else None
@@ -168,6 +169,8 @@ def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points:
 
     scan = sample_points(xyz, num_points, rng).astype(np.float64)
     q = g.ground_motion(rng.uniform(-math.pi, math.pi), *rng.uniform(-max_shift_m, max_shift_m, 2))
+    if motion is not None:
+        q = motion
     points = g.transform(q, scan)
     truth = frame.calib.camera_from_lidar @ g.invert(q)
     labels = g.in_frustum(k, g.transform(truth, points), OUT_W, OUT_H)

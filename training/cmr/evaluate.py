@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -75,7 +76,8 @@ def match_accuracy(episodes, samples, max_points: int = 512) -> float:
 
 @torch.no_grad()
 def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_points: int = 40960,
-             chunk: int = 4, device: torch.device | str = "cpu") -> dict:
+             chunk: int = 4, device: torch.device | str = "cpu", motions: list | None = None) -> dict:
+    """`motions`: one Q per frame (frozen cases, e.g. the Rust harness's); random ones otherwise."""
     device = torch.device(device)
     for m in models.values():
         m.eval()
@@ -85,7 +87,8 @@ def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_p
     match_hits = []
     initial: list[dict] = []
     for start in range(0, len(frames), chunk):
-        samples = [make_sample(f, np.random.default_rng([seed, start + j]), train=False, num_points=num_points)
+        samples = [make_sample(f, np.random.default_rng([seed, start + j]), train=False, num_points=num_points,
+                               motion=None if motions is None else motions[start + j])
                    for j, f in enumerate(frames[start:start + chunk])]
         eps = embed(models, samples, device)
         logits = models["frustum_head"](eps.point_features, eps.image_features).cpu().numpy()
@@ -106,6 +109,22 @@ def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_p
     )
 
 
+def frozen_cases(frames: list, path: Path) -> tuple[list, list]:
+    """The frames and motions Q of a perturbations file (format cmr-agent-perturbations/1)."""
+    doc = json.loads(Path(path).read_text())
+    if doc.get("format") != "cmr-agent-perturbations/1":
+        raise SystemExit(f"{path}: not a cmr-agent-perturbations/1 file")
+    by_key = {(f.sequence.name, f.index): f for f in frames}
+    picked, motions = [], []
+    for case in doc["cases"]:
+        frame = by_key.get((case["sequence"], case["frame"]))
+        if frame is None:
+            raise SystemExit(f"{path}: sequence {case['sequence']} frame {case['frame']} is not in the data")
+        picked.append(frame)
+        motions.append(g.ground_motion(math.radians(case["yaw_deg"]), case["dx_m"], case["dy_m"]))
+    return picked, motions
+
+
 def main(argv=None) -> None:
     from .export import load_models
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -113,14 +132,21 @@ def main(argv=None) -> None:
     ap.add_argument("--data", type=Path, required=True, help="KITTI-layout root or sequence directory")
     ap.add_argument("--frames", type=int, default=0, help="evaluate at most this many frames (0 = all)")
     ap.add_argument("--seed", type=int, default=1234)
+    ap.add_argument("--perturbations", type=Path,
+                    help="the Rust harness's frozen cases (docs/eval/perturbations.json): evaluate exactly those")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
     models, _ = load_models(args.checkpoint)
     frames = list_frames(find_sequences(args.data))
+    motions = None
+    if args.perturbations:
+        frames, motions = frozen_cases(frames, args.perturbations)
     if args.frames:
-        frames = frames[:: max(1, len(frames) // args.frames)][: args.frames]
-    result = evaluate(models, frames, seed=args.seed)
+        step = max(1, len(frames) // args.frames)
+        frames = frames[::step][: args.frames]
+        motions = motions and motions[::step][: args.frames]
+    result = evaluate(models, frames, seed=args.seed, motions=motions)
     text = json.dumps(result, indent=2)
     if args.out:
         from .export import atomic_write_bytes

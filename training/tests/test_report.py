@@ -2,6 +2,8 @@
 
 import json
 
+import numpy as np
+
 from cmr.data import find_sequences, list_frames
 from cmr.evaluate import evaluate
 from cmr.export import export_models
@@ -52,3 +54,21 @@ def test_alignment_diagnosis_rewards_a_perfect_embedding(tiny_dataset):
         assert truth > 0.99
         for _, yaw, tx, tz in PERTURBATIONS:
             assert alignment_score(eps, row, g.apply_action(s.truth, eps.pivots[row], yaw, tx, tz)) < truth
+
+
+def test_frozen_cases_reproduce_the_harness_motions(tmp_path, tiny_dataset):
+    """`--perturbations` evaluates the Rust harness's own cases: same frames, same motions Q."""
+    from cmr import geometry as g
+    from cmr.data import make_sample
+    from cmr.evaluate import frozen_cases
+    frames = list_frames(find_sequences(tiny_dataset))
+    seq, idx = frames[1].sequence.name, frames[1].index
+    path = tmp_path / "cases.json"
+    path.write_text(json.dumps({"format": "cmr-agent-perturbations/1", "seed": 0, "sampling_seed": 0, "cases": [
+        {"sequence": seq, "frame": idx, "yaw_deg": 30.0, "dx_m": 3.0, "dy_m": -4.0}]}))
+    picked, motions = frozen_cases(frames, path)
+    assert picked == [frames[1]]
+    s = make_sample(picked[0], np.random.default_rng(0), train=False, num_points=512, motion=motions[0])
+    err = g.pose_error(s.initial, s.truth)
+    assert abs(err["rre_geodesic_deg"] - 30.0) < 1e-6
+    assert np.allclose(s.motion, g.ground_motion(np.radians(30.0), 3.0, -4.0))
