@@ -155,7 +155,8 @@ def colour_jitter(rgb: np.ndarray, rng: np.random.Generator, strength: float = 0
 
 def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points: int = 40960,
                 max_shift_m: float = 10.0, motion: np.ndarray | None = None) -> Sample:
-    """`motion`: a given Q (a frozen test case) instead of a random one."""
+    """`motion`: a given Q (a frozen test case) instead of a random one. The random draw still
+    happens, so the rest of the sample does not depend on whether a motion was given."""
     resized, xyz, (w, h) = _decoded(frame.image_path, frame.scan_path)
     rh, rw = resized.shape[:2]
     crop = (int(rng.integers(0, rw - OUT_W + 1)), int(rng.integers(0, rh - OUT_H + 1))) if train else None

@@ -145,7 +145,8 @@ def main(argv=None) -> None:
     if args.frames:
         step = max(1, len(frames) // args.frames)
         frames = frames[::step][: args.frames]
-        motions = motions and motions[::step][: args.frames]
+        if motions is not None:
+            motions = motions[::step][: args.frames]
     result = evaluate(models, frames, seed=args.seed, motions=motions)
     text = json.dumps(result, indent=2)
     if args.out:
