@@ -50,3 +50,17 @@ def test_bad_calib_is_a_clear_error(tmp_path):
         parse_calib(tmp_path / "calib.txt")
     with pytest.raises(DataError):
         find_sequences(tmp_path / "nothing")
+
+
+def test_the_servers_resize_port_stays_within_one_level_of_pil():
+    """cmr.resize_gap ports the server's Triangle resize; on a downscale it agrees with PIL's
+    bilinear to one grey level (the two differ only in rounding), and a same-size resize copies."""
+    from PIL import Image
+    from cmr.resize_gap import server_resize
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (94, 310, 3), dtype=np.uint8)
+    ours = server_resize(rgb, 133, 40)
+    pil = np.asarray(Image.fromarray(rgb).resize((133, 40), Image.BILINEAR))
+    assert ours.shape == pil.shape
+    assert np.abs(ours.astype(int) - pil.astype(int)).max() <= 1
+    assert np.array_equal(server_resize(rgb, 310, 94), rgb)
