@@ -46,25 +46,25 @@ def server_resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     return np.floor(np.clip(both, 0, 255) + 0.5).astype(np.uint8)
 
 
-def _resized_both_ways(image_path: Path) -> tuple[np.ndarray, np.ndarray]:
+def _original(image_path: Path) -> tuple[np.ndarray, tuple[int, int]]:
+    """The decoded RGB image and the size the preprocessing plan resizes it to."""
     with Image.open(image_path) as im:
-        im = im.convert("RGB")
-        w, h = im.size
-        plan = g.preprocess_plan(w, h, data.NOMINAL_SCALE, data.OUT_W, data.OUT_H)
-        size = (plan["resized_width"], plan["resized_height"])
-        return np.asarray(im.resize(size, Image.BILINEAR)), server_resize(np.asarray(im), *size)
+        rgb = np.asarray(im.convert("RGB"))
+    plan = g.preprocess_plan(rgb.shape[1], rgb.shape[0], data.NOMINAL_SCALE, data.OUT_W, data.OUT_H)
+    return rgb, (plan["resized_width"], plan["resized_height"])
 
 
 @lru_cache(maxsize=1024)
 def _decoded_like_the_server(image_path: Path, scan_path: Path):
-    with Image.open(image_path) as im:
-        w, h = im.size
-    return _resized_both_ways(image_path)[1], data.read_scan(scan_path), (w, h)
+    """`data._decoded` with the server's resize in place of PIL's."""
+    rgb, size = _original(image_path)
+    return server_resize(rgb, *size), data.read_scan(scan_path), (rgb.shape[1], rgb.shape[0])
 
 
 def main(argv: list[str]) -> None:
     if argv[:1] == ["compare"]:
-        pil, server = _resized_both_ways(Path(argv[1]))
+        rgb, size = _original(Path(argv[1]))
+        pil, server = np.asarray(Image.fromarray(rgb).resize(size, Image.BILINEAR)), server_resize(rgb, *size)
         diff = np.abs(pil.astype(int) - server.astype(int))
         print(f"max |difference| {diff.max()} levels, pixels differing {100 * (diff > 0).mean():.1f} %")
     elif argv[:1] == ["evaluate"]:
