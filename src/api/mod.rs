@@ -157,7 +157,7 @@ async fn count_requests(request: axum::extract::Request, next: axum::middleware:
 /// marks the server ready. Runs on the blocking pool while the listener already answers /health.
 pub fn warm_up(state: &AppState) -> Result<()> {
     for entry in state.maps.store.list() {
-        match state.maps.prepared(&entry.id) {
+        match state.maps.prepared_for(&entry) {
             Ok(_) => tracing::info!("map {:?} ready ({} points)", entry.id, entry.num_points),
             Err(e) => tracing::warn!("map {:?} could not be prepared: {e}", entry.id),
         }

@@ -70,19 +70,9 @@ impl Maps {
         }
     }
 
-    /// The prepared map: from memory, else from `<id>.emb`, else computed (and persisted). Blocking.
-    pub fn prepared(&self, id: &str) -> Result<Arc<PreparedMap>, MapError> {
-        match self.store.get(id) {
-            Ok(entry) => self.prepared_for(&entry),
-            Err(e) => {
-                self.cache.invalidate(id); // deleted, possibly by another replica
-                Err(e)
-            }
-        }
-    }
-
-    /// `prepared` for an entry the caller has just looked up (`MapStore::get`), so the hot path
-    /// checks the files once per request.
+    /// The prepared map of an entry the caller has just looked up (`MapStore::get`, so the files
+    /// are checked once per request): from memory, else from `<id>.emb`, else computed (and
+    /// persisted). Blocking.
     pub fn prepared_for(&self, entry: &MapEntry) -> Result<Arc<PreparedMap>, MapError> {
         let id = entry.id.as_str();
         let from = self.prepared_from.lock().expect("prepared_from").get(id).cloned();
