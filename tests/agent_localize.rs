@@ -3,8 +3,8 @@
 
 use std::path::PathBuf;
 
-use cmr_agent::agent::{self, PreparedMap};
-use cmr_agent::geometry::actions::apply_action;
+use cmr_agent::agent::{self, PreparedMap, SearchConfig};
+use cmr_agent::geometry::actions::{apply_action, apply_motion};
 use cmr_agent::geometry::{Intrinsics, Pose};
 use cmr_agent::model::{BackendOptions, ModelSet};
 use nalgebra::{Matrix3, Vector3};
@@ -53,21 +53,43 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
     assert!((crop_k.fx - 718.856 * 621.0 / 1241.0).abs() < 1e-9);
 
     let prior = rig().compose(&Pose::ground_motion(0.4, 2.0, -1.0));
-    let a = agent::localize(&mut backend, &map, &tensor, crop_k, prior, 6).unwrap();
-    let b = agent::localize(&mut backend, &map, &tensor, crop_k, prior, 6).unwrap();
-    assert_eq!(a.camera_from_map, b.camera_from_map);
-    assert!(a.iterations() >= 1 && a.iterations() <= 6);
-    assert_eq!(a.converged, a.steps.last().unwrap().action.is_zero());
+    let single = SearchConfig { hypotheses: 1, max_iterations: 6 };
+    let a = agent::localize(&mut backend, &map, &tensor, crop_k, prior, single).unwrap();
+    let b = agent::localize(&mut backend, &map, &tensor, crop_k, prior, single).unwrap();
+    assert_eq!(a.camera_from_map(), b.camera_from_map());
+    assert_eq!((a.hypotheses.len(), a.chosen), (1, 0));
+    let best = a.best();
+    assert!(best.steps.len() >= 1 && best.steps.len() <= 6);
+    assert_eq!(best.converged, best.steps.last().unwrap().action.is_zero());
     let mut pose = prior;
-    for step in &a.steps {
+    for step in &best.steps {
         pose = apply_action(&pose, &map.pivot, &step.action);
         assert_eq!(pose, step.camera_from_map);
+        assert!((-1.0..=1.0).contains(&step.alignment), "every step is scored: {}", step.alignment);
         for row in &step.probabilities {
             assert!((row.iter().sum::<f32>() - 1.0).abs() < 1e-4);
         }
     }
-    assert_eq!(pose, a.camera_from_map);
+    assert_eq!(pose, a.camera_from_map());
     assert!((0.0..=1.0).contains(&a.confidence.score));
+    assert_eq!(a.confidence.alignment, best.alignment());
+
+    // Four starts: the first is the single trajectory above (same rows, batched with three more),
+    // the others start from the prior turned about the pivot, and the answer is the best score.
+    let multi = agent::localize(&mut backend, &map, &tensor, crop_k, prior, SearchConfig { hypotheses: 4, max_iterations: 6 }).unwrap();
+    assert_eq!(multi.hypotheses.len(), 4);
+    let first = &multi.hypotheses[0];
+    assert_eq!(first.steps.len(), best.steps.len());
+    assert!((first.camera_from_map().matrix() - best.camera_from_map().matrix()).abs().max() < 1e-9);
+    for (h, offset) in multi.hypotheses.iter().zip([0.0, 90.0, 180.0, -90.0]) {
+        assert_eq!(h.start_yaw_offset_deg, offset);
+        let turned = apply_motion(&prior, &map.pivot, offset, 0.0, 0.0);
+        assert!((h.start.matrix() - turned.matrix()).abs().max() < 1e-12, "start {offset}");
+        assert!(multi.best().alignment() >= h.alignment());
+    }
+    let finals: Vec<f32> = multi.hypotheses.iter().map(|h| h.alignment()).collect();
+    assert_eq!(multi.chosen, agent::best_of(finals));
+    assert_eq!(multi.pose_after(multi.iterations()), multi.camera_from_map());
 }
 
 #[test]
@@ -93,12 +115,13 @@ fn batched_workers_match_the_synchronous_loop() {
     let mut backend = set.backend().unwrap();
     let map = Arc::new(agent::prepare_map(&mut backend, &cloud()).unwrap());
     let k = Intrinsics { fx: 500.0, fy: 500.0, cx: 319.5, cy: 99.5 };
-    let cases: Vec<(Vec<f32>, Intrinsics, Pose, usize)> = (0..6)
+    let cases: Vec<(Vec<f32>, Intrinsics, Pose, SearchConfig)> = (0..6)
         .map(|i| {
             let image = image::RgbImage::from_fn(640, 200, |x, y| image::Rgb([(x * (i + 1)) as u8, (y * 3) as u8, (i * 40) as u8]));
             let (tensor, crop_k) = agent::prepare_image(&image, &k, &set.manifest).unwrap();
             let prior = rig().compose(&Pose::ground_motion(0.3 * i as f64, i as f64, -1.0));
-            (tensor, crop_k, prior, 3 + i as usize)
+            // Searches of 1 to 3 starts: the 8-row batch holds some of them, the rest wait.
+            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize })
         })
         .collect();
     let expected: Vec<_> = cases
@@ -108,20 +131,24 @@ fn batched_workers_match_the_synchronous_loop() {
 
     let scheduler = Scheduler::start(&set, SchedulerConfig { workers: 1, max_batch: 8, queue_capacity: 16 }).unwrap();
     let mut answers = Vec::new();
-    for (tensor, crop_k, prior, n) in cases {
+    for (tensor, crop_k, prior, search) in cases {
         let (reply, answer) = tokio::sync::oneshot::channel();
-        let job = Job { map: map.clone(), image_tensor: tensor, intrinsics: crop_k, prior, max_iterations: n, deadline: Instant::now() + Duration::from_secs(30), reply };
+        let job = Job { map: map.clone(), image_tensor: tensor, intrinsics: crop_k, prior, search, deadline: Instant::now() + Duration::from_secs(30), reply };
         scheduler.submit(job).ok().expect("queued");
         answers.push(answer);
     }
     for (answer, want) in answers.into_iter().zip(&expected) {
         let got = answer.blocking_recv().unwrap().ok().expect("localized").localization;
-        assert_eq!(got.steps.len(), want.steps.len());
-        let diff = (got.camera_from_map.matrix() - want.camera_from_map.matrix()).abs().max();
-        assert!(diff < 1e-9, "batched result differs by {diff}");
+        assert_eq!((got.hypotheses.len(), got.chosen), (want.hypotheses.len(), want.chosen));
+        for (g, w) in got.hypotheses.iter().zip(&want.hypotheses) {
+            assert_eq!(g.steps.len(), w.steps.len());
+            let diff = (g.camera_from_map().matrix() - w.camera_from_map().matrix()).abs().max();
+            assert!(diff < 1e-9, "batched result differs by {diff}");
+        }
     }
     let stats = scheduler.batch_stats();
-    assert!(stats.largest_batch > 1, "requests were stepped together: {stats:?}");
+    assert!(stats.largest_batch > 3, "requests were stepped together: {stats:?}");
+    assert!(stats.largest_batch <= 8, "the batch holds at most max_batch rows: {stats:?}");
     assert!(scheduler.shutdown(Duration::from_secs(5)));
 }
 

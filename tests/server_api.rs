@@ -44,22 +44,34 @@ async fn service_endpoints_and_a_localization() {
     assert!(timing.contains("image_encoder;dur=") && timing.contains("total;dur="));
     let score = body["confidence"]["score"].as_f64().unwrap();
     assert!((0.0..=1.0).contains(&score));
+    // The default multi-start search: 4 starts, the answer is the best-aligned one.
+    assert_eq!(info["limits"]["default_hypotheses"], 4);
+    let hypotheses = body["hypotheses"].as_array().unwrap();
+    let offsets: Vec<f64> = hypotheses.iter().map(|h| h["start_yaw_offset_deg"].as_f64().unwrap()).collect();
+    assert_eq!(offsets, vec![0.0, 90.0, 180.0, -90.0]);
+    let chosen = &hypotheses[body["chosen_hypothesis"].as_u64().unwrap() as usize];
+    assert_eq!(chosen["camera_from_map"], body["pose"]["camera_from_map"]);
+    assert_eq!(chosen["alignment"], body["confidence"]["alignment"]);
+    assert_eq!(chosen["alignment"], last["alignment"]);
+    assert!(hypotheses.iter().all(|h| h["alignment"].as_f64().unwrap() <= chosen["alignment"].as_f64().unwrap()));
 
     // A JPEG and an explicit prior work too.
     let img = test_image(800, 300);
     let prior = [[0.0, -1.0, 0.0, 1.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 2.0], [0.0, 0.0, 0.0, 1.0]];
     let req = json!({"image": b64(&jpeg_bytes(&img)), "intrinsics": {"fx": 500.0, "fy": 500.0, "cx": 399.5, "cy": 149.5},
-        "prior_camera_from_map": prior, "max_iterations": 2});
+        "prior_camera_from_map": prior, "max_iterations": 2, "hypotheses": 1});
     let (status, body, _) = server.localize("street", &req).await;
     assert_eq!(status, 200, "{body}");
     assert_close(&body["prior_camera_from_map"], prior, "explicit prior");
+    assert_eq!((body["hypotheses"].as_array().unwrap().len(), body["chosen_hypothesis"].as_u64()), (1, Some(0)));
 
     // The raw-bytes variant: the image is the body, the intrinsics are in the query.
-    let raw = c.post(server.url("/v1/maps/street/localize?fx=500&fy=500&cx=399.5&cy=149.5&max_iterations=2"))
+    let raw = c.post(server.url("/v1/maps/street/localize?fx=500&fy=500&cx=399.5&cy=149.5&max_iterations=2&hypotheses=2"))
         .header("content-type", "image/jpeg").body(jpeg_bytes(&img)).send().await.unwrap();
     assert_eq!(raw.status(), 200);
     let raw: serde_json::Value = raw.json().await.unwrap();
     assert!(raw["iterations"].as_u64().unwrap() <= 2);
+    assert_eq!(raw["hypotheses"].as_array().unwrap().len(), 2);
     let raw = c.post(server.url("/v1/maps/street/localize?fx=500&fy=500&cx=399.5"))
         .header("content-type", "image/png").body(png_bytes(&img)).send().await.unwrap();
     assert_eq!(raw.status(), 422, "cy is missing");
@@ -137,6 +149,8 @@ async fn bad_localize_requests_get_clear_errors() {
         ("null fy", with(json!({"intrinsics": {"fx": 500.0, "fy": null, "cx": 1.0, "cy": 1.0}})), 422, "invalid_input"),
         ("zero iterations", with(json!({"max_iterations": 0})), 422, "invalid_input"),
         ("too many iterations", with(json!({"max_iterations": 51})), 422, "invalid_input"),
+        ("zero hypotheses", with(json!({"hypotheses": 0})), 422, "invalid_input"),
+        ("too many hypotheses", with(json!({"hypotheses": 17})), 422, "invalid_input"),
         ("non-rigid prior", with(json!({"prior_camera_from_map": [[2.0,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]})), 422, "invalid_input"),
         ("missing image", json!({"intrinsics": k}), 422, "invalid_input"),
         ("unknown field", with(json!({"imgae": "x"})), 422, "invalid_input"),

@@ -2,7 +2,8 @@
 //! (`agent::state::write_state`), training builds it in PyTorch (`training/cmr/state.py`), and
 //! the policy only works if both produce the same tensors. `fixtures/state.json` holds a small
 //! scene and the Rust result (sparse: occupied cells of F_k, and state_3d);
-//! `training/tests/test_state_fixture.py` checks Python against it. Regenerate with
+//! `training/tests/test_state_fixture.py` checks Python against it. The fixture also holds the
+//! pose's alignment score, which the multi-start search ranks hypotheses by. Regenerate with
 //! `REGENERATE_FIXTURES=1 cargo test --release --test state_fixture`.
 
 use cmr_agent::agent::state::{StateLayout, write_state};
@@ -62,7 +63,7 @@ fn compute() -> Value {
     let image: Vec<f32> = (0..layout.image_feature_len()).map(|i| (i % 7) as f32 * 0.1).collect();
     let mut state_2d = vec![f32::NAN; layout.state_2d_len()];
     let mut state_3d = vec![f32::NAN; NUM_POINTS * 5];
-    write_state(&layout, &points, &features, &probs, &image, &k, &pose, &mut Default::default(), &mut state_2d, &mut state_3d);
+    let alignment = write_state(&layout, &points, &features, &probs, &image, &k, &pose, &mut Default::default(), &mut state_2d, &mut state_3d);
 
     let cells = layout.cells();
     let image_part_ok = state_2d[..DIM * cells].iter().zip(&image).all(|(a, b)| a == b);
@@ -76,7 +77,7 @@ fn compute() -> Value {
         "about": "Agent observation built by src/agent/state.rs; read by training/tests/test_state_fixture.py.",
         "intrinsics": k, "camera_from_map": pose.to_rows(), "points_map": points,
         "point_features": features, "frustum_probs": probs,
-        "occupied_cells": occupied, "state_3d": state_3d,
+        "occupied_cells": occupied, "state_3d": state_3d, "alignment": alignment,
     })
 }
 

@@ -1,11 +1,13 @@
-//! One localization in progress: the current pose, the steps taken so far, and how to build the
-//! next observation. Kept separate from the inference calls so the synchronous `localize` and
-//! the batching workers drive exactly the same logic.
+//! One trajectory in progress (one hypothesis of a search): the current pose, the steps taken so
+//! far, and how to build the next observation. Kept separate from the inference calls so the
+//! synchronous `localize` and the batching workers drive exactly the same logic.
+
+use std::sync::Arc;
 
 use crate::geometry::actions::apply_action;
 use crate::geometry::{ActionSet, AgentAction, Intrinsics, Pose};
 
-use super::state::{ScatterScratch, StateLayout, sigmoid, write_state};
+use super::state::{ScatterScratch, StateLayout, alignment, write_state};
 use super::PreparedMap;
 
 /// One policy step: the action chosen at the pose before it, and the pose after it.
@@ -20,6 +22,9 @@ pub struct Step {
     /// The policy's certainty: the mean over DoF of the chosen step's probability.
     pub confidence: f32,
     pub value: f32,
+    /// Alignment score of `camera_from_map` (see `state::alignment`). It is read off the next
+    /// observation, so it is NaN until that observation is built or the episode is settled.
+    pub alignment: f32,
 }
 
 /// How sure the result is, from two independent signals.
@@ -32,30 +37,43 @@ pub struct Confidence {
     pub policy_certainty: f32,
     /// sqrt(frustum_iou · policy_certainty), in [0, 1].
     pub score: f32,
+    /// The final pose's alignment score (mean point/image feature agreement, in [−1, 1]).
+    pub alignment: f32,
+}
+
+/// What every hypothesis of one request shares: computed once per request, never copied.
+#[derive(Debug)]
+pub struct ImageEvidence {
+    /// Image features [D, GH, GW].
+    pub image_features: Vec<f32>,
+    /// sigmoid(frustum logit) per sampled map point.
+    pub frustum_probs: Vec<f32>,
+    /// The crop's intrinsics.
+    pub intrinsics: Intrinsics,
 }
 
 pub struct Episode {
-    pub image_features: Vec<f32>,
-    pub frustum_probs: Vec<f32>,
-    pub intrinsics: Intrinsics,
-    pub prior: Pose,
+    pub evidence: Arc<ImageEvidence>,
+    /// Where this trajectory started.
+    pub start: Pose,
     pub pose: Pose,
     pub max_iterations: usize,
     pub steps: Vec<Step>,
     pub converged: bool,
+    /// Alignment score of `start` (known once the first observation is built).
+    pub start_alignment: f32,
 }
 
 impl Episode {
-    pub fn new(image_features: Vec<f32>, frustum_logits: &[f32], intrinsics: Intrinsics, prior: Pose, max_iterations: usize) -> Self {
+    pub fn new(evidence: Arc<ImageEvidence>, start: Pose, max_iterations: usize) -> Self {
         Self {
-            image_features,
-            frustum_probs: frustum_logits.iter().map(|l| sigmoid(*l)).collect(),
-            intrinsics,
-            prior,
-            pose: prior,
+            evidence,
+            start,
+            pose: start,
             max_iterations,
             steps: Vec::new(),
             converged: false,
+            start_alignment: f32::NAN,
         }
     }
 
@@ -64,19 +82,44 @@ impl Episode {
         self.converged || self.steps.len() >= self.max_iterations
     }
 
-    pub fn write_state(&self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch, state_2d: &mut [f32], state_3d: &mut [f32]) {
-        write_state(
+    /// Builds the observation at the current pose, and records that pose's alignment score.
+    pub fn write_state(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch, state_2d: &mut [f32], state_3d: &mut [f32]) {
+        let e = &self.evidence;
+        let score = write_state(
             layout,
             &map.points,
             &map.features,
-            &self.frustum_probs,
-            &self.image_features,
-            &self.intrinsics,
+            &e.frustum_probs,
+            &e.image_features,
+            &e.intrinsics,
             &self.pose,
             scratch,
             state_2d,
             state_3d,
         );
+        self.record_alignment(score);
+    }
+
+    /// Scores the current pose if no observation has yet (the pose after the last step), so
+    /// every step carries its alignment. Call once the episode is done.
+    pub fn settle(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch) {
+        if self.alignment().is_nan() {
+            let e = &self.evidence;
+            let score = alignment(layout, &map.points, &map.features, &e.image_features, &e.intrinsics, &self.pose, scratch);
+            self.record_alignment(score);
+        }
+    }
+
+    fn record_alignment(&mut self, score: f32) {
+        match self.steps.last_mut() {
+            Some(step) => step.alignment = score,
+            None => self.start_alignment = score,
+        }
+    }
+
+    /// The current pose's alignment score (NaN when not yet known).
+    pub fn alignment(&self) -> f32 {
+        self.steps.last().map_or(self.start_alignment, |s| s.alignment)
     }
 
     /// Applies the policy's choice: argmax per DoF, then the disentangled update about the pivot.
@@ -86,6 +129,8 @@ impl Episode {
         let indices: [usize; 3] = std::array::from_fn(|dof| argmax(&probabilities[dof]));
         let confidence = (0..3).map(|dof| probabilities[dof][indices[dof]]).sum::<f32>() / 3.0;
         let action = actions.action(indices);
+        // A zero step keeps the pose, whose score the observation just built gave.
+        let alignment = if action.is_zero() { self.alignment() } else { f32::NAN };
         if action.is_zero() {
             self.converged = true;
         } else {
@@ -98,22 +143,24 @@ impl Episode {
             probabilities,
             confidence,
             value,
+            alignment,
         });
     }
 
     pub fn confidence(&self, map: &PreparedMap, layout: &StateLayout) -> Confidence {
         let iso = self.pose.0;
         let (mut both, mut either) = (0usize, 0usize);
-        for (p, prob) in map.points.iter().zip(&self.frustum_probs) {
+        let e = &self.evidence;
+        for (p, prob) in map.points.iter().zip(&e.frustum_probs) {
             let p_cam = iso * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-            let in_view = self.intrinsics.in_frustum(&p_cam, layout.image_width, layout.image_height);
+            let in_view = e.intrinsics.in_frustum(&p_cam, layout.image_width, layout.image_height);
             let predicted = *prob > 0.5;
             both += (in_view && predicted) as usize;
             either += (in_view || predicted) as usize;
         }
         let frustum_iou = if either == 0 { 0.0 } else { both as f32 / either as f32 };
         let policy_certainty = self.steps.last().map(|s| s.confidence).unwrap_or(0.0);
-        Confidence { frustum_iou, policy_certainty, score: (frustum_iou * policy_certainty).sqrt() }
+        Confidence { frustum_iou, policy_certainty, score: (frustum_iou * policy_certainty).sqrt(), alignment: self.alignment() }
     }
 }
 
@@ -150,7 +197,8 @@ mod tests {
         };
         let set = ActionSet::default();
         let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 256.0, cy: 80.0 };
-        let mut ep = Episode::new(vec![], &[3.0], k, Pose::identity(), 5);
+        let evidence = Arc::new(ImageEvidence { image_features: vec![], frustum_probs: vec![0.95], intrinsics: k });
+        let mut ep = Episode::new(evidence, Pose::identity(), 5);
         let mut logits = vec![0f32; 33];
         logits[10] = 5.0; // yaw +62.5°
         logits[11 + 5] = 5.0;

@@ -1,12 +1,13 @@
 //! The agent loop: observation building, policy steps and pose updates.
 //!
 //! The synchronous API below (`prepare_map`, `prepare_image`, `localize`) is what the evaluator
-//! and the CLI use; the server's workers (`scheduler`) drive the same `Episode` logic with many
+//! and the CLI use; the server's workers (`scheduler`) drive the same `Search` logic with many
 //! requests batched into each policy call.
 
 pub mod episode;
 pub mod input;
 pub mod scheduler;
+pub mod search;
 pub mod state;
 
 use std::time::Instant;
@@ -17,8 +18,9 @@ use nalgebra::Point3;
 use crate::geometry::{Intrinsics, Pose};
 use crate::model::{Backend, Manifest};
 
-pub use episode::{Confidence, Episode, Step};
+pub use episode::{Confidence, Episode, ImageEvidence, Step};
 pub use input::{prepare_image, sample_points};
+pub use search::{Hypothesis, Search, best_of, start_yaw_offsets};
 pub use state::{ScatterScratch, StateLayout};
 
 /// A map region ready for localization: the N sampled points and their embeddings. It does not
@@ -74,34 +76,52 @@ pub struct Timings {
     pub state_build_ms: f64,
 }
 
-/// The result of one localization.
+/// The result of one localization: every hypothesis of the search, and which one answers.
 #[derive(Debug, Clone)]
 pub struct Localization {
     pub prior: Pose,
-    /// The final estimate of camera_from_map.
-    pub camera_from_map: Pose,
-    pub steps: Vec<Step>,
-    /// The agent chose all-zero steps before running out of iterations.
-    pub converged: bool,
+    /// One per start, in the order of `start_yaw_offsets`; the first starts at the prior.
+    pub hypotheses: Vec<Hypothesis>,
+    /// The hypothesis whose final pose has the best alignment score: the answer.
+    pub chosen: usize,
+    /// Of the chosen hypothesis.
     pub confidence: Confidence,
     pub timings: Timings,
 }
 
 impl Localization {
+    pub fn best(&self) -> &Hypothesis {
+        &self.hypotheses[self.chosen]
+    }
+
+    /// The final estimate of camera_from_map.
+    pub fn camera_from_map(&self) -> Pose {
+        self.best().camera_from_map()
+    }
+
+    /// The answer had the search stopped after `iterations` steps: the best-scoring pose over
+    /// all hypotheses at that point (the evaluator's per-iteration figures).
+    pub fn pose_after(&self, iterations: usize) -> Pose {
+        let at: Vec<(Pose, f32)> = self.hypotheses.iter().map(|h| h.pose_after(iterations)).collect();
+        at[best_of(at.iter().map(|(_, score)| *score))].0
+    }
+
+    /// Steps taken by the longest hypothesis.
     pub fn iterations(&self) -> usize {
-        self.steps.len()
+        self.hypotheses.iter().map(|h| h.steps.len()).max().unwrap_or(0)
     }
 }
 
-/// Runs the image encoder and the frustum head: everything per request that precedes the loop.
-pub fn start_episode(
+/// Runs the image encoder and the frustum head (everything per request that precedes the loop)
+/// and sets up the search's hypotheses.
+pub fn start_search(
     backend: &mut Backend,
     map: &PreparedMap,
     image_tensor: &[f32],
     intrinsics: Intrinsics,
     prior: Pose,
-    max_iterations: usize,
-) -> Result<(Episode, Timings)> {
+    search: SearchConfig,
+) -> Result<(Search, Timings)> {
     if map.features.len() != map.points.len() * backend.manifest().features.dim {
         bail!("prepared map does not match this model's feature dimension");
     }
@@ -114,50 +134,57 @@ pub fn start_episode(
     let t = Instant::now();
     let logits = backend.frustum_logits(&map.features, &image_features)?;
     let frustum_head_ms = ms(t);
-    let episode = Episode::new(image_features, &logits, intrinsics, prior, max_iterations);
-    Ok((episode, Timings { image_encoder_ms, frustum_head_ms, ..Default::default() }))
+    let evidence = ImageEvidence { image_features, frustum_probs: logits.iter().map(|l| state::sigmoid(*l)).collect(), intrinsics };
+    let search = Search::new(evidence, map, prior, search.hypotheses, search.max_iterations);
+    Ok((search, Timings { image_encoder_ms, frustum_head_ms, ..Default::default() }))
+}
+
+/// How far one request searches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SearchConfig {
+    /// Starts (yaw offsets of the prior); 1 = the paper's single trajectory.
+    pub hypotheses: usize,
+    /// Policy steps per hypothesis.
+    pub max_iterations: usize,
 }
 
 /// Localizes one image in a prepared map, synchronously, starting from `prior`.
-/// `image_tensor` and `intrinsics` come from `prepare_image`.
+/// `image_tensor` and `intrinsics` come from `prepare_image`. All hypotheses step together in
+/// one batched policy call per iteration, as in the server.
 pub fn localize(
     backend: &mut Backend,
     map: &PreparedMap,
     image_tensor: &[f32],
     intrinsics: Intrinsics,
     prior: Pose,
-    max_iterations: usize,
+    config: SearchConfig,
 ) -> Result<Localization> {
     let manifest: std::sync::Arc<Manifest> = backend.manifest().clone();
     let layout = StateLayout::from_manifest(&manifest);
     let actions = manifest.action_set();
-    let (mut episode, mut timings) = start_episode(backend, map, image_tensor, intrinsics, prior, max_iterations)?;
+    let (mut search, mut timings) = start_search(backend, map, image_tensor, intrinsics, prior, config)?;
     let mut scratch = ScatterScratch::default();
-    let mut state_2d = vec![0f32; layout.state_2d_len()];
-    let mut state_3d = vec![0f32; layout.state_3d_len()];
+    let (l2, l3) = (layout.state_2d_len(), layout.state_3d_len());
+    let (mut state_2d, mut state_3d) = (Vec::new(), Vec::new());
     let t = Instant::now();
-    while !episode.is_done() {
+    while !search.is_done() {
+        let running: Vec<usize> = search.running().collect();
+        state_2d.resize(running.len() * l2, 0.0);
+        state_3d.resize(running.len() * l3, 0.0);
         let ts = Instant::now();
-        episode.write_state(map, &layout, &mut scratch, &mut state_2d, &mut state_3d);
+        for (slot, &h) in running.iter().enumerate() {
+            let (s2, s3) = (&mut state_2d[slot * l2..(slot + 1) * l2], &mut state_3d[slot * l3..(slot + 1) * l3]);
+            search.episodes[h].write_state(map, &layout, &mut scratch, s2, s3);
+        }
         timings.state_build_ms += ms(ts);
-        let out = backend.agent_step(&state_2d, &state_3d, 1)?;
-        episode.advance(map, &actions, &out.policy_logits, out.value[0]);
+        let out = backend.agent_step(&state_2d, &state_3d, running.len())?;
+        let per = 3 * actions.num_actions();
+        for (slot, &h) in running.iter().enumerate() {
+            search.episodes[h].advance(map, &actions, &out.policy_logits[slot * per..(slot + 1) * per], out.value[slot]);
+        }
     }
     timings.agent_steps_ms = ms(t);
-    Ok(finish(episode, map, &layout, timings))
-}
-
-/// Turns a finished episode into its result.
-pub fn finish(episode: Episode, map: &PreparedMap, layout: &StateLayout, timings: Timings) -> Localization {
-    let confidence = episode.confidence(map, layout);
-    Localization {
-        prior: episode.prior,
-        camera_from_map: episode.pose,
-        converged: episode.converged,
-        steps: episode.steps,
-        confidence,
-        timings,
-    }
+    Ok(search.finish(map, &layout, &mut scratch, timings))
 }
 
 pub fn ms(since: Instant) -> f64 {

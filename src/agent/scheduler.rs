@@ -3,9 +3,9 @@
 //!
 //! Each worker owns one set of ONNX Runtime sessions. Between two policy steps it admits waiting
 //! requests (running their image encoder and frustum head), then makes ONE batched `agent` call
-//! for every request it holds, applies the actions, and answers the requests that are done. So
-//! requests join and leave the running batch at step boundaries, the way LLM routers batch decode
-//! steps, and a short request never waits for a long one to finish.
+//! for every running hypothesis of every request it holds, applies the actions, and answers the
+//! requests that are done. So requests join and leave the running batch at step boundaries, the
+//! way LLM routers batch decode steps, and a short request never waits for a long one to finish.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
@@ -18,9 +18,9 @@ use tokio::sync::oneshot;
 use crate::geometry::{Intrinsics, Pose};
 use crate::model::{Backend, ModelSet};
 
-use super::episode::Episode;
+use super::search::Search;
 use super::state::{ScatterScratch, StateLayout};
-use super::{Localization, PreparedMap, Timings, finish, ms, start_episode};
+use super::{Localization, PreparedMap, SearchConfig, Timings, ms, start_search};
 
 /// One localize request, ready for inference.
 pub struct Job {
@@ -28,7 +28,7 @@ pub struct Job {
     pub image_tensor: Vec<f32>,
     pub intrinsics: Intrinsics,
     pub prior: Pose,
-    pub max_iterations: usize,
+    pub search: SearchConfig,
     pub deadline: Instant,
     pub reply: oneshot::Sender<Result<Finished, JobError>>,
 }
@@ -58,6 +58,8 @@ pub enum SubmitError {
 #[derive(Debug, Clone)]
 pub struct SchedulerConfig {
     pub workers: usize,
+    /// Most hypotheses (rows of the policy call) a worker steps at once; a request whose search
+    /// alone is larger still runs, by itself.
     pub max_batch: usize,
     pub queue_capacity: usize,
 }
@@ -69,9 +71,9 @@ struct Queue {
     closed: AtomicBool,
     /// Requests admitted into some worker's running batch.
     active: AtomicUsize,
-    /// Batched policy calls made, and the requests they stepped (mean batch = ratio).
+    /// Batched policy calls made, and the hypotheses they stepped (mean batch = ratio).
     steps: AtomicUsize,
-    stepped_requests: AtomicUsize,
+    stepped_rows: AtomicUsize,
     largest_batch: AtomicUsize,
 }
 
@@ -79,7 +81,8 @@ struct Queue {
 #[derive(Debug, Clone, Copy)]
 pub struct BatchStats {
     pub policy_calls: usize,
-    pub stepped_requests: usize,
+    /// Hypotheses stepped, summed over calls (one request contributes one per running start).
+    pub stepped_rows: usize,
     pub largest_batch: usize,
 }
 
@@ -99,7 +102,7 @@ impl Scheduler {
             closed: AtomicBool::new(false),
             active: AtomicUsize::new(0),
             steps: AtomicUsize::new(0),
-            stepped_requests: AtomicUsize::new(0),
+            stepped_rows: AtomicUsize::new(0),
             largest_batch: AtomicUsize::new(0),
         });
         let mut workers = Vec::new();
@@ -144,7 +147,7 @@ impl Scheduler {
     pub fn batch_stats(&self) -> BatchStats {
         BatchStats {
             policy_calls: self.queue.steps.load(Ordering::SeqCst),
-            stepped_requests: self.queue.stepped_requests.load(Ordering::SeqCst),
+            stepped_rows: self.queue.stepped_rows.load(Ordering::SeqCst),
             largest_batch: self.queue.largest_batch.load(Ordering::SeqCst),
         }
     }
@@ -183,7 +186,7 @@ impl Drop for Scheduler {
 /// A request in a worker's running batch.
 struct Active {
     job: Job,
-    episode: Episode,
+    search: Search,
     timings: Timings,
     queue_ms: f64,
     steps_started: Instant,
@@ -212,7 +215,8 @@ impl Worker {
     fn run(mut self) {
         let mut batch: Vec<Active> = Vec::new();
         loop {
-            let Some(admitted) = self.take_jobs(batch.is_empty(), self.max_batch - batch.len()) else {
+            let rows: usize = batch.iter().map(|a| a.search.episodes.len()).sum();
+            let Some(admitted) = self.take_jobs(batch.is_empty(), self.max_batch.saturating_sub(rows)) else {
                 return; // closed, nothing queued, nothing running
             };
             for (job, enqueued) in admitted {
@@ -239,9 +243,10 @@ impl Worker {
         }
     }
 
-    /// Takes up to `room` queued jobs; blocks for one when `wait` (the batch is empty).
+    /// Takes queued jobs, in order, while their hypotheses fit in `room` rows (an empty batch
+    /// takes the first job whatever its size); blocks for one when `wait` (the batch is empty).
     /// `None` means: shut down.
-    fn take_jobs(&self, wait: bool, room: usize) -> Option<Vec<(Job, Instant)>> {
+    fn take_jobs(&self, wait: bool, mut room: usize) -> Option<Vec<(Job, Instant)>> {
         let mut jobs = self.queue.jobs.lock().expect("queue lock");
         if wait {
             while jobs.is_empty() {
@@ -251,8 +256,15 @@ impl Worker {
                 jobs = self.queue.ready.wait_timeout(jobs, Duration::from_millis(200)).expect("queue lock").0;
             }
         }
-        let n = room.min(jobs.len());
-        let taken: Vec<_> = jobs.drain(..n).collect();
+        let mut taken = Vec::new();
+        while let Some((job, _)) = jobs.front() {
+            let rows = job.search.hypotheses;
+            if rows > room && !(wait && taken.is_empty()) {
+                break;
+            }
+            room = room.saturating_sub(rows);
+            taken.extend(jobs.pop_front());
+        }
         metrics::gauge!("cmr_queue_depth").set(jobs.len() as f64);
         Some(taken)
     }
@@ -268,11 +280,11 @@ impl Worker {
             let _ = job.reply.send(Err(JobError::DeadlineExceeded));
             return None;
         }
-        match start_episode(&mut self.backend, &job.map, &job.image_tensor, job.intrinsics, job.prior, job.max_iterations) {
-            Ok((episode, timings)) => {
+        match start_search(&mut self.backend, &job.map, &job.image_tensor, job.intrinsics, job.prior, job.search) {
+            Ok((search, timings)) => {
                 metrics::histogram!("cmr_phase_seconds", "phase" => "image_encoder").record(timings.image_encoder_ms / 1000.0);
                 metrics::histogram!("cmr_phase_seconds", "phase" => "frustum_head").record(timings.frustum_head_ms / 1000.0);
-                Some(Active { job, episode, timings, queue_ms, steps_started: Instant::now(), failed: None })
+                Some(Active { job, search, timings, queue_ms, steps_started: Instant::now(), failed: None })
             }
             Err(e) => {
                 let _ = job.reply.send(Err(JobError::Inference(format!("{e:#}"))));
@@ -281,9 +293,10 @@ impl Worker {
         }
     }
 
-    /// One batched policy call for every request in the batch that still has steps to take.
+    /// One batched policy call for every hypothesis in the batch that still has steps to take.
     fn step(&mut self, batch: &mut [Active]) {
-        let running: Vec<usize> = (0..batch.len()).filter(|&i| !batch[i].episode.is_done()).collect();
+        let running: Vec<(usize, usize)> =
+            batch.iter().enumerate().flat_map(|(i, a)| a.search.running().map(move |h| (i, h))).collect();
         if running.is_empty() {
             return;
         }
@@ -291,10 +304,10 @@ impl Worker {
         let (l2, l3) = (self.layout.state_2d_len(), self.layout.state_3d_len());
         self.state_2d.resize(b * l2, 0.0);
         self.state_3d.resize(b * l3, 0.0);
-        for (slot, &i) in running.iter().enumerate() {
+        for (slot, &(i, h)) in running.iter().enumerate() {
             let ts = Instant::now();
             let a = &mut batch[i];
-            a.episode.write_state(
+            a.search.episodes[h].write_state(
                 &a.job.map,
                 &self.layout,
                 &mut self.scratch,
@@ -305,20 +318,20 @@ impl Worker {
         }
         metrics::histogram!("cmr_batch_size").record(b as f64);
         self.queue.steps.fetch_add(1, Ordering::SeqCst);
-        self.queue.stepped_requests.fetch_add(b, Ordering::SeqCst);
+        self.queue.stepped_rows.fetch_add(b, Ordering::SeqCst);
         self.queue.largest_batch.fetch_max(b, Ordering::SeqCst);
         match self.backend.agent_step(&self.state_2d, &self.state_3d, b) {
             Ok(out) => {
                 let per = 3 * self.actions.num_actions();
-                for (slot, &i) in running.iter().enumerate() {
+                for (slot, &(i, h)) in running.iter().enumerate() {
                     let a = &mut batch[i];
-                    a.episode.advance(&a.job.map, &self.actions, &out.policy_logits[slot * per..(slot + 1) * per], out.value[slot]);
+                    a.search.episodes[h].advance(&a.job.map, &self.actions, &out.policy_logits[slot * per..(slot + 1) * per], out.value[slot]);
                 }
             }
             Err(e) => {
                 let message = format!("{e:#}");
                 tracing::error!("agent step failed: {message}");
-                for &i in &running {
+                for &(i, _) in &running {
                     batch[i].failed = Some(message.clone());
                 }
             }
@@ -331,8 +344,8 @@ impl Worker {
         let mut i = 0;
         while i < batch.len() {
             let a = &batch[i];
-            let expired = now >= a.job.deadline && !a.episode.is_done();
-            if !(a.episode.is_done() || expired || a.failed.is_some() || a.job.reply.is_closed()) {
+            let expired = now >= a.job.deadline && !a.search.is_done();
+            if !(a.search.is_done() || expired || a.failed.is_some() || a.job.reply.is_closed()) {
                 i += 1;
                 continue;
             }
@@ -345,7 +358,7 @@ impl Worker {
             } else {
                 a.timings.agent_steps_ms = ms(a.steps_started);
                 metrics::histogram!("cmr_phase_seconds", "phase" => "agent_steps").record(a.timings.agent_steps_ms / 1000.0);
-                let localization = finish(a.episode, &a.job.map, &self.layout, a.timings);
+                let localization = a.search.finish(&a.job.map, &self.layout, &mut self.scratch, a.timings);
                 Ok(Finished { localization, queue_ms: a.queue_ms })
             };
             let _ = a.job.reply.send(result);

@@ -5,6 +5,9 @@
 //! (row, col) = (floor((v+0.5)/stride), floor((u+0.5)/stride)); empty cells stay 0.
 //! state_3d [M, 5]: for the first M sampled points, xyz in the current camera frame divided by
 //! the manifest's scale, sigmoid(frustum logit), and 1/0 = inside the current frustum.
+//!
+//! The same scatter also yields the pose's alignment score ([`alignment`]), which the
+//! multi-start search ranks hypotheses by.
 
 use nalgebra::Point3;
 
@@ -81,6 +84,8 @@ pub struct ScatterScratch {
 }
 
 /// Writes one state into `state_2d` (len `state_2d_len`) and `state_3d` (len `state_3d_len`).
+/// Returns the alignment score of `camera_from_map` (see [`alignment`]), which falls out of the
+/// scatter at no extra cost.
 #[allow(clippy::too_many_arguments)]
 pub fn write_state(
     layout: &StateLayout,
@@ -93,23 +98,67 @@ pub fn write_state(
     scratch: &mut ScatterScratch,
     state_2d: &mut [f32],
     state_3d: &mut [f32],
+) -> f32 {
+    let scale = layout.xyz_scale_m;
+    let m = layout.num_state_points.min(points.len());
+    scatter(layout, points, point_features, k, camera_from_map, scratch, |i, p_cam, in_view| {
+        if i < m {
+            let row = &mut state_3d[i * 5..(i + 1) * 5];
+            row[0] = (p_cam.x / scale) as f32;
+            row[1] = (p_cam.y / scale) as f32;
+            row[2] = (p_cam.z / scale) as f32;
+            row[3] = frustum_probs[i];
+            row[4] = if in_view { 1.0 } else { 0.0 };
+        }
+    });
+    let (image_part, points_part) = state_2d.split_at_mut(layout.image_feature_len());
+    image_part.copy_from_slice(image_features);
+    points_part.fill(0.0);
+    drain(layout, image_features, scratch, Some(points_part))
+}
+
+/// How well a pose explains the image: the mean, over the sampled points in view, of the dot
+/// product between a point's feature and the image feature of the cell it projects to; −1 when
+/// no point is in view. Both embeddings are unit vectors trained to agree at true
+/// correspondences, so the true pose scores highest; the multi-start search (`super::search`)
+/// uses it to choose among hypotheses. `training/cmr/state.py::alignment` is its twin.
+pub fn alignment(
+    layout: &StateLayout,
+    points: &[[f32; 3]],
+    point_features: &[f32],
+    image_features: &[f32],
+    k: &Intrinsics,
+    camera_from_map: &Pose,
+    scratch: &mut ScatterScratch,
+) -> f32 {
+    scatter(layout, points, point_features, k, camera_from_map, scratch, |_, _, _| {});
+    drain(layout, image_features, scratch, None)
+}
+
+/// One pass over the points: transform with a plain matrix (cheaper than the quaternion),
+/// project once, and add each in-view point's feature to its cell's sum. `each` sees every point
+/// with its camera-frame position and whether it is in view.
+#[allow(clippy::too_many_arguments)]
+fn scatter(
+    layout: &StateLayout,
+    points: &[[f32; 3]],
+    point_features: &[f32],
+    k: &Intrinsics,
+    camera_from_map: &Pose,
+    scratch: &mut ScatterScratch,
+    mut each: impl FnMut(usize, &Point3<f64>, bool),
 ) {
     let (d, cells) = (layout.dim, layout.cells());
     debug_assert_eq!(point_features.len(), points.len() * d);
-    // The buffers stay zeroed between calls; only touched cells are reset at the end, so a
-    // step costs work proportional to the points in view, not to the grid size.
+    // The buffers stay zeroed between calls; `drain` resets only the touched cells, so a step
+    // costs work proportional to the points in view, not to the grid size.
     if scratch.counts.len() != cells || scratch.sums.len() != cells * d {
         scratch.sums = vec![0.0; cells * d];
         scratch.counts = vec![0; cells];
     }
     scratch.touched.clear();
-
-    // One pass over the points: transform with a plain matrix (cheaper than the quaternion),
-    // project once, accumulate features, and fill the state rows of the first M points.
     let r = camera_from_map.rotation();
     let t = camera_from_map.translation();
-    let scale = layout.xyz_scale_m;
-    let m = layout.num_state_points.min(points.len());
     for (i, p) in points.iter().enumerate() {
         let (x, y, z) = (p[0] as f64, p[1] as f64, p[2] as f64);
         let p_cam = Point3::new(
@@ -128,29 +177,32 @@ pub fn write_state(
                 *s += f;
             }
         }
-        if i < m {
-            let row = &mut state_3d[i * 5..(i + 1) * 5];
-            row[0] = (p_cam.x / scale) as f32;
-            row[1] = (p_cam.y / scale) as f32;
-            row[2] = (p_cam.z / scale) as f32;
-            row[3] = frustum_probs[i];
-            row[4] = if cell.is_some() { 1.0 } else { 0.0 };
-        }
+        each(i, &p_cam, cell.is_some());
     }
+}
 
-    let (image_part, points_part) = state_2d.split_at_mut(d * cells);
-    image_part.copy_from_slice(image_features);
-    points_part.fill(0.0);
+/// Ends a `scatter`: writes the per-cell means into `means` ([D, cells], channel-major) when
+/// given, zeroes the scratch again, and returns the alignment score. Σ over points of
+/// f_i · I(cell_i) equals Σ over cells of (Σ f_i) · I(cell), so the score needs only the sums.
+fn drain(layout: &StateLayout, image_features: &[f32], scratch: &mut ScatterScratch, mut means: Option<&mut [f32]>) -> f32 {
+    let (d, cells) = (layout.dim, layout.cells());
+    let (mut dot, mut in_view) = (0f64, 0u64);
     for &cell in &scratch.touched {
         let cell = cell as usize;
-        let inv = 1.0 / scratch.counts[cell] as f32;
+        let count = scratch.counts[cell];
+        let inv = 1.0 / count as f32;
         let sum = &mut scratch.sums[cell * d..(cell + 1) * d];
         for (c, s) in sum.iter_mut().enumerate() {
-            points_part[c * cells + cell] = *s * inv;
+            dot += (*s * image_features[c * cells + cell]) as f64;
+            if let Some(means) = means.as_deref_mut() {
+                means[c * cells + cell] = *s * inv;
+            }
             *s = 0.0;
         }
+        in_view += count as u64;
         scratch.counts[cell] = 0;
     }
+    if in_view == 0 { -1.0 } else { (dot / in_view as f64) as f32 }
 }
 
 pub fn sigmoid(x: f32) -> f32 {
@@ -186,7 +238,10 @@ mod tests {
         let mut s2 = vec![f32::NAN; layout.state_2d_len()];
         let mut s3 = vec![f32::NAN; layout.state_3d_len()];
         let mut scratch = ScatterScratch::default();
-        write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut scratch, &mut s2, &mut s3);
+        let score = write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut scratch, &mut s2, &mut s3);
+        // Points 0-2 are in view: (0.5 (1 + 2) + 0.5 (3 + 4) + 0.5 (10 + 20)) / 3.
+        assert!((score - 20.0 / 3.0).abs() < 1e-6, "{score}");
+        assert_eq!(alignment(&layout, &points, &features, &image, &k, &Pose::identity(), &mut scratch), score);
         // A second call with the same scratch buffers gives the same state.
         let (first_2d, first_3d) = (s2.clone(), s3.clone());
         write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut scratch, &mut s2, &mut s3);
@@ -200,6 +255,9 @@ mod tests {
         assert_eq!(f.iter().filter(|v| **v != 0.0).count(), 4);
         assert_eq!(&s3[..5], &[0.1, 0.1, 1.0, 0.1, 1.0]);
         assert_eq!(s3[14], 1.0);
+        // Nothing in view: the worst score.
+        let behind = Pose::from_rt(nalgebra::Matrix3::identity(), nalgebra::Vector3::new(0.0, 0.0, -100.0));
+        assert_eq!(alignment(&layout, &points, &features, &image, &k, &behind, &mut scratch), -1.0);
     }
 
     #[test]

@@ -24,7 +24,8 @@ pub struct ServeArgs {
     /// ONNX Runtime intra-op threads per session (0 = number of CPU cores).
     #[arg(long, env = "CMR_INTRA_THREADS", default_value_t = 0)]
     pub intra_threads: usize,
-    /// Most requests one worker steps together.
+    /// Most hypotheses (rows of the batched policy call) one worker steps together: a request
+    /// brings one per start of its search. A search larger than this still runs, alone.
     #[arg(long, env = "CMR_MAX_BATCH", default_value_t = 8)]
     pub max_batch: usize,
     /// Requests waiting for a worker before new ones get 429.
@@ -51,6 +52,11 @@ pub struct ServeArgs {
     /// Default for requests without max_iterations.
     #[arg(long, env = "CMR_DEFAULT_ITERATIONS", default_value_t = 10)]
     pub default_max_iterations: u32,
+    /// Default starts of the multi-start search for requests without `hypotheses` (1 = the
+    /// paper's single trajectory; more recovers priors whose heading is far off, at the cost of
+    /// that many policy rows per step).
+    #[arg(long, env = "CMR_DEFAULT_HYPOTHESES", default_value_t = DEFAULT_HYPOTHESES, value_parser = clap::value_parser!(u32).range(1..=crate::agent::search::MAX_HYPOTHESES as i64))]
+    pub default_hypotheses: u32,
     /// When set, map uploads/edits/deletes need `Authorization: Bearer <token>`.
     #[arg(long, env = "CMR_ADMIN_TOKEN", hide_env_values = true)]
     pub admin_token: Option<String>,
@@ -61,6 +67,10 @@ pub struct ServeArgs {
 
 /// The hard upper bound of `max_iterations` in a request.
 pub const MAX_ITERATIONS: u32 = 50;
+
+/// Starts per request unless the request or `--default-hypotheses` says otherwise: the number
+/// chosen on the validation set (docs/evaluation.md, "Multi-start search").
+pub const DEFAULT_HYPOTHESES: u32 = 4;
 
 impl ServeArgs {
     /// Parses flags as `serve` would (environment fallbacks included); for tests and embedding.

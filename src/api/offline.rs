@@ -31,6 +31,9 @@ pub struct LocalizeArgs {
     /// Overrides the request's max_iterations.
     #[arg(long)]
     pub max_iterations: Option<u32>,
+    /// Overrides the request's hypotheses (starts of the multi-start search).
+    #[arg(long)]
+    pub hypotheses: Option<u32>,
 }
 
 pub fn run(args: LocalizeArgs) -> Result<()> {
@@ -66,7 +69,10 @@ pub fn run(args: LocalizeArgs) -> Result<()> {
         None => metadata.initial_pose().unwrap_or_else(Pose::identity),
     };
     let iterations = args.max_iterations.or(request.max_iterations).unwrap_or(10).clamp(1, super::config::MAX_ITERATIONS);
-    let loc = agent::localize(&mut backend, &map, &tensor, crop_k, prior, iterations as usize)?;
+    let hypotheses = args.hypotheses.or(request.hypotheses).unwrap_or(super::config::DEFAULT_HYPOTHESES);
+    let hypotheses = hypotheses.clamp(1, agent::search::MAX_HYPOTHESES as u32) as usize;
+    let search = agent::SearchConfig { hypotheses, max_iterations: iterations as usize };
+    let loc = agent::localize(&mut backend, &map, &tensor, crop_k, prior, search)?;
     let timings = TimingsMs::new(0.0, decode_ms, &loc.timings, agent::ms(started));
     let id = args.map.file_stem().and_then(|s| s.to_str()).unwrap_or("map");
     println!("{}", serde_json::to_string_pretty(&LocalizeResponse::new(id, &loc, timings))?);

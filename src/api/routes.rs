@@ -13,7 +13,8 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use tokio::sync::oneshot;
 
-use crate::agent::{self, scheduler::Job};
+use crate::agent::search::MAX_HYPOTHESES;
+use crate::agent::{self, SearchConfig, scheduler::Job};
 use crate::geometry::pose::PoseMatrix;
 use crate::geometry::{Intrinsics, Pose};
 use crate::maps::formats::CloudFormat;
@@ -75,6 +76,8 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             max_image_side: c.max_image_side,
             max_iterations: MAX_ITERATIONS,
             default_max_iterations: c.default_max_iterations,
+            max_hypotheses: MAX_HYPOTHESES as u32,
+            default_hypotheses: c.default_hypotheses,
             queue_capacity: c.queue_capacity,
             max_batch: c.max_batch,
             request_timeout_ms: c.request_timeout_ms,
@@ -235,7 +238,7 @@ fn read_request(query: Option<&str>, headers: &HeaderMap, body: Bytes) -> Result
         let q: RawLocalizeParams = serde_urlencoded_query(query.unwrap_or(""))?;
         let need = |v: Option<f64>, name: &str| v.ok_or_else(|| ApiError::Invalid(format!("query parameter {name} is required with a raw image body")));
         let intrinsics = IntrinsicsBody { fx: need(q.fx, "fx")?, fy: need(q.fy, "fy")?, cx: need(q.cx, "cx")?, cy: need(q.cy, "cy")? };
-        let request = LocalizeRequest { image: String::new(), intrinsics, prior_camera_from_map: None, max_iterations: q.max_iterations };
+        let request = LocalizeRequest { image: String::new(), intrinsics, prior_camera_from_map: None, max_iterations: q.max_iterations, hypotheses: q.hypotheses };
         return Ok((request, ImagePayload::Raw(body)));
     }
     if !(ct.is_empty() || ct.starts_with("application/json")) {
@@ -280,6 +283,10 @@ async fn localize_inner(
     if !(1..=MAX_ITERATIONS).contains(&max_iterations) {
         return Err(ApiError::Invalid(format!("max_iterations must be in 1..={MAX_ITERATIONS}, got {max_iterations}")));
     }
+    let hypotheses = request.hypotheses.unwrap_or(st.config.default_hypotheses) as usize;
+    if !(1..=MAX_HYPOTHESES).contains(&hypotheses) {
+        return Err(ApiError::Invalid(format!("hypotheses must be in 1..={MAX_HYPOTHESES}, got {hypotheses}")));
+    }
     let prior = match request.prior_camera_from_map {
         Some(m) => Pose::try_from(PoseMatrix(m)).map_err(|e| ApiError::Invalid(format!("prior_camera_from_map: {e}")))?,
         None => entry.metadata.initial_pose().unwrap_or_else(Pose::identity),
@@ -309,7 +316,7 @@ async fn localize_inner(
         image_tensor: tensor,
         intrinsics: crop_k,
         prior,
-        max_iterations: max_iterations as usize,
+        search: SearchConfig { hypotheses, max_iterations: max_iterations as usize },
         deadline: started + timeout,
         reply,
     })?;

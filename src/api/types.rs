@@ -33,6 +33,12 @@ pub struct LocalizeRequest {
     /// 1..=50; default 10.
     #[serde(default)]
     pub max_iterations: Option<u32>,
+    /// Starts of the multi-start search, 1..=16: the prior turned by k·360°/H about the map's
+    /// centroid; the answer is the hypothesis whose pose best explains the image. 1 runs the
+    /// paper's single trajectory (use it when the prior's heading is already good to ±45°).
+    /// Default: the server's `default_hypotheses`.
+    #[serde(default)]
+    pub hypotheses: Option<u32>,
 }
 
 /// A pose and what a person wants to read off it.
@@ -87,6 +93,8 @@ pub struct StepBody {
     pub probabilities: PolicyProbabilities,
     /// Mean over DoF of the chosen step's probability.
     pub policy_certainty: f32,
+    /// Alignment score of the pose after the action (see `ConfidenceBody::alignment`).
+    pub alignment: f32,
 }
 
 impl From<&Step> for StepBody {
@@ -101,6 +109,7 @@ impl From<&Step> for StepBody {
                 tz_m: s.probabilities[2].clone(),
             },
             policy_certainty: s.confidence,
+            alignment: s.alignment,
         }
     }
 }
@@ -113,6 +122,23 @@ pub struct ConfidenceBody {
     pub frustum_iou: f32,
     /// The last step's mean (over DoF) probability of the chosen step.
     pub policy_certainty: f32,
+    /// Mean agreement (dot product of unit embeddings, −1..1) between the map points in view at
+    /// the final pose and the image features where they project: what chose this hypothesis.
+    pub alignment: f32,
+}
+
+/// One start of the multi-start search.
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct HypothesisBody {
+    /// The turn applied to the prior (about the map's centroid) to get this start, degrees.
+    pub start_yaw_offset_deg: f64,
+    /// Alignment score of the start and of the final pose.
+    pub start_alignment: f32,
+    pub alignment: f32,
+    #[schema(value_type = Vec<Vec<f64>>)]
+    pub camera_from_map: Matrix4x4,
+    pub iterations: usize,
+    pub converged: bool,
 }
 
 #[derive(Debug, Default, Clone, Copy, Serialize, Deserialize, ToSchema)]
@@ -157,28 +183,49 @@ pub struct LocalizeResponse {
     /// The starting pose.
     #[schema(value_type = Vec<Vec<f64>>)]
     pub prior_camera_from_map: Matrix4x4,
+    /// The chosen hypothesis's steps.
     pub trajectory: Vec<StepBody>,
     pub confidence: ConfidenceBody,
-    /// True when the agent chose all-zero steps before running out of iterations.
+    /// True when the chosen hypothesis's agent chose all-zero steps before running out of iterations.
     pub converged: bool,
+    /// Steps of the chosen hypothesis.
     pub iterations: usize,
+    /// Every start of the search, in order; the first one starts at the prior.
+    pub hypotheses: Vec<HypothesisBody>,
+    /// Index into `hypotheses` of the answer.
+    pub chosen_hypothesis: usize,
     pub timings_ms: TimingsMs,
 }
 
 impl LocalizeResponse {
     pub fn new(map_id: &str, loc: &Localization, timings_ms: TimingsMs) -> Self {
+        let best = loc.best();
         LocalizeResponse {
             map_id: map_id.to_string(),
-            pose: loc.camera_from_map.into(),
+            pose: loc.camera_from_map().into(),
             prior_camera_from_map: loc.prior.to_rows(),
-            trajectory: loc.steps.iter().map(StepBody::from).collect(),
+            trajectory: best.steps.iter().map(StepBody::from).collect(),
             confidence: ConfidenceBody {
                 score: loc.confidence.score,
                 frustum_iou: loc.confidence.frustum_iou,
                 policy_certainty: loc.confidence.policy_certainty,
+                alignment: loc.confidence.alignment,
             },
-            converged: loc.converged,
-            iterations: loc.iterations(),
+            converged: best.converged,
+            iterations: best.steps.len(),
+            hypotheses: loc
+                .hypotheses
+                .iter()
+                .map(|h| HypothesisBody {
+                    start_yaw_offset_deg: h.start_yaw_offset_deg,
+                    start_alignment: h.start_alignment,
+                    alignment: h.alignment(),
+                    camera_from_map: h.camera_from_map().to_rows(),
+                    iterations: h.steps.len(),
+                    converged: h.converged,
+                })
+                .collect(),
+            chosen_hypothesis: loc.chosen,
             timings_ms,
         }
     }
@@ -240,6 +287,8 @@ pub struct RawLocalizeParams {
     pub cy: Option<f64>,
     /// 1..=50; default 10. The prior is the map's `initial_camera_from_map`.
     pub max_iterations: Option<u32>,
+    /// Starts of the multi-start search, 1..=16; default: the server's `default_hypotheses`.
+    pub hypotheses: Option<u32>,
 }
 
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
@@ -261,6 +310,8 @@ pub struct Limits {
     pub max_image_side: u32,
     pub max_iterations: u32,
     pub default_max_iterations: u32,
+    pub max_hypotheses: u32,
+    pub default_hypotheses: u32,
     pub queue_capacity: usize,
     pub max_batch: usize,
     pub request_timeout_ms: u64,

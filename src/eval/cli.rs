@@ -32,6 +32,10 @@ pub struct Args {
     /// Agent (and expert) iterations K; every iteration 1..K is reported.
     #[arg(long, default_value_t = 10)]
     pub iterations: usize,
+    /// Starts of the agent's multi-start search (the server's default unless given); with more
+    /// than one, the single-start agent is evaluated too.
+    #[arg(long, default_value_t = crate::api::config::DEFAULT_HYPOTHESES as usize)]
+    pub hypotheses: usize,
     /// Seed of the perturbations when the file is created.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -68,6 +72,7 @@ pub fn main(args: Args) -> Result<()> {
         ort_lib: args.ort_lib,
         threads: args.threads.max(1),
         iterations: args.iterations,
+        hypotheses: args.hypotheses.clamp(1, crate::agent::search::MAX_HYPOTHESES),
         seed: args.seed,
         frame_stride: args.frame_stride,
         max_cases: args.max_cases,

@@ -1,6 +1,7 @@
-//! The two learned methods, sharing one model backend and one map embedding per case:
+//! The learned methods, sharing one model backend and one map embedding per case:
 //! - the CMR agent, through the server's own synchronous path (`agent::prepare_map`,
-//!   `agent::prepare_image`, `agent::localize`);
+//!   `agent::prepare_image`, `agent::localize`), with the configured multi-start search and,
+//!   when that has more than one start, also alone from the given start (the paper's protocol);
 //! - the one-shot baseline on the same embeddings: points the frustum head predicts in view,
 //!   mutual-nearest-neighbour feature matches against the image feature grid, then the
 //!   ground-plane 2-point RANSAC solver (`pnp`).
@@ -11,51 +12,58 @@ use std::time::Instant;
 use anyhow::Result;
 use serde_json::json;
 
-use crate::agent::{self, PreparedMap};
+use crate::agent::{self, PreparedMap, SearchConfig};
 use crate::model::Backend;
 
 use super::matching::{MatchStrategy, cell_centre, find_matches};
-use super::methods::{EvalCase, Method, MethodRun, pad_to};
+use super::methods::{EvalCase, Method, MethodRun};
 use super::pnp::{Correspondence, GroundPnp, RansacOptions};
 
+/// The agent as served: the configured number of starts.
 pub const AGENT: &str = "cmr-agent";
+/// The agent from the given start only: the paper's single trajectory.
+pub const AGENT_SINGLE_START: &str = "cmr-agent, single start";
 pub const BASELINE: &str = "one-shot matching + RANSAC";
 
 pub struct Learned {
     backend: Backend,
     iterations: usize,
+    hypotheses: usize,
     ransac: RansacOptions,
     matching: MatchStrategy,
 }
 
 impl Learned {
-    pub fn new(backend: Backend, iterations: usize, ransac: RansacOptions, matching: MatchStrategy) -> Self {
-        Learned { backend, iterations, ransac, matching }
+    pub fn new(backend: Backend, iterations: usize, hypotheses: usize, ransac: RansacOptions, matching: MatchStrategy) -> Self {
+        Learned { backend, iterations, hypotheses, ransac, matching }
     }
 
     /// Parameters each method runs: the agent all four graphs, the baseline all but the agent.
     pub fn parameters(graphs: &BTreeMap<String, u64>) -> BTreeMap<String, u64> {
         let sum = |names: &[&str]| names.iter().filter_map(|n| graphs.get(*n)).sum::<u64>();
         let encoders = ["point_encoder", "image_encoder", "frustum_head"];
-        BTreeMap::from([(AGENT.to_string(), sum(&[&encoders[..], &["agent"]].concat())), (BASELINE.to_string(), sum(&encoders))])
+        let agent = sum(&[&encoders[..], &["agent"]].concat());
+        BTreeMap::from([(AGENT.to_string(), agent), (AGENT_SINGLE_START.to_string(), agent), (BASELINE.to_string(), sum(&encoders))])
     }
 
-    fn run_agent(&mut self, case: &EvalCase, map: &PreparedMap) -> Result<MethodRun> {
+    fn run_agent(&mut self, case: &EvalCase, map: &PreparedMap, method: &str, hypotheses: usize) -> Result<MethodRun> {
         let start = Instant::now();
         let manifest = self.backend.manifest().clone();
         let (tensor, crop_intrinsics) = agent::prepare_image(&case.image, &case.intrinsics, &manifest)?;
         let image_ms = ms(start);
-        let loc = agent::localize(&mut self.backend, map, &tensor, crop_intrinsics, case.initial, self.iterations)?;
+        let search = SearchConfig { hypotheses, max_iterations: self.iterations };
+        let loc = agent::localize(&mut self.backend, map, &tensor, crop_intrinsics, case.initial, search)?;
         let t = loc.timings;
         // localize reports one total for all steps; each step does the same work, so the time to
         // reach step k is the time before the loop plus k equal shares of it.
         let before_loop = image_ms + t.image_encoder_ms + t.frustum_head_ms;
-        let per_step = t.agent_steps_ms / loc.steps.len().max(1) as f64;
-        let poses = loc.steps.iter().map(|s| s.camera_from_map).collect();
-        let elapsed = (1..=loc.steps.len()).map(|k| before_loop + per_step * k as f64).collect();
-        let (poses, elapsed_ms) = pad_to(poses, elapsed, self.iterations, case.initial);
+        let per_step = t.agent_steps_ms / loc.iterations().max(1) as f64;
+        // The answer had the search stopped after k steps (a stopped trajectory keeps its pose).
+        let poses = (1..=self.iterations).map(|k| loc.pose_after(k)).collect();
+        let elapsed_ms = (1..=self.iterations).map(|k| before_loop + per_step * k.min(loc.iterations()) as f64).collect();
+        let best = loc.best();
         Ok(MethodRun {
-            method: AGENT.into(),
+            method: method.into(),
             poses,
             elapsed_ms,
             phases_ms: vec![
@@ -65,7 +73,13 @@ impl Learned {
                 ("agent steps".into(), t.agent_steps_ms),
                 ("agent steps: state building".into(), t.state_build_ms),
             ],
-            notes: json!({ "iterations_run": loc.steps.len(), "converged": loc.converged, "confidence": loc.confidence.score }),
+            notes: json!({
+                "iterations_run": best.steps.len(),
+                "converged": best.converged,
+                "confidence": loc.confidence.score,
+                "chosen_start_yaw_offset_deg": best.start_yaw_offset_deg,
+                "alignment": loc.hypotheses.iter().map(|h| h.alignment()).collect::<Vec<_>>(),
+            }),
         })
     }
 
@@ -146,17 +160,24 @@ pub fn one_shot_correspondences(
 
 impl Method for Learned {
     fn names(&self) -> Vec<String> {
-        vec![AGENT.into(), BASELINE.into()]
+        match self.hypotheses {
+            1 => vec![AGENT.into(), BASELINE.into()],
+            _ => vec![AGENT.into(), AGENT_SINGLE_START.into(), BASELINE.into()],
+        }
     }
 
     fn run(&mut self, case: &EvalCase) -> Result<Vec<MethodRun>> {
         let t = Instant::now();
         let map = agent::prepare_map(&mut self.backend, &case.map_cloud)?;
         let prepare_ms = ms(t);
-        let mut agent_run = self.run_agent(case, &map)?;
+        let mut runs = vec![self.run_agent(case, &map, AGENT, self.hypotheses)?];
         // Once per map (the server caches it), so it is reported apart from per-request times.
-        agent_run.notes["map_prepare_ms"] = json!(prepare_ms);
-        Ok(vec![agent_run, self.run_baseline(case, &map)?])
+        runs[0].notes["map_prepare_ms"] = json!(prepare_ms);
+        if self.hypotheses > 1 {
+            runs.push(self.run_agent(case, &map, AGENT_SINGLE_START, 1)?);
+        }
+        runs.push(self.run_baseline(case, &map)?);
+        Ok(runs)
     }
 }
 

@@ -97,15 +97,6 @@ impl Method for Expert {
     }
 }
 
-/// Pads a trajectory that stopped early with its last pose, up to `k` entries.
-pub fn pad_to(mut poses: Vec<Pose>, mut elapsed_ms: Vec<f64>, k: usize, start: Pose) -> (Vec<Pose>, Vec<f64>) {
-    let last = poses.last().copied().unwrap_or(start);
-    let last_ms = elapsed_ms.last().copied().unwrap_or(0.0);
-    poses.resize(k, last);
-    elapsed_ms.resize(k, last_ms);
-    (poses, elapsed_ms)
-}
-
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
@@ -166,12 +157,5 @@ pub(crate) mod tests {
             assert!(last.rte_m < 0.06 && last.rre_geodesic_deg < 0.06, "{yaw} {dx} {dy}: {last:?}");
             assert!(last.rte_m < start.rte_m || start.rte_m < 0.06);
         }
-    }
-
-    #[test]
-    fn padding_repeats_the_last_pose() {
-        let (poses, ms) = pad_to(vec![rig()], vec![2.0], 3, Pose::identity());
-        assert_eq!(poses, vec![rig(); 3]);
-        assert_eq!(ms, vec![2.0; 3]);
     }
 }

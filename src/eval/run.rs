@@ -31,6 +31,9 @@ pub struct EvalConfig {
     pub ort_lib: Option<PathBuf>,
     pub threads: usize,
     pub iterations: usize,
+    /// Starts of the agent's multi-start search; with more than one, the single-start agent
+    /// (the paper's protocol) is reported too.
+    pub hypotheses: usize,
     pub seed: u64,
     pub frame_stride: usize,
     pub max_cases: Option<usize>,
@@ -108,7 +111,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
             graph_parameters = map.iter().filter_map(|(k, v)| v.as_u64().map(|n| (k.clone(), n))).collect();
         }
         learned_index = Some(methods.len());
-        methods.push(Box::new(Learned::new(set.backend()?, config.iterations, config.ransac, config.matching)));
+        methods.push(Box::new(Learned::new(set.backend()?, config.iterations, config.hypotheses, config.ransac, config.matching)));
     }
     methods.push(Box::new(Expert { actions, iterations: config.iterations }));
     methods.push(Box::new(NoOp));
@@ -140,6 +143,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
             "ransac_iterations": config.ransac.iterations,
             "ransac_inlier_px": config.ransac.inlier_px,
             "num_points": num_points,
+            "hypotheses": config.hypotheses,
             "model_provenance": provenance,
         }),
         created_unix_s: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs()),
@@ -202,6 +206,7 @@ pub(crate) mod tests {
             ort_lib: None,
             threads: 1,
             iterations: 10,
+            hypotheses: 1,
             seed: 3,
             frame_stride: 1,
             max_cases: None,
@@ -275,22 +280,25 @@ pub(crate) mod tests {
         let (data, out) = (dir.path().join("data"), dir.path().join("out"));
         write_tiny_sequence(&data, 2);
         let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model");
-        let config = EvalConfig { models: Some(models), iterations: 4, ..config(&data, &out) };
+        let config = EvalConfig { models: Some(models), iterations: 4, hypotheses: 2, ..config(&data, &out) };
         let report = run(&config).unwrap();
         let names: Vec<&str> = report.methods.iter().map(|m| m.method.as_str()).collect();
-        assert_eq!(names, vec![AGENT, super::super::learned::BASELINE, "expert (oracle)", "no-op"]);
+        let single = super::super::learned::AGENT_SINGLE_START;
+        assert_eq!(names, vec![AGENT, single, super::super::learned::BASELINE, "expert (oracle)", "no-op"]);
         let agent = &report.methods[0];
         assert_eq!(agent.per_iteration.len(), 4);
-        assert!(agent.parameters.unwrap() > report.methods[1].parameters.unwrap());
-        assert!(agent.phases_ms.contains_key("agent steps") && report.methods[1].phases_ms.contains_key("matching"));
+        assert!(agent.parameters.unwrap() > report.methods[2].parameters.unwrap());
+        assert!(agent.phases_ms.contains_key("agent steps") && report.methods[2].phases_ms.contains_key("matching"));
         assert!(report.resources.map_prepare_ms.is_some_and(|m| m.n == 2));
         assert!(report.resources.peak_rss_bytes.is_some_and(|b| b > 0));
         let records: Vec<CaseRecord> = serde_json::from_str(&std::fs::read_to_string(out.join("cases.json")).unwrap()).unwrap();
-        assert_eq!(records.len(), 2 * 4);
-        for r in records.iter().filter(|r| r.method == AGENT) {
+        assert_eq!(records.len(), 2 * 5);
+        for r in records.iter().filter(|r| r.method == AGENT || r.method == single) {
             assert_eq!(r.errors.len(), 4);
             assert!(r.elapsed_ms.windows(2).all(|w| w[0] <= w[1]));
             assert!(r.notes["iterations_run"].as_u64().unwrap() >= 1);
+            let starts = if r.method == AGENT { 2 } else { 1 };
+            assert_eq!(r.notes["alignment"].as_array().unwrap().len(), starts);
         }
         for r in records.iter().filter(|r| r.method == super::super::learned::BASELINE) {
             assert_eq!(r.errors.len(), 1);

@@ -139,10 +139,16 @@ pub fn nearest_step(steps: &[f64], value: f64) -> usize {
 /// Applies one step: rotate by `yaw_deg` about camera y through the pivot (the cloud centroid,
 /// given in the map frame), then translate by (tx, 0, tz) in the camera frame.
 pub fn apply_action(pose: &Pose, pivot_map: &Point3<f64>, action: &AgentAction) -> Pose {
+    apply_motion(pose, pivot_map, action.yaw_deg, action.tx_m, action.tz_m)
+}
+
+/// `apply_action` for any amounts, not only the action set's (e.g. the starts of a multi-start
+/// search, which are the prior turned about the pivot).
+pub fn apply_motion(pose: &Pose, pivot_map: &Point3<f64>, yaw_deg: f64, tx_m: f64, tz_m: f64) -> Pose {
     let pivot_cam = pose.transform(pivot_map).coords;
-    let turn = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), action.yaw_deg.to_radians());
+    let turn = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), yaw_deg.to_radians());
     let rotation = turn * pose.0.rotation;
-    let translation = turn * (pose.translation() - pivot_cam) + pivot_cam + Vector3::new(action.tx_m, 0.0, action.tz_m);
+    let translation = turn * (pose.translation() - pivot_cam) + pivot_cam + Vector3::new(tx_m, 0.0, tz_m);
     Pose(Isometry3::from_parts(Translation3::from(translation), rotation))
 }
 

@@ -21,7 +21,6 @@ from . import geometry as g
 from .data import find_sequences, list_frames, make_sample
 from .episodes import embed
 from .evaluate import frustum_confusion, precision_recall
-from .state import frustum_cells, to_camera
 
 # (name, yaw degrees, tx metres, tz metres) in the camera frame, applied about the scan centroid.
 PERTURBATIONS = [("yaw+2", 2, 0, 0), ("yaw-5", -5, 0, 0), ("yaw+20", 20, 0, 0), ("yaw-90", -90, 0, 0),
@@ -29,16 +28,9 @@ PERTURBATIONS = [("yaw+2", 2, 0, 0), ("yaw-5", -5, 0, 0), ("yaw+20", 20, 0, 0), 
                  ("tz-5", 0, 0, -5)]
 
 
-@torch.no_grad()
 def alignment_score(eps, row: int, pose: np.ndarray) -> float:
-    pose_t = torch.as_tensor(pose[None], dtype=torch.float32)
-    p_cam = to_camera(pose_t, eps.points[row:row + 1])
-    cell, inside = frustum_cells(eps.intrinsics[row:row + 1], p_cam)
-    if not inside.any():
-        return -1.0
-    feats = eps.point_features[row][inside[0]]
-    grid = eps.image_features[row].flatten(1)  # [64, cells]
-    return float((feats * grid[:, cell[0][inside[0]]].t()).sum(-1).mean())
+    """`state.alignment` of one pose for one row (the score the multi-start search ranks by)."""
+    return float(eps.alignment([pose], [row])[0])
 
 
 @torch.no_grad()

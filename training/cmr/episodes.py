@@ -10,7 +10,7 @@ import torch
 
 from . import geometry as g
 from .data import Sample
-from .state import NUM_STATE_POINTS, build_state
+from .state import NUM_STATE_POINTS, alignment, build_state
 
 REWARD_POINTS = 1024  # true-frustum points used for the point-to-point distance
 
@@ -54,6 +54,15 @@ class Episodes:
         pose_t = torch.as_tensor(np.stack(poses), dtype=torch.float32, device=self.points.device)
         return build_state(pose_t, self.points[idx], self.intrinsics[idx], self.point_features[idx],
                            self.image_features[idx], self.frustum_prob[idx])
+
+    @torch.no_grad()
+    def alignment(self, poses: list[np.ndarray], rows: list[int] | None = None) -> np.ndarray:
+        """`state.alignment` of one pose per row (all rows by default) -> float array [len(poses)]."""
+        rows = list(range(len(self))) if rows is None else rows
+        idx = torch.as_tensor(rows, device=self.points.device)
+        pose_t = torch.as_tensor(np.stack(poses), dtype=torch.float32, device=self.points.device)
+        return alignment(pose_t, self.points[idx], self.intrinsics[idx], self.point_features[idx],
+                         self.image_features[idx]).cpu().numpy()
 
 
 @torch.no_grad()
@@ -146,6 +155,33 @@ def rollout(agent, episodes: Episodes, steps: int, mode: str = "greedy", expert_
             nxt.append(q)
         poses.append(nxt)
     return Trajectory(poses, actions, experts, log_probs, values, rewards, states)
+
+
+def select_hypotheses(scores: np.ndarray) -> np.ndarray:
+    """scores [H, T, B] -> the best-scoring hypothesis per iteration and row [T, B]; ties go to the
+    lowest index (argmax keeps the first), so hypothesis 0, the prior itself, wins a draw."""
+    return np.asarray(scores).argmax(axis=0)
+
+
+def multi_start(agent, episodes: Episodes, steps: int,
+                hypotheses: int) -> tuple[list[list[np.ndarray]], list[Trajectory]]:
+    """The multi-start search: greedy rollouts from the prior turned about the map pivot by each of
+    `g.start_yaw_offsets(hypotheses)` (a single start fails on coarse yaw), and after each iteration
+    1..steps the pose of the hypothesis with the highest alignment score. Returns (selected poses
+    [steps][B], the H trajectories). `episodes.initial` is restored afterwards."""
+    prior = list(episodes.initial)
+    trajectories, scores = [], []
+    try:
+        for off in g.start_yaw_offsets(hypotheses):
+            episodes.initial = [g.apply_action(p, episodes.pivots[i], off, 0.0, 0.0) for i, p in enumerate(prior)]
+            traj = rollout(agent, episodes, steps, "greedy")
+            trajectories.append(traj)
+            scores.append([episodes.alignment(traj.poses[t]) for t in range(1, steps + 1)])
+    finally:
+        episodes.initial = prior
+    pick = select_hypotheses(np.array(scores))
+    selected = [[trajectories[pick[t, i]].poses[t + 1][i] for i in range(len(episodes))] for t in range(steps)]
+    return selected, trajectories
 
 
 def gae(rewards: np.ndarray, values: np.ndarray, gamma: float, lam: float) -> tuple[np.ndarray, np.ndarray]:

@@ -1,6 +1,8 @@
 """Validation with the paper's protocol on held-out frames: RTE / RRE (Euler sum and geodesic) / RR
 after each iteration 1..K for the agent (argmax policy) and for the greedy expert, plus what limits
-them: frustum-head precision/recall and embedding match accuracy.
+them: frustum-head precision/recall and embedding match accuracy. With `--hypotheses H` > 1 the agent
+runs the multi-start search (H yaw offsets about the map pivot, answer = highest alignment score,
+`episodes.multi_start`) and the single-start figures are kept as `agent_single_start`.
 
     python -m cmr.evaluate --checkpoint runs/default/best.pt --data ../data/synth-test --out eval.json
 """
@@ -17,7 +19,7 @@ import torch
 
 from . import geometry as g
 from .data import find_sequences, list_frames, make_sample
-from .episodes import embed, rollout
+from .episodes import embed, multi_start, rollout
 from .models import STRIDE
 
 
@@ -76,13 +78,18 @@ def match_accuracy(episodes, samples, max_points: int = 512) -> float:
 
 @torch.no_grad()
 def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_points: int = 40960,
-             chunk: int = 4, device: torch.device | str = "cpu", motions: list | None = None) -> dict:
-    """`motions`: one Q per frame (frozen cases, e.g. the Rust harness's); random ones otherwise."""
+             chunk: int = 4, device: torch.device | str = "cpu", motions: list | None = None,
+             hypotheses: int = 1) -> dict:
+    """`motions`: one Q per frame (frozen cases, e.g. the Rust harness's); random ones otherwise.
+    `hypotheses` > 1: `agent` is the multi-start search's selected poses, `agent_single_start`
+    hypothesis 0 (the paper's single trajectory). 1 runs the plain rollout and scores nothing, so
+    training's periodic validation pays nothing for the search."""
     device = torch.device(device)
     for m in models.values():
         m.eval()
     agent_errors: list[list] = [[] for _ in range(iterations)]
     expert_errors: list[list] = [[] for _ in range(iterations)]
+    single_errors: list[list] = [[] for _ in range(iterations)]
     confusion = np.zeros(3, dtype=np.int64)
     match_hits = []
     initial: list[dict] = []
@@ -95,18 +102,27 @@ def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_p
         confusion += frustum_confusion(logits, samples)
         match_hits.append((match_accuracy(eps, samples), len(samples)))
         initial.extend(g.pose_error(p, t) for p, t in zip(eps.initial, eps.truth))
-        for errors, traj in ((agent_errors, rollout(models["agent"], eps, iterations, "greedy")),
-                             (expert_errors, rollout(None, eps, iterations, "expert"))):
+        runs = [(expert_errors, rollout(None, eps, iterations, "expert").poses[1:])]
+        if hypotheses == 1:
+            runs.append((agent_errors, rollout(models["agent"], eps, iterations, "greedy").poses[1:]))
+        else:
+            selected, trajectories = multi_start(models["agent"], eps, iterations, hypotheses)
+            runs += [(agent_errors, selected), (single_errors, trajectories[0].poses[1:])]
+        for errors, poses in runs:
             for k in range(iterations):
-                errors[k].extend(g.pose_error(p, t) for p, t in zip(traj.poses[k + 1], eps.truth))
-    return dict(
-        frames=len(frames), seed=seed,
+                errors[k].extend(g.pose_error(p, t) for p, t in zip(poses[k], eps.truth))
+    table = lambda errors: [dict(iteration=k + 1, **_summarise(e)) for k, e in enumerate(errors)]  # noqa: E731
+    result = dict(
+        frames=len(frames), seed=seed, hypotheses=hypotheses,
         initial=_summarise(initial),
-        agent=[dict(iteration=k + 1, **_summarise(e)) for k, e in enumerate(agent_errors)],
-        expert=[dict(iteration=k + 1, **_summarise(e)) for k, e in enumerate(expert_errors)],
+        agent=table(agent_errors),
+        expert=table(expert_errors),
         frustum=precision_recall(confusion),
         match_accuracy=float(sum(a * n for a, n in match_hits) / max(sum(n for _, n in match_hits), 1)),
     )
+    if hypotheses > 1:
+        result["agent_single_start"] = table(single_errors)
+    return result
 
 
 def frozen_cases(frames: list, path: Path) -> tuple[list, list]:
@@ -134,6 +150,9 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=1234)
     ap.add_argument("--perturbations", type=Path,
                     help="the Rust harness's frozen cases (docs/eval/perturbations.json): evaluate exactly those")
+    ap.add_argument("--hypotheses", type=int, default=1,
+                    help="multi-start search: H starts turned about the map pivot, answer = best alignment "
+                         "(1 = the paper's single start)")
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
@@ -147,7 +166,7 @@ def main(argv=None) -> None:
         frames = frames[::step][: args.frames]
         if motions is not None:
             motions = motions[::step][: args.frames]
-    result = evaluate(models, frames, seed=args.seed, motions=motions)
+    result = evaluate(models, frames, seed=args.seed, motions=motions, hypotheses=args.hypotheses)
     text = json.dumps(result, indent=2)
     if args.out:
         from .export import atomic_write_bytes

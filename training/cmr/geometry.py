@@ -120,6 +120,18 @@ def apply_action(pose: np.ndarray, pivot_map: np.ndarray, yaw_deg: float, tx: fl
     return out
 
 
+def start_yaw_offsets(h: int) -> list[float]:
+    """The multi-start search's H yaw offsets (deg) about the map pivot: evenly spaced from 0, wrapped
+    to (-180, 180]. Coarse yaw is what a single start fails on, so the starts cover the circle."""
+    if h < 1:
+        raise ValueError(f"need at least one start, got {h}")
+    offsets = []
+    for k in range(h):
+        off = k * 360.0 / h
+        offsets.append(off - 360.0 if off > 180.0 else off)
+    return offsets
+
+
 def needed_motion(current: np.ndarray, target: np.ndarray, pivot_map: np.ndarray) -> tuple[float, float, float]:
     delta_r = target[:3, :3] @ current[:3, :3].T
     yaw = math.degrees(math.atan2(delta_r[0, 2], delta_r[2, 2]))

@@ -56,6 +56,21 @@ yaw (degrees) or shift (metres, camera frame); 0.5 = no signal, 1.0 = always.
 """
 
 
+def _agent_tables(evaluation: dict, keys: list[str], heads: list[str]) -> str:
+    h = evaluation.get("hypotheses", 1)
+    if h <= 1:
+        return f"Agent (argmax policy), after each iteration:\n\n{_table(evaluation['agent'], keys, heads)}"
+    return f"""Agent (argmax policy), multi-start search with {h} starts, after each iteration. The starts are
+the prior turned about the map pivot by {h} evenly spaced yaw offsets; the answer is the hypothesis
+whose pose has the highest alignment score (mean point-to-image-cell feature similarity):
+
+{_table(evaluation['agent'], keys, heads)}
+
+Agent (argmax policy), single start (the paper's protocol: one trajectory from the prior):
+
+{_table(evaluation['agent_single_start'], keys, heads)}"""
+
+
 def render(manifest: dict, evaluation: dict, bench: dict, train_rows: list[dict], test_rows: list[dict],
            curves: str, notes: str, diagnosis: dict | None = None) -> str:
     params = manifest["parameters"]
@@ -101,9 +116,7 @@ Load average (1 min) on this shared machine during the measurement: {bench.get('
 ## Evaluation (paper protocol, held-out frames: {evaluation['frames']}, seed {evaluation['seed']})
 Initial error (before any step): RTE {init.get('rte_m', float('nan')):.2f} m, RRE {init.get('rre_euler_deg', float('nan')):.1f} deg, RR {init.get('rr', float('nan')):.3f}.
 
-Agent (argmax policy), after each iteration:
-
-{_table(evaluation['agent'], it_keys, it_heads)}
+{_agent_tables(evaluation, it_keys, it_heads)}
 
 Greedy expert (uses the ground truth; the imitation teacher and the ceiling of pure imitation):
 

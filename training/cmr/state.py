@@ -57,3 +57,19 @@ def build_state(poses, points, k, point_features, image_features, frustum_prob):
     m = frustum_prob.shape[1]
     state_3d = torch.cat([p_cam[:, :m] / STATE_XYZ_SCALE_M, frustum_prob[..., None], inside[:, :m, None].float()], dim=-1)
     return state_2d, state_3d
+
+
+def alignment(poses, points, k, point_features, image_features) -> torch.Tensor:
+    """How well each pose explains its image: the mean, over the points in view, of dot(point feature,
+    image feature of the point's cell); -1 for rows with no point in view. The embeddings are trained
+    to agree at true correspondences, so the multi-start search answers with the hypothesis scoring
+    highest. Same in-view/cell decisions as `build_state`; twin of the server's `state::alignment`.
+    poses [B,4,4], points [B,N,3], k [B,4], point_features [B,N,64], image_features [B,64,40,128] -> [B]."""
+    b = points.shape[0]
+    cell, inside = frustum_cells(k, to_camera(poses, points))
+    rows, cols = inside.nonzero(as_tuple=True)
+    cell_features = image_features.flatten(2).transpose(1, 2)  # [B, cells, 64]
+    dots = (point_features[rows, cols].float() * cell_features[rows, cell[rows, cols]].float()).sum(-1)
+    sums = dots.new_zeros(b).index_add_(0, rows, dots)
+    counts = torch.bincount(rows, minlength=b).to(dots.dtype)
+    return torch.where(counts > 0, sums / counts.clamp(min=1.0), torch.full_like(sums, -1.0))

@@ -54,3 +54,12 @@ def test_pose_conventions(case):
     err = g.pose_error(current, target)
     for key in ("rte_m", "rre_euler_deg", "rre_geodesic_deg"):
         assert abs(err[key] - case[key]) < 1e-7
+
+
+def test_start_yaw_offsets():
+    """The multi-start search's starts; a missing key fails (the Rust tests write it)."""
+    table = FIXTURE["start_yaw_offsets_deg"]
+    assert table
+    for h, offsets in table.items():
+        ours = g.start_yaw_offsets(int(h))
+        assert len(ours) == len(offsets) and np.allclose(ours, offsets, atol=TOL), (h, ours, offsets)

@@ -22,6 +22,14 @@ def test_evaluation_and_model_card(tmp_path, tiny_dataset):
     text = render(doc, result, {"agent_ms": 1.0}, data_summary([str(tiny_dataset)]), [], "curves.png", "note")
     assert "| 3 |" in text and "Greedy expert" in text and str(sum(doc["parameters"].values())) not in ("0",)
     assert json.loads((tmp_path / "manifest.json").read_text())["validation"]["final"]["iteration"] == 3
+    assert result["hypotheses"] == 1 and "agent_single_start" not in result and "single start" not in text
+
+    multi = evaluate(models, frames, iterations=3, num_points=2048, chunk=2, hypotheses=2)
+    assert multi["hypotheses"] == 2 and [r["iteration"] for r in multi["agent"]] == [1, 2, 3]
+    for one, single in zip(result["agent"], multi["agent_single_start"]):  # hypothesis 0 = the single start
+        assert all(abs(one[k] - single[k]) < 1e-6 for k in one)
+    text = render(doc, multi, {"agent_ms": 1.0}, [], [], "curves.png", "note")
+    assert "multi-start search with 2 starts" in text and "single start (the paper's protocol" in text
 
 
 def test_alignment_diagnosis_rewards_a_perfect_embedding(tiny_dataset):

@@ -40,3 +40,28 @@ def test_state_matches_reference():
     assert want3[:, 4].sum() > 10  # the pose sees part of the cloud
     assert np.allclose(got2[0].numpy(), want2, atol=1e-4)
     assert np.allclose(got3[0].numpy(), want3, atol=1e-4)
+
+
+def test_alignment_matches_reference():
+    """Batched alignment = per-point mean of dot(point feature, image feature of its cell); a row
+    whose pose sees no point scores -1."""
+    from cmr.state import alignment
+    rng = np.random.default_rng(5)
+    n = 2000
+    points = rng.uniform([-30, -30, -2], [30, 30, 3], (n, 3))
+    pose = g.apply_action(np.array([[0, -1, 0, 0], [0, 0, -1, 0.1], [1, 0, 0, -0.3], [0, 0, 0, 1.0]]),
+                          points.mean(0), -35.0, 0.2, 1.0)
+    blind = np.eye(4)
+    blind[2, 3] = -100.0  # every point behind the camera
+    k = np.array([360.0, 360.0, 255.5, 79.5])
+    pf = rng.normal(size=(n, 64))
+    imf = rng.normal(size=(64, 40, 128))
+    p_cam = g.transform(pose, points)
+    inside = g.in_frustum(k, p_cam, 512, 160)
+    uv, _ = g.project(k, p_cam)
+    want = np.mean([pf[i] @ imf[:, int(np.floor((uv[i, 1] + 0.5) / 4)), int(np.floor((uv[i, 0] + 0.5) / 4))]
+                    for i in np.flatnonzero(inside)])
+    t = lambda *a: torch.as_tensor(np.stack(a), dtype=torch.float32)  # noqa: E731
+    got = alignment(t(pose, blind), t(points, points), t(k, k), t(pf, pf), t(imf, imf))
+    assert inside.sum() > 10 and got.shape == (2,)
+    assert abs(float(got[0]) - want) < 1e-4 and float(got[1]) == -1.0

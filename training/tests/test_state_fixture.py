@@ -7,12 +7,13 @@ import numpy as np
 import torch
 
 from cmr.models import FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH
-from cmr.state import build_state
+from cmr.state import alignment, build_state
 
 FIXTURE = json.loads((Path(__file__).resolve().parents[2] / "fixtures" / "state.json").read_text())
 
 
-def test_state_matches_rust():
+def fixture_tensors():
+    """(pose, points, intrinsics, point features, image features, frustum probs) as the Rust test builds them."""
     k = FIXTURE["intrinsics"]
     points = torch.tensor(FIXTURE["points_map"], dtype=torch.float32)[None]
     n = points.shape[1]
@@ -22,7 +23,12 @@ def test_state_matches_rust():
     probs = torch.tensor(FIXTURE["frustum_probs"], dtype=torch.float32)[None]
     pose = torch.tensor(FIXTURE["camera_from_map"], dtype=torch.float32)[None]
     kk = torch.tensor([[k["fx"], k["fy"], k["cx"], k["cy"]]], dtype=torch.float32)
+    return pose, points, kk, features, image, probs
 
+
+def test_state_matches_rust():
+    pose, points, kk, features, image, probs = fixture_tensors()
+    cells = GRID_HEIGHT * GRID_WIDTH
     state_2d, state_3d = build_state(pose, points, kk, features, image, probs)
 
     assert torch.equal(state_2d[0, :FEATURE_DIM], image[0])
@@ -32,3 +38,11 @@ def test_state_matches_rust():
         expected[:, entry["cell"]] = entry["mean"]
     assert np.allclose(projected.numpy(), expected, atol=1e-5)
     assert np.allclose(state_3d[0].numpy().ravel(), FIXTURE["state_3d"], atol=1e-5)
+
+
+def test_alignment_matches_rust():
+    """The multi-start search's score: Rust's value for the fixture's pose (key `alignment`)."""
+    pose, points, kk, features, image, _ = fixture_tensors()
+    want = FIXTURE["alignment"]
+    got = float(alignment(pose, points, kk, features, image)[0])
+    assert abs(got - want) <= 1e-4 * abs(want), (got, want)
