@@ -53,7 +53,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
     assert!((crop_k.fx - 718.856 * 621.0 / 1241.0).abs() < 1e-9);
 
     let prior = rig().compose(&Pose::ground_motion(0.4, 2.0, -1.0));
-    let single = SearchConfig { hypotheses: 1, max_iterations: 6 };
+    let single = SearchConfig::single(6);
     let a = agent::localize(&mut backend, &map, &tensor, crop_k, prior, single).unwrap();
     let b = agent::localize(&mut backend, &map, &tensor, crop_k, prior, single).unwrap();
     assert_eq!(a.camera_from_map(), b.camera_from_map());
@@ -76,7 +76,8 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 
     // Four starts: the first is the single trajectory above (same rows, batched with three more),
     // the others start from the prior turned about the pivot, and the answer is the best score.
-    let multi = agent::localize(&mut backend, &map, &tensor, crop_k, prior, SearchConfig { hypotheses: 4, max_iterations: 6 }).unwrap();
+    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None };
+    let multi = agent::localize(&mut backend, &map, &tensor, crop_k, prior, four).unwrap();
     assert_eq!(multi.hypotheses.len(), 4);
     let first = &multi.hypotheses[0];
     assert_eq!(first.steps.len(), best.steps.len());
@@ -90,6 +91,27 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
     let finals: Vec<f32> = multi.hypotheses.iter().map(|h| h.alignment()).collect();
     assert_eq!(multi.chosen, agent::best_of(finals));
     assert_eq!(multi.pose_after(multi.iterations()), multi.camera_from_map());
+    assert!(multi.hypotheses.iter().all(|h| !h.dropped));
+
+    // Narrowed after 2 steps: the same first two steps, then only the leader at that point goes
+    // on; the dropped ones keep their 2-step pose and still compete at the end.
+    let narrowed = agent::localize(&mut backend, &map, &tensor, crop_k, prior, SearchConfig { narrow_after: Some(2), ..four }).unwrap();
+    let went_on: Vec<usize> = (0..4).filter(|&h| !narrowed.hypotheses[h].dropped).collect();
+    let scores_at_2: Vec<f32> = multi.hypotheses.iter().map(|h| h.pose_after(2).1).collect();
+    let leader = agent::best_of(scores_at_2);
+    for (h, (n, m)) in narrowed.hypotheses.iter().zip(&multi.hypotheses).enumerate() {
+        let shared = n.steps.len().min(2);
+        assert!((n.pose_after(shared).0.matrix() - m.pose_after(shared).0.matrix()).abs().max() < 1e-9, "hypothesis {h}");
+        if n.dropped {
+            assert_eq!(n.steps.len(), 2);
+            assert_ne!(h, leader);
+        } else if h != leader {
+            assert!(m.steps.len() <= 2, "only the leader and those already done are not dropped");
+        }
+    }
+    assert!(went_on.contains(&leader));
+    let finals: Vec<f32> = narrowed.hypotheses.iter().map(|h| h.alignment()).collect();
+    assert_eq!(narrowed.chosen, agent::best_of(finals));
 }
 
 #[test]
@@ -120,8 +142,9 @@ fn batched_workers_match_the_synchronous_loop() {
             let image = image::RgbImage::from_fn(640, 200, |x, y| image::Rgb([(x * (i + 1)) as u8, (y * 3) as u8, (i * 40) as u8]));
             let (tensor, crop_k) = agent::prepare_image(&image, &k, &set.manifest).unwrap();
             let prior = rig().compose(&Pose::ground_motion(0.3 * i as f64, i as f64, -1.0));
-            // Searches of 1 to 3 starts: the 8-row batch holds some of them, the rest wait.
-            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize })
+            // Searches of 1 to 3 starts (one narrowed): the 8-row batch holds some, the rest wait.
+            let narrow_after = (i == 4).then_some(1);
+            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after })
         })
         .collect();
     let expected: Vec<_> = cases

@@ -60,6 +60,8 @@ pub struct Episode {
     pub max_iterations: usize,
     pub steps: Vec<Step>,
     pub converged: bool,
+    /// Stopped by the search in favour of a better-scoring hypothesis.
+    pub dropped: bool,
     /// Alignment score of `start` (known once the first observation is built).
     pub start_alignment: f32,
 }
@@ -73,13 +75,14 @@ impl Episode {
             max_iterations,
             steps: Vec::new(),
             converged: false,
+            dropped: false,
             start_alignment: f32::NAN,
         }
     }
 
-    /// Done when the agent chose all-zero steps or used its iteration budget.
+    /// Done when the agent chose all-zero steps, used its iteration budget or was dropped.
     pub fn is_done(&self) -> bool {
-        self.converged || self.steps.len() >= self.max_iterations
+        self.converged || self.dropped || self.steps.len() >= self.max_iterations
     }
 
     /// Builds the observation at the current pose, and records that pose's alignment score.

@@ -135,7 +135,7 @@ pub fn start_search(
     let logits = backend.frustum_logits(&map.features, &image_features)?;
     let frustum_head_ms = ms(t);
     let evidence = ImageEvidence { image_features, frustum_probs: logits.iter().map(|l| state::sigmoid(*l)).collect(), intrinsics };
-    let search = Search::new(evidence, map, prior, search.hypotheses, search.max_iterations);
+    let search = Search::new(evidence, map, prior, search);
     Ok((search, Timings { image_encoder_ms, frustum_head_ms, ..Default::default() }))
 }
 
@@ -146,6 +146,15 @@ pub struct SearchConfig {
     pub hypotheses: usize,
     /// Policy steps per hypothesis.
     pub max_iterations: usize,
+    /// After this many steps only the best-scoring hypothesis goes on (`None`: all run to the end).
+    pub narrow_after: Option<usize>,
+}
+
+impl SearchConfig {
+    /// The paper's procedure: one trajectory from the prior.
+    pub fn single(max_iterations: usize) -> Self {
+        Self { hypotheses: 1, max_iterations, narrow_after: None }
+    }
 }
 
 /// Localizes one image in a prepared map, synchronously, starting from `prior`.
@@ -182,6 +191,7 @@ pub fn localize(
         for (slot, &h) in running.iter().enumerate() {
             search.episodes[h].advance(map, &actions, &out.policy_logits[slot * per..(slot + 1) * per], out.value[slot]);
         }
+        search.narrow(map, &layout, &mut scratch);
     }
     timings.agent_steps_ms = ms(t);
     Ok(search.finish(map, &layout, &mut scratch, timings))

@@ -215,7 +215,7 @@ impl Worker {
     fn run(mut self) {
         let mut batch: Vec<Active> = Vec::new();
         loop {
-            let rows: usize = batch.iter().map(|a| a.search.episodes.len()).sum();
+            let rows: usize = batch.iter().map(|a| a.search.running().count()).sum();
             let Some(admitted) = self.take_jobs(batch.is_empty(), self.max_batch.saturating_sub(rows)) else {
                 return; // closed, nothing queued, nothing running
             };
@@ -326,6 +326,9 @@ impl Worker {
                 for (slot, &(i, h)) in running.iter().enumerate() {
                     let a = &mut batch[i];
                     a.search.episodes[h].advance(&a.job.map, &self.actions, &out.policy_logits[slot * per..(slot + 1) * per], out.value[slot]);
+                }
+                for a in batch.iter_mut() {
+                    a.search.narrow(&a.job.map, &self.layout, &mut self.scratch);
                 }
             }
             Err(e) => {

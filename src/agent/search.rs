@@ -8,6 +8,10 @@
 //! turned by H evenly spaced yaws (about the map pivot, like the agent's own rotation steps),
 //! runs them side by side in the same batched policy calls, and keeps the best-scoring one.
 //! With H = 1 it is the paper's single trajectory.
+//!
+//! Most of the search's cost is the policy rows of hypotheses that will lose. Optionally
+//! (`SearchConfig::narrow_after`) the search keeps only the best-scoring hypothesis once every
+//! start has taken that many steps; the others stop where they are and still compete at the end.
 
 use std::sync::Arc;
 
@@ -16,7 +20,7 @@ use crate::geometry::actions::apply_motion;
 
 use super::episode::{Episode, ImageEvidence, Step};
 use super::state::{ScatterScratch, StateLayout};
-use super::{Localization, PreparedMap, Timings};
+use super::{Localization, PreparedMap, SearchConfig, Timings};
 
 /// Most starts one request may ask for.
 pub const MAX_HYPOTHESES: usize = 16;
@@ -43,6 +47,8 @@ pub struct Hypothesis {
     /// Every step, each with the alignment score of the pose it reached.
     pub steps: Vec<Step>,
     pub converged: bool,
+    /// Stopped early because another hypothesis scored better (`narrow_after`).
+    pub dropped: bool,
 }
 
 impl Hypothesis {
@@ -80,12 +86,15 @@ pub struct Search {
     pub prior: Pose,
     pub episodes: Vec<Episode>,
     offsets: Vec<f64>,
+    /// Steps after which only the best-scoring hypothesis goes on; `None` once done (or never).
+    narrow_after: Option<usize>,
 }
 
 impl Search {
-    pub fn new(evidence: ImageEvidence, map: &PreparedMap, prior: Pose, hypotheses: usize, max_iterations: usize) -> Self {
+    pub fn new(evidence: ImageEvidence, map: &PreparedMap, prior: Pose, config: SearchConfig) -> Self {
         let evidence = Arc::new(evidence);
-        let offsets = start_yaw_offsets(hypotheses.clamp(1, MAX_HYPOTHESES));
+        let max_iterations = config.max_iterations;
+        let offsets = start_yaw_offsets(config.hypotheses.clamp(1, MAX_HYPOTHESES));
         let episodes = offsets
             .iter()
             .map(|&yaw_deg| {
@@ -93,7 +102,25 @@ impl Search {
                 Episode::new(evidence.clone(), start, max_iterations)
             })
             .collect();
-        Self { prior, episodes, offsets }
+        let narrow_after = config.narrow_after.filter(|_| offsets.len() > 1);
+        Self { prior, episodes, offsets, narrow_after }
+    }
+
+    /// Call after every batched step: once every hypothesis has taken `narrow_after` steps (or
+    /// stopped), all but the best-scoring one stop.
+    pub fn narrow(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch) {
+        let Some(after) = self.narrow_after else { return };
+        if !self.episodes.iter().all(|e| e.is_done() || e.steps.len() >= after) {
+            return;
+        }
+        self.narrow_after = None;
+        for episode in &mut self.episodes {
+            episode.settle(map, layout, scratch);
+        }
+        let leader = best_of(self.episodes.iter().map(Episode::alignment));
+        for (h, episode) in self.episodes.iter_mut().enumerate() {
+            episode.dropped |= h != leader && !episode.is_done();
+        }
     }
 
     pub fn is_done(&self) -> bool {
@@ -122,6 +149,7 @@ impl Search {
                 start_alignment: e.start_alignment,
                 steps: e.steps,
                 converged: e.converged,
+                dropped: e.dropped,
             })
             .collect();
         Localization { prior: self.prior, hypotheses, chosen, confidence, timings }

@@ -57,6 +57,10 @@ pub struct ServeArgs {
     /// that many policy rows per step).
     #[arg(long, env = "CMR_DEFAULT_HYPOTHESES", default_value_t = DEFAULT_HYPOTHESES, value_parser = clap::value_parser!(u32).range(1..=crate::agent::search::MAX_HYPOTHESES as i64))]
     pub default_hypotheses: u32,
+    /// Once every start has taken this many steps, only the best-scoring one goes on (0 = all
+    /// run to the end). Cuts the search's cost; see docs/evaluation.md for its measured effect.
+    #[arg(long, env = "CMR_NARROW_AFTER", default_value_t = DEFAULT_NARROW_AFTER)]
+    pub narrow_after: u32,
     /// When set, map uploads/edits/deletes need `Authorization: Bearer <token>`.
     #[arg(long, env = "CMR_ADMIN_TOKEN", hide_env_values = true)]
     pub admin_token: Option<String>,
@@ -71,6 +75,15 @@ pub const MAX_ITERATIONS: u32 = 50;
 /// Starts per request unless the request or `--default-hypotheses` says otherwise: the number
 /// chosen on the validation set (docs/evaluation.md, "Multi-start search").
 pub const DEFAULT_HYPOTHESES: u32 = 4;
+
+/// Steps after which a search keeps only its best hypothesis, unless `--narrow-after` says
+/// otherwise (0 = never).
+pub const DEFAULT_NARROW_AFTER: u32 = 0;
+
+/// `narrow_after` as the search takes it.
+pub fn narrow_after(steps: u32) -> Option<usize> {
+    (steps > 0).then_some(steps as usize)
+}
 
 impl ServeArgs {
     /// Parses flags as `serve` would (environment fallbacks included); for tests and embedding.

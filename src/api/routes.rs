@@ -78,6 +78,7 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             default_max_iterations: c.default_max_iterations,
             max_hypotheses: MAX_HYPOTHESES as u32,
             default_hypotheses: c.default_hypotheses,
+            narrow_after: c.narrow_after,
             queue_capacity: c.queue_capacity,
             max_batch: c.max_batch,
             request_timeout_ms: c.request_timeout_ms,
@@ -316,7 +317,11 @@ async fn localize_inner(
         image_tensor: tensor,
         intrinsics: crop_k,
         prior,
-        search: SearchConfig { hypotheses, max_iterations: max_iterations as usize },
+        search: SearchConfig {
+            hypotheses,
+            max_iterations: max_iterations as usize,
+            narrow_after: super::config::narrow_after(st.config.narrow_after),
+        },
         deadline: started + timeout,
         reply,
     })?;

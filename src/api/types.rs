@@ -139,6 +139,8 @@ pub struct HypothesisBody {
     pub camera_from_map: Matrix4x4,
     pub iterations: usize,
     pub converged: bool,
+    /// Stopped early because another hypothesis scored better (the server's `narrow_after`).
+    pub dropped: bool,
 }
 
 #[derive(Debug, Default, Clone, Copy, Serialize, Deserialize, ToSchema)]
@@ -223,6 +225,7 @@ impl LocalizeResponse {
                     camera_from_map: h.camera_from_map().to_rows(),
                     iterations: h.steps.len(),
                     converged: h.converged,
+                    dropped: h.dropped,
                 })
                 .collect(),
             chosen_hypothesis: loc.chosen,
@@ -312,6 +315,8 @@ pub struct Limits {
     pub default_max_iterations: u32,
     pub max_hypotheses: u32,
     pub default_hypotheses: u32,
+    /// Steps after which a search keeps only its best-scoring hypothesis (0 = never).
+    pub narrow_after: u32,
     pub queue_capacity: usize,
     pub max_batch: usize,
     pub request_timeout_ms: u64,

@@ -27,15 +27,15 @@ pub const BASELINE: &str = "one-shot matching + RANSAC";
 
 pub struct Learned {
     backend: Backend,
-    iterations: usize,
-    hypotheses: usize,
+    /// The agent's search as served; K = `search.max_iterations`.
+    search: SearchConfig,
     ransac: RansacOptions,
     matching: MatchStrategy,
 }
 
 impl Learned {
-    pub fn new(backend: Backend, iterations: usize, hypotheses: usize, ransac: RansacOptions, matching: MatchStrategy) -> Self {
-        Learned { backend, iterations, hypotheses, ransac, matching }
+    pub fn new(backend: Backend, search: SearchConfig, ransac: RansacOptions, matching: MatchStrategy) -> Self {
+        Learned { backend, search, ransac, matching }
     }
 
     /// Parameters each method runs: the agent all four graphs, the baseline all but the agent.
@@ -46,12 +46,12 @@ impl Learned {
         BTreeMap::from([(AGENT.to_string(), agent), (AGENT_SINGLE_START.to_string(), agent), (BASELINE.to_string(), sum(&encoders))])
     }
 
-    fn run_agent(&mut self, case: &EvalCase, map: &PreparedMap, method: &str, hypotheses: usize) -> Result<MethodRun> {
+    fn run_agent(&mut self, case: &EvalCase, map: &PreparedMap, method: &str, search: SearchConfig) -> Result<MethodRun> {
         let start = Instant::now();
         let manifest = self.backend.manifest().clone();
         let (tensor, crop_intrinsics) = agent::prepare_image(&case.image, &case.intrinsics, &manifest)?;
         let image_ms = ms(start);
-        let search = SearchConfig { hypotheses, max_iterations: self.iterations };
+        let k = search.max_iterations;
         let loc = agent::localize(&mut self.backend, map, &tensor, crop_intrinsics, case.initial, search)?;
         let t = loc.timings;
         // localize reports one total for all steps; each step does the same work, so the time to
@@ -59,8 +59,8 @@ impl Learned {
         let before_loop = image_ms + t.image_encoder_ms + t.frustum_head_ms;
         let per_step = t.agent_steps_ms / loc.iterations().max(1) as f64;
         // The answer had the search stopped after k steps (a stopped trajectory keeps its pose).
-        let poses = (1..=self.iterations).map(|k| loc.pose_after(k)).collect();
-        let elapsed_ms = (1..=self.iterations).map(|k| before_loop + per_step * k.min(loc.iterations()) as f64).collect();
+        let poses = (1..=k).map(|i| loc.pose_after(i)).collect();
+        let elapsed_ms = (1..=k).map(|i| before_loop + per_step * i.min(loc.iterations()) as f64).collect();
         let best = loc.best();
         Ok(MethodRun {
             method: method.into(),
@@ -160,7 +160,7 @@ pub fn one_shot_correspondences(
 
 impl Method for Learned {
     fn names(&self) -> Vec<String> {
-        match self.hypotheses {
+        match self.search.hypotheses {
             1 => vec![AGENT.into(), BASELINE.into()],
             _ => vec![AGENT.into(), AGENT_SINGLE_START.into(), BASELINE.into()],
         }
@@ -170,11 +170,11 @@ impl Method for Learned {
         let t = Instant::now();
         let map = agent::prepare_map(&mut self.backend, &case.map_cloud)?;
         let prepare_ms = ms(t);
-        let mut runs = vec![self.run_agent(case, &map, AGENT, self.hypotheses)?];
+        let mut runs = vec![self.run_agent(case, &map, AGENT, self.search)?];
         // Once per map (the server caches it), so it is reported apart from per-request times.
         runs[0].notes["map_prepare_ms"] = json!(prepare_ms);
-        if self.hypotheses > 1 {
-            runs.push(self.run_agent(case, &map, AGENT_SINGLE_START, 1)?);
+        if self.search.hypotheses > 1 {
+            runs.push(self.run_agent(case, &map, AGENT_SINGLE_START, SearchConfig::single(self.search.max_iterations))?);
         }
         runs.push(self.run_baseline(case, &map)?);
         Ok(runs)

@@ -6,6 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
+use crate::agent::SearchConfig;
 use crate::geometry::{ActionSet, PoseError};
 use crate::model::{BackendOptions, ModelSet};
 
@@ -34,6 +35,8 @@ pub struct EvalConfig {
     /// Starts of the agent's multi-start search; with more than one, the single-start agent
     /// (the paper's protocol) is reported too.
     pub hypotheses: usize,
+    /// The search's `narrow_after` (see `agent::SearchConfig`).
+    pub narrow_after: Option<usize>,
     pub seed: u64,
     pub frame_stride: usize,
     pub max_cases: Option<usize>,
@@ -111,7 +114,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
             graph_parameters = map.iter().filter_map(|(k, v)| v.as_u64().map(|n| (k.clone(), n))).collect();
         }
         learned_index = Some(methods.len());
-        methods.push(Box::new(Learned::new(set.backend()?, config.iterations, config.hypotheses, config.ransac, config.matching)));
+        methods.push(Box::new(Learned::new(set.backend()?, SearchConfig { hypotheses: config.hypotheses, max_iterations: config.iterations, narrow_after: config.narrow_after }, config.ransac, config.matching)));
     }
     methods.push(Box::new(Expert { actions, iterations: config.iterations }));
     methods.push(Box::new(NoOp));
@@ -144,6 +147,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
             "ransac_inlier_px": config.ransac.inlier_px,
             "num_points": num_points,
             "hypotheses": config.hypotheses,
+            "narrow_after": config.narrow_after,
             "model_provenance": provenance,
         }),
         created_unix_s: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs()),
@@ -207,6 +211,7 @@ pub(crate) mod tests {
             threads: 1,
             iterations: 10,
             hypotheses: 1,
+            narrow_after: None,
             seed: 3,
             frame_stride: 1,
             max_cases: None,
