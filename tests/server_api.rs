@@ -46,6 +46,7 @@ async fn service_endpoints_and_a_localization() {
     assert!((0.0..=1.0).contains(&score));
     // The default multi-start search: 4 starts, the answer is the best-aligned one.
     assert_eq!(info["limits"]["default_hypotheses"], 4);
+    assert_eq!(info["limits"]["merge_duplicates"], true);
     let hypotheses = body["hypotheses"].as_array().unwrap();
     let offsets: Vec<f64> = hypotheses.iter().map(|h| h["start_yaw_offset_deg"].as_f64().unwrap()).collect();
     assert_eq!(offsets, vec![0.0, 90.0, 180.0, -90.0]);

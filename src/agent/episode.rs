@@ -60,7 +60,7 @@ pub struct Episode {
     pub max_iterations: usize,
     pub steps: Vec<Step>,
     pub converged: bool,
-    /// Stopped by the search in favour of a better-scoring hypothesis.
+    /// Stopped by the search (a duplicate of another hypothesis, or narrowed away).
     pub dropped: bool,
     /// Alignment score of `start` (known once the first observation is built).
     pub start_alignment: f32,

@@ -148,12 +148,14 @@ pub struct SearchConfig {
     pub max_iterations: usize,
     /// After this many steps only the best-scoring hypothesis goes on (`None`: all run to the end).
     pub narrow_after: Option<usize>,
+    /// Stop a hypothesis once it comes within the duplicate distance of an earlier one.
+    pub merge_duplicates: bool,
 }
 
 impl SearchConfig {
     /// The paper's procedure: one trajectory from the prior.
     pub fn single(max_iterations: usize) -> Self {
-        Self { hypotheses: 1, max_iterations, narrow_after: None }
+        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false }
     }
 }
 
@@ -191,7 +193,7 @@ pub fn localize(
         for (slot, &h) in running.iter().enumerate() {
             search.episodes[h].advance(map, &actions, &out.policy_logits[slot * per..(slot + 1) * per], out.value[slot]);
         }
-        search.narrow(map, &layout, &mut scratch);
+        search.after_step(map, &layout, &mut scratch);
     }
     timings.agent_steps_ms = ms(t);
     Ok(search.finish(map, &layout, &mut scratch, timings))

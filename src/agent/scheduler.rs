@@ -328,7 +328,7 @@ impl Worker {
                     a.search.episodes[h].advance(&a.job.map, &self.actions, &out.policy_logits[slot * per..(slot + 1) * per], out.value[slot]);
                 }
                 for a in batch.iter_mut() {
-                    a.search.narrow(&a.job.map, &self.layout, &mut self.scratch);
+                    a.search.after_step(&a.job.map, &self.layout, &mut self.scratch);
                 }
             }
             Err(e) => {

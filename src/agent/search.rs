@@ -9,13 +9,18 @@
 //! runs them side by side in the same batched policy calls, and keeps the best-scoring one.
 //! With H = 1 it is the paper's single trajectory.
 //!
-//! Most of the search's cost is the policy rows of hypotheses that will lose. Optionally
-//! (`SearchConfig::narrow_after`) the search keeps only the best-scoring hypothesis once every
-//! start has taken that many steps; the others stop where they are and still compete at the end.
+//! Most of the search's cost is policy rows of hypotheses that add nothing. Two ways to save them:
+//! - `merge_duplicates`: a hypothesis that comes within [`DUPLICATE_RTE_M`] / [`DUPLICATE_RRE_DEG`]
+//!   of an earlier one (usually because both found the same answer) stops, since from there on
+//!   it would repeat that one's work;
+//! - `narrow_after`: once every start has taken that many steps, only the best-scoring one goes
+//!   on.
+//!
+//! Stopped hypotheses keep their last pose and still compete at the end.
 
 use std::sync::Arc;
 
-use crate::geometry::Pose;
+use crate::geometry::{Pose, PoseError};
 use crate::geometry::actions::apply_motion;
 
 use super::episode::{Episode, ImageEvidence, Step};
@@ -24,6 +29,12 @@ use super::{Localization, PreparedMap, SearchConfig, Timings};
 
 /// Most starts one request may ask for.
 pub const MAX_HYPOTHESES: usize = 16;
+
+/// Two hypotheses closer than this (translation of camera_from_map, metres; and geodesic
+/// rotation, degrees) count as duplicates: the policy's coarsest steps are 8.1 m and 62.5°, its
+/// finest 0.1 m and 0.1°, so this is well inside one basin of the policy.
+pub const DUPLICATE_RTE_M: f64 = 1.0;
+pub const DUPLICATE_RRE_DEG: f64 = 5.0;
 
 /// The yaw offsets of H starts: k·360°/H for k = 0..H, wrapped into (−180°, 180°]; the prior
 /// itself comes first. `training/cmr/geometry.py::start_yaw_offsets` is its twin, and
@@ -47,7 +58,7 @@ pub struct Hypothesis {
     /// Every step, each with the alignment score of the pose it reached.
     pub steps: Vec<Step>,
     pub converged: bool,
-    /// Stopped early because another hypothesis scored better (`narrow_after`).
+    /// Stopped early: it duplicated an earlier hypothesis, or another scored better (`narrow_after`).
     pub dropped: bool,
 }
 
@@ -88,6 +99,7 @@ pub struct Search {
     offsets: Vec<f64>,
     /// Steps after which only the best-scoring hypothesis goes on; `None` once done (or never).
     narrow_after: Option<usize>,
+    merge_duplicates: bool,
 }
 
 impl Search {
@@ -103,12 +115,36 @@ impl Search {
             })
             .collect();
         let narrow_after = config.narrow_after.filter(|_| offsets.len() > 1);
-        Self { prior, episodes, offsets, narrow_after }
+        Self { prior, episodes, offsets, narrow_after, merge_duplicates: config.merge_duplicates }
     }
 
-    /// Call after every batched step: once every hypothesis has taken `narrow_after` steps (or
-    /// stopped), all but the best-scoring one stop.
-    pub fn narrow(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch) {
+    /// Call after every batched step: stops duplicates and narrows, as configured.
+    pub fn after_step(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch) {
+        if self.merge_duplicates {
+            self.drop_duplicates();
+        }
+        self.narrow(map, layout, scratch);
+    }
+
+    /// Stops every running hypothesis that is within the duplicate distance of an earlier one
+    /// that was not itself dropped.
+    fn drop_duplicates(&mut self) {
+        for j in 1..self.episodes.len() {
+            if self.episodes[j].is_done() {
+                continue;
+            }
+            let duplicate = (0..j).any(|i| {
+                let (a, b) = (&self.episodes[i], &self.episodes[j]);
+                let e = PoseError::between(&b.pose, &a.pose);
+                !a.dropped && e.rte_m < DUPLICATE_RTE_M && e.rre_geodesic_deg < DUPLICATE_RRE_DEG
+            });
+            self.episodes[j].dropped |= duplicate;
+        }
+    }
+
+    /// Once every hypothesis has taken `narrow_after` steps (or stopped), all but the
+    /// best-scoring one stop.
+    fn narrow(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch) {
         let Some(after) = self.narrow_after else { return };
         if !self.episodes.iter().all(|e| e.is_done() || e.steps.len() >= after) {
             return;
@@ -166,6 +202,33 @@ mod tests {
         assert_eq!(start_yaw_offsets(2), vec![0.0, 180.0]);
         assert_eq!(start_yaw_offsets(4), vec![0.0, 90.0, 180.0, -90.0]);
         assert_eq!(start_yaw_offsets(8), vec![0.0, 45.0, 90.0, 135.0, 180.0, -135.0, -90.0, -45.0]);
+    }
+
+    #[test]
+    fn a_hypothesis_that_reaches_an_earlier_one_stops() {
+        use crate::geometry::Intrinsics;
+        use nalgebra::{Point3, Vector3};
+        let map = PreparedMap { points: vec![[0.0, 0.0, 5.0]], features: vec![0.0; 64], pivot: Point3::new(0.0, 0.0, 5.0), source_points: 1 };
+        let evidence = ImageEvidence { image_features: vec![], frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 } };
+        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true };
+        let mut search = Search::new(evidence, &map, Pose::identity(), config);
+        let shifted = |dx: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(dx, 0.0, 0.0));
+        // 0 and 1 meet (0.5 m apart); 2 is within 1 m of 1 but 1.2 m from 0; 3 is far from all.
+        search.episodes[0].pose = shifted(0.0);
+        search.episodes[1].pose = shifted(0.5);
+        search.episodes[2].pose = shifted(1.2);
+        search.episodes[3].pose = shifted(9.0);
+        let (layout, mut scratch) = (StateLayout { dim: 64, stride: 4, grid_height: 1, grid_width: 1, image_width: 4, image_height: 4, num_state_points: 1, xyz_scale_m: 1.0 }, ScatterScratch::default());
+        search.after_step(&map, &layout, &mut scratch);
+        let dropped: Vec<bool> = search.episodes.iter().map(|e| e.dropped).collect();
+        assert_eq!(dropped, vec![false, true, false, false], "a dropped hypothesis drops nobody");
+        // A turn of 6° is not a duplicate, 4° is; a stopped (converged) leader still counts.
+        search.episodes[0].converged = true;
+        search.episodes[3].pose = apply_motion(&shifted(0.0), &map.pivot, 4.0, 0.0, 0.0);
+        search.episodes[2].pose = apply_motion(&shifted(0.0), &Point3::origin(), 6.0, 0.0, 0.0);
+        search.after_step(&map, &layout, &mut scratch);
+        let dropped: Vec<bool> = search.episodes.iter().map(|e| e.dropped).collect();
+        assert_eq!(dropped, vec![false, true, false, true]);
     }
 
     #[test]

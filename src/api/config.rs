@@ -61,6 +61,9 @@ pub struct ServeArgs {
     /// run to the end). Cuts the search's cost; see docs/evaluation.md for its measured effect.
     #[arg(long, env = "CMR_NARROW_AFTER", default_value_t = DEFAULT_NARROW_AFTER)]
     pub narrow_after: u32,
+    /// Stop a hypothesis once it comes within 1 m / 5° of an earlier one (`true`/`false`).
+    #[arg(long, env = "CMR_MERGE_DUPLICATES", default_value_t = DEFAULT_MERGE_DUPLICATES, action = clap::ArgAction::Set)]
+    pub merge_duplicates: bool,
     /// When set, map uploads/edits/deletes need `Authorization: Bearer <token>`.
     #[arg(long, env = "CMR_ADMIN_TOKEN", hide_env_values = true)]
     pub admin_token: Option<String>,
@@ -79,6 +82,10 @@ pub const DEFAULT_HYPOTHESES: u32 = 4;
 /// Steps after which a search keeps only its best hypothesis, unless `--narrow-after` says
 /// otherwise (0 = never).
 pub const DEFAULT_NARROW_AFTER: u32 = 0;
+
+/// Whether searches stop hypotheses that duplicate an earlier one, unless `--merge-duplicates`
+/// says otherwise.
+pub const DEFAULT_MERGE_DUPLICATES: bool = true;
 
 /// `narrow_after` as the search takes it.
 pub fn narrow_after(steps: u32) -> Option<usize> {

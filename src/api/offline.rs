@@ -37,6 +37,9 @@ pub struct LocalizeArgs {
     /// As the server's `--narrow-after` (0 = all starts run to the end).
     #[arg(long, default_value_t = super::config::DEFAULT_NARROW_AFTER)]
     pub narrow_after: u32,
+    /// As the server's `--merge-duplicates`.
+    #[arg(long, default_value_t = super::config::DEFAULT_MERGE_DUPLICATES, action = clap::ArgAction::Set)]
+    pub merge_duplicates: bool,
 }
 
 pub fn run(args: LocalizeArgs) -> Result<()> {
@@ -75,7 +78,7 @@ pub fn run(args: LocalizeArgs) -> Result<()> {
     let hypotheses = args.hypotheses.or(request.hypotheses).unwrap_or(super::config::DEFAULT_HYPOTHESES);
     let hypotheses = hypotheses.clamp(1, agent::search::MAX_HYPOTHESES as u32) as usize;
     let narrow_after = super::config::narrow_after(args.narrow_after);
-    let search = agent::SearchConfig { hypotheses, max_iterations: iterations as usize, narrow_after };
+    let search = agent::SearchConfig { hypotheses, max_iterations: iterations as usize, narrow_after, merge_duplicates: args.merge_duplicates };
     let loc = agent::localize(&mut backend, &map, &tensor, crop_k, prior, search)?;
     let timings = TimingsMs::new(0.0, decode_ms, &loc.timings, agent::ms(started));
     let id = args.map.file_stem().and_then(|s| s.to_str()).unwrap_or("map");

@@ -139,7 +139,8 @@ pub struct HypothesisBody {
     pub camera_from_map: Matrix4x4,
     pub iterations: usize,
     pub converged: bool,
-    /// Stopped early because another hypothesis scored better (the server's `narrow_after`).
+    /// Stopped early: it came within 1 m / 5° of an earlier hypothesis (`merge_duplicates`), or
+    /// another scored better after `narrow_after` steps.
     pub dropped: bool,
 }
 
@@ -317,6 +318,8 @@ pub struct Limits {
     pub default_hypotheses: u32,
     /// Steps after which a search keeps only its best-scoring hypothesis (0 = never).
     pub narrow_after: u32,
+    /// Whether a hypothesis stops once it comes within 1 m / 5° of an earlier one.
+    pub merge_duplicates: bool,
     pub queue_capacity: usize,
     pub max_batch: usize,
     pub request_timeout_ms: u64,

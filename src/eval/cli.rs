@@ -40,6 +40,9 @@ pub struct Args {
     /// on (0 = all run to the end).
     #[arg(long, default_value_t = crate::api::config::DEFAULT_NARROW_AFTER)]
     pub narrow_after: u32,
+    /// As the server's `--merge-duplicates` (`true`/`false`).
+    #[arg(long, default_value_t = crate::api::config::DEFAULT_MERGE_DUPLICATES, action = clap::ArgAction::Set)]
+    pub merge_duplicates: bool,
     /// Seed of the perturbations when the file is created.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -78,6 +81,7 @@ pub fn main(args: Args) -> Result<()> {
         iterations: args.iterations,
         hypotheses: args.hypotheses.clamp(1, crate::agent::search::MAX_HYPOTHESES),
         narrow_after: crate::api::config::narrow_after(args.narrow_after),
+        merge_duplicates: args.merge_duplicates,
         seed: args.seed,
         frame_stride: args.frame_stride,
         max_cases: args.max_cases,

@@ -37,6 +37,7 @@ pub struct EvalConfig {
     pub hypotheses: usize,
     /// The search's `narrow_after` (see `agent::SearchConfig`).
     pub narrow_after: Option<usize>,
+    pub merge_duplicates: bool,
     pub seed: u64,
     pub frame_stride: usize,
     pub max_cases: Option<usize>,
@@ -48,6 +49,18 @@ pub struct EvalConfig {
     pub progress: bool,
     /// The command line, recorded in the outputs.
     pub command: String,
+}
+
+impl EvalConfig {
+    /// The agent's search as the server would run it with these settings.
+    pub fn search(&self) -> SearchConfig {
+        SearchConfig {
+            hypotheses: self.hypotheses,
+            max_iterations: self.iterations,
+            narrow_after: self.narrow_after,
+            merge_duplicates: self.merge_duplicates,
+        }
+    }
 }
 
 /// Runs every method on every case; one record per (case, method).
@@ -114,7 +127,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
             graph_parameters = map.iter().filter_map(|(k, v)| v.as_u64().map(|n| (k.clone(), n))).collect();
         }
         learned_index = Some(methods.len());
-        methods.push(Box::new(Learned::new(set.backend()?, SearchConfig { hypotheses: config.hypotheses, max_iterations: config.iterations, narrow_after: config.narrow_after }, config.ransac, config.matching)));
+        methods.push(Box::new(Learned::new(set.backend()?, config.search(), config.ransac, config.matching)));
     }
     methods.push(Box::new(Expert { actions, iterations: config.iterations }));
     methods.push(Box::new(NoOp));
@@ -148,6 +161,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
             "num_points": num_points,
             "hypotheses": config.hypotheses,
             "narrow_after": config.narrow_after,
+            "merge_duplicates": config.merge_duplicates,
             "model_provenance": provenance,
         }),
         created_unix_s: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs()),
@@ -212,6 +226,7 @@ pub(crate) mod tests {
             iterations: 10,
             hypotheses: 1,
             narrow_after: None,
+            merge_duplicates: false,
             seed: 3,
             frame_stride: 1,
             max_cases: None,
