@@ -54,8 +54,9 @@ impl Learned {
         let k = search.max_iterations;
         let loc = agent::localize(&mut self.backend, map, &tensor, crop_intrinsics, case.initial, search)?;
         let t = loc.timings;
-        // localize reports one total for all steps; each step does the same work, so the time to
-        // reach step k is the time before the loop plus k equal shares of it.
+        // localize reports one total for all steps, so the time to reach step k is the time before
+        // the loop plus k equal shares of it. Once hypotheses stop (merged, converged) later steps
+        // have fewer rows, so this understates the first steps' times a little.
         let before_loop = image_ms + t.image_encoder_ms + t.frustum_head_ms;
         let per_step = t.agent_steps_ms / loc.iterations().max(1) as f64;
         // The answer had the search stopped after k steps (a stopped trajectory keeps its pose).
