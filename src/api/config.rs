@@ -2,6 +2,8 @@
 
 use std::path::PathBuf;
 
+use crate::agent::SearchConfig;
+
 #[derive(Debug, Clone, clap::Args)]
 pub struct ServeArgs {
     /// Address to listen on.
@@ -57,13 +59,8 @@ pub struct ServeArgs {
     /// that many policy rows per step).
     #[arg(long, env = "CMR_DEFAULT_HYPOTHESES", default_value_t = DEFAULT_HYPOTHESES, value_parser = clap::value_parser!(u32).range(1..=crate::agent::search::MAX_HYPOTHESES as i64))]
     pub default_hypotheses: u32,
-    /// Once every start has taken this many steps, only the best-scoring one goes on (0 = all
-    /// run to the end). Cuts the search's cost; see docs/evaluation.md for its measured effect.
-    #[arg(long, env = "CMR_NARROW_AFTER", default_value_t = DEFAULT_NARROW_AFTER)]
-    pub narrow_after: u32,
-    /// Stop a hypothesis once it comes within 1 m / 5° of an earlier one (`true`/`false`).
-    #[arg(long, env = "CMR_MERGE_DUPLICATES", default_value_t = DEFAULT_MERGE_DUPLICATES, action = clap::ArgAction::Set)]
-    pub merge_duplicates: bool,
+    #[command(flatten)]
+    pub search: SearchTuning,
     /// When set, map uploads/edits/deletes need `Authorization: Bearer <token>`.
     #[arg(long, env = "CMR_ADMIN_TOKEN", hide_env_values = true)]
     pub admin_token: Option<String>,
@@ -79,17 +76,29 @@ pub const MAX_ITERATIONS: u32 = 50;
 /// chosen on the validation set (docs/evaluation.md, "Multi-start search").
 pub const DEFAULT_HYPOTHESES: u32 = 4;
 
-/// Steps after which a search keeps only its best hypothesis, unless `--narrow-after` says
-/// otherwise (0 = never).
-pub const DEFAULT_NARROW_AFTER: u32 = 0;
+/// The search settings besides the number of starts: one set of flags for `serve`, `localize`
+/// and `eval`, so that all three run the same search. Defaults chosen on the validation set
+/// (docs/evaluation.md, "Multi-start search").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::Args)]
+pub struct SearchTuning {
+    /// Once every start has taken this many steps, only the best-scoring one goes on (0 = all
+    /// run to the end). Cuts the search's cost at some accuracy.
+    #[arg(long, env = "CMR_NARROW_AFTER", default_value_t = 0)]
+    pub narrow_after: u32,
+    /// Stop a hypothesis once it comes within 1 m / 5° of an earlier one (`true`/`false`).
+    #[arg(long, env = "CMR_MERGE_DUPLICATES", default_value_t = true, action = clap::ArgAction::Set)]
+    pub merge_duplicates: bool,
+}
 
-/// Whether searches stop hypotheses that duplicate an earlier one, unless `--merge-duplicates`
-/// says otherwise.
-pub const DEFAULT_MERGE_DUPLICATES: bool = true;
-
-/// `narrow_after` as the search takes it.
-pub fn narrow_after(steps: u32) -> Option<usize> {
-    (steps > 0).then_some(steps as usize)
+impl SearchTuning {
+    pub fn search(&self, hypotheses: usize, max_iterations: usize) -> SearchConfig {
+        SearchConfig {
+            hypotheses,
+            max_iterations,
+            narrow_after: (self.narrow_after > 0).then_some(self.narrow_after as usize),
+            merge_duplicates: self.merge_duplicates,
+        }
+    }
 }
 
 impl ServeArgs {

@@ -34,12 +34,8 @@ pub struct LocalizeArgs {
     /// Overrides the request's hypotheses (starts of the multi-start search).
     #[arg(long)]
     pub hypotheses: Option<u32>,
-    /// As the server's `--narrow-after` (0 = all starts run to the end).
-    #[arg(long, default_value_t = super::config::DEFAULT_NARROW_AFTER)]
-    pub narrow_after: u32,
-    /// As the server's `--merge-duplicates`.
-    #[arg(long, default_value_t = super::config::DEFAULT_MERGE_DUPLICATES, action = clap::ArgAction::Set)]
-    pub merge_duplicates: bool,
+    #[command(flatten)]
+    pub search: super::config::SearchTuning,
 }
 
 pub fn run(args: LocalizeArgs) -> Result<()> {
@@ -77,8 +73,7 @@ pub fn run(args: LocalizeArgs) -> Result<()> {
     let iterations = args.max_iterations.or(request.max_iterations).unwrap_or(10).clamp(1, super::config::MAX_ITERATIONS);
     let hypotheses = args.hypotheses.or(request.hypotheses).unwrap_or(super::config::DEFAULT_HYPOTHESES);
     let hypotheses = hypotheses.clamp(1, agent::search::MAX_HYPOTHESES as u32) as usize;
-    let narrow_after = super::config::narrow_after(args.narrow_after);
-    let search = agent::SearchConfig { hypotheses, max_iterations: iterations as usize, narrow_after, merge_duplicates: args.merge_duplicates };
+    let search = args.search.search(hypotheses, iterations as usize);
     let loc = agent::localize(&mut backend, &map, &tensor, crop_k, prior, search)?;
     let timings = TimingsMs::new(0.0, decode_ms, &loc.timings, agent::ms(started));
     let id = args.map.file_stem().and_then(|s| s.to_str()).unwrap_or("map");

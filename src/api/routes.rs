@@ -14,7 +14,7 @@ use axum::response::{IntoResponse, Response};
 use tokio::sync::oneshot;
 
 use crate::agent::search::MAX_HYPOTHESES;
-use crate::agent::{self, SearchConfig, scheduler::Job};
+use crate::agent::{self, scheduler::Job};
 use crate::geometry::pose::PoseMatrix;
 use crate::geometry::{Intrinsics, Pose};
 use crate::maps::formats::CloudFormat;
@@ -78,8 +78,8 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             default_max_iterations: c.default_max_iterations,
             max_hypotheses: MAX_HYPOTHESES as u32,
             default_hypotheses: c.default_hypotheses,
-            narrow_after: c.narrow_after,
-            merge_duplicates: c.merge_duplicates,
+            narrow_after: c.search.narrow_after,
+            merge_duplicates: c.search.merge_duplicates,
             queue_capacity: c.queue_capacity,
             max_batch: c.max_batch,
             request_timeout_ms: c.request_timeout_ms,
@@ -318,12 +318,7 @@ async fn localize_inner(
         image_tensor: tensor,
         intrinsics: crop_k,
         prior,
-        search: SearchConfig {
-            hypotheses,
-            max_iterations: max_iterations as usize,
-            narrow_after: super::config::narrow_after(st.config.narrow_after),
-            merge_duplicates: st.config.merge_duplicates,
-        },
+        search: st.config.search.search(hypotheses, max_iterations as usize),
         deadline: started + timeout,
         reply,
     })?;

@@ -36,13 +36,8 @@ pub struct Args {
     /// than one, the single-start agent is evaluated too.
     #[arg(long, default_value_t = crate::api::config::DEFAULT_HYPOTHESES as usize)]
     pub hypotheses: usize,
-    /// As the server's `--narrow-after`: after this many steps only the best-scoring start goes
-    /// on (0 = all run to the end).
-    #[arg(long, default_value_t = crate::api::config::DEFAULT_NARROW_AFTER)]
-    pub narrow_after: u32,
-    /// As the server's `--merge-duplicates` (`true`/`false`).
-    #[arg(long, default_value_t = crate::api::config::DEFAULT_MERGE_DUPLICATES, action = clap::ArgAction::Set)]
-    pub merge_duplicates: bool,
+    #[command(flatten)]
+    pub search: crate::api::config::SearchTuning,
     /// Seed of the perturbations when the file is created.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -80,8 +75,7 @@ pub fn main(args: Args) -> Result<()> {
         threads: args.threads.max(1),
         iterations: args.iterations,
         hypotheses: args.hypotheses.clamp(1, crate::agent::search::MAX_HYPOTHESES),
-        narrow_after: crate::api::config::narrow_after(args.narrow_after),
-        merge_duplicates: args.merge_duplicates,
+        tuning: args.search,
         seed: args.seed,
         frame_stride: args.frame_stride,
         max_cases: args.max_cases,

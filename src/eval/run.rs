@@ -7,6 +7,7 @@ use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::agent::SearchConfig;
+use crate::api::config::SearchTuning;
 use crate::geometry::{ActionSet, PoseError};
 use crate::model::{BackendOptions, ModelSet};
 
@@ -35,9 +36,8 @@ pub struct EvalConfig {
     /// Starts of the agent's multi-start search; with more than one, the single-start agent
     /// (the paper's protocol) is reported too.
     pub hypotheses: usize,
-    /// The search's `narrow_after` (see `agent::SearchConfig`).
-    pub narrow_after: Option<usize>,
-    pub merge_duplicates: bool,
+    /// The rest of the search's settings, as the server takes them.
+    pub tuning: SearchTuning,
     pub seed: u64,
     pub frame_stride: usize,
     pub max_cases: Option<usize>,
@@ -54,12 +54,7 @@ pub struct EvalConfig {
 impl EvalConfig {
     /// The agent's search as the server would run it with these settings.
     pub fn search(&self) -> SearchConfig {
-        SearchConfig {
-            hypotheses: self.hypotheses,
-            max_iterations: self.iterations,
-            narrow_after: self.narrow_after,
-            merge_duplicates: self.merge_duplicates,
-        }
+        self.tuning.search(self.hypotheses, self.iterations)
     }
 }
 
@@ -160,8 +155,8 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
             "ransac_inlier_px": config.ransac.inlier_px,
             "num_points": num_points,
             "hypotheses": config.hypotheses,
-            "narrow_after": config.narrow_after,
-            "merge_duplicates": config.merge_duplicates,
+            "narrow_after": config.tuning.narrow_after,
+            "merge_duplicates": config.tuning.merge_duplicates,
             "model_provenance": provenance,
         }),
         created_unix_s: std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_secs()),
@@ -225,8 +220,7 @@ pub(crate) mod tests {
             threads: 1,
             iterations: 10,
             hypotheses: 1,
-            narrow_after: None,
-            merge_duplicates: false,
+            tuning: SearchTuning { narrow_after: 0, merge_duplicates: false },
             seed: 3,
             frame_stride: 1,
             max_cases: None,
