@@ -6,8 +6,10 @@
 //! - `synth`: the procedural street world generator;
 //! - `maps`: point-cloud formats, the map store, the embedding cache;
 //! - `model`: ONNX Runtime and the model manifest;
-//! - `agent`: state building, the iterative localization loop and the batching scheduler;
-//! - `api`: the HTTP server;
+//! - `agent`: state building, one trajectory, the multi-start search and the step loop;
+//! - `serving`: the localize path (admission, validation, decode, deadline) and the batching
+//!   scheduler, shared by the HTTP server and the CLI;
+//! - `api`: the HTTP transport: routes, errors, configuration, lifecycle;
 //! - `eval`: the paper's metrics and tables over a KITTI-layout data set;
 //! - `atomic_file`: the one crash-safe file writer everything uses.
 
@@ -19,4 +21,5 @@ pub mod geometry;
 pub mod kitti;
 pub mod maps;
 pub mod model;
+pub mod serving;
 pub mod synth;

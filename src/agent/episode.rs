@@ -8,7 +8,7 @@ use crate::geometry::actions::apply_action;
 use crate::geometry::{ActionSet, AgentAction, Intrinsics, Pose};
 
 use super::state::{ScatterScratch, StateLayout, alignment, write_state};
-use super::PreparedMap;
+use crate::maps::PreparedMap;
 
 /// One policy step: the action chosen at the pose before it, and the pose after it.
 #[derive(Debug, Clone)]

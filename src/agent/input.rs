@@ -1,32 +1,12 @@
-//! Turning user inputs into model inputs: the N-point sample of a map and the image tensor.
+//! Turning a request's image into the image encoder's input tensor (the map's side is
+//! `maps::prepared`).
 
 use anyhow::{Result, bail};
 use image::RgbImage;
 use image::imageops::{self, FilterType};
-use rand::SeedableRng;
-use rand::seq::SliceRandom;
-use rand::Rng;
-use rand_chacha::ChaCha8Rng;
 
 use crate::geometry::{Intrinsics, PreprocessPlan};
 use crate::model::Manifest;
-
-/// The contract's sampling: a ChaCha8(seed 0) permutation of the finite points, first `n` of it;
-/// a cloud smaller than `n` is filled by drawing with replacement from the same stream.
-pub fn sample_points(cloud: &[[f32; 3]], n: usize) -> Result<Vec<[f32; 3]>> {
-    let finite: Vec<[f32; 3]> = cloud.iter().copied().filter(|p| p.iter().all(|v| v.is_finite())).collect();
-    if finite.is_empty() {
-        bail!("the point cloud has no finite points");
-    }
-    let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let mut order: Vec<usize> = (0..finite.len()).collect();
-    order.shuffle(&mut rng);
-    let mut out: Vec<[f32; 3]> = order.iter().take(n).map(|&i| finite[i]).collect();
-    while out.len() < n {
-        out.push(finite[rng.random_range(0..finite.len())]);
-    }
-    Ok(out)
-}
 
 /// Resizes and centre-crops an image to the model input and normalises it to the contract's
 /// [3, H, W] tensor; returns the intrinsics of the crop.
@@ -57,21 +37,4 @@ pub fn prepare_image(image: &RgbImage, intrinsics: &Intrinsics, manifest: &Manif
         }
     }
     Ok((tensor, plan.adjust(intrinsics, w, h)))
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn sampling_is_deterministic_and_fills_small_clouds() {
-        let cloud: Vec<[f32; 3]> = (0..10).map(|i| [i as f32, 0.0, 0.0]).collect();
-        let a = sample_points(&cloud, 25).unwrap();
-        assert_eq!(a, sample_points(&cloud, 25).unwrap());
-        assert_eq!(a.len(), 25);
-        let mut first: Vec<f32> = a[..10].iter().map(|p| p[0]).collect();
-        first.sort_by(f32::total_cmp);
-        assert_eq!(first, (0..10).map(|i| i as f32).collect::<Vec<_>>(), "every point once before refilling");
-        assert!(sample_points(&[[f32::NAN, 0.0, 0.0]], 4).is_err());
-    }
 }

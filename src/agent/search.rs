@@ -23,12 +23,66 @@ use std::sync::Arc;
 use crate::geometry::{Pose, PoseError};
 use crate::geometry::actions::apply_motion;
 
+use crate::maps::PreparedMap;
+
 use super::episode::{Episode, ImageEvidence, Step};
 use super::state::{ScatterScratch, StateLayout};
-use super::{Localization, PreparedMap, SearchConfig, Timings};
+use super::{Localization, Timings};
 
 /// Most starts one request may ask for.
 pub const MAX_HYPOTHESES: usize = 16;
+
+/// The hard upper bound of `max_iterations` in a request.
+pub const MAX_ITERATIONS: u32 = 50;
+
+/// Starts per request unless the request or `--default-hypotheses` says otherwise: the number
+/// chosen on the validation set (docs/evaluation.md, "Multi-start search").
+pub const DEFAULT_HYPOTHESES: u32 = 4;
+
+/// How far one request searches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct SearchConfig {
+    /// Starts (yaw offsets of the prior); 1 = the paper's single trajectory.
+    pub hypotheses: usize,
+    /// Policy steps per hypothesis.
+    pub max_iterations: usize,
+    /// After this many steps only the best-scoring hypothesis goes on (`None`: all run to the end).
+    pub narrow_after: Option<usize>,
+    /// Stop a hypothesis once it comes within the duplicate distance of an earlier one.
+    pub merge_duplicates: bool,
+}
+
+impl SearchConfig {
+    /// The paper's procedure: one trajectory from the prior.
+    pub fn single(max_iterations: usize) -> Self {
+        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false }
+    }
+}
+
+/// The search settings besides the number of starts: one set of flags for `serve`, `localize`
+/// and `eval`, so that all three run the same search. Defaults chosen on the validation set
+/// (docs/evaluation.md, "Multi-start search").
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::Args)]
+pub struct SearchTuning {
+    /// Once every start has taken this many steps, only the best-scoring one goes on (0 = all
+    /// run to the end). Cuts the search's cost at some accuracy.
+    #[arg(long, env = "CMR_NARROW_AFTER", default_value_t = 0)]
+    pub narrow_after: u32,
+    /// Stop a hypothesis once it comes within 1 m / 5° of an earlier one (`true`/`false`).
+    #[arg(long, env = "CMR_MERGE_DUPLICATES", default_value_t = true, action = clap::ArgAction::Set)]
+    pub merge_duplicates: bool,
+}
+
+impl SearchTuning {
+    pub fn search(&self, hypotheses: usize, max_iterations: usize) -> SearchConfig {
+        SearchConfig {
+            hypotheses,
+            max_iterations,
+            narrow_after: (self.narrow_after > 0).then_some(self.narrow_after as usize),
+            merge_duplicates: self.merge_duplicates,
+        }
+    }
+}
 
 /// Two hypotheses closer than this (translation of camera_from_map, metres; and geodesic
 /// rotation, degrees) count as duplicates: the policy's coarsest steps are 8.1 m and 62.5°, its

@@ -2,7 +2,8 @@
 
 use std::path::PathBuf;
 
-use crate::agent::SearchConfig;
+use crate::agent::search::{DEFAULT_HYPOTHESES, SearchTuning};
+use crate::serving::{ImageLimits, LocalizerConfig, RequestDefaults, SchedulerConfig};
 
 #[derive(Debug, Clone, clap::Args)]
 pub struct ServeArgs {
@@ -51,6 +52,13 @@ pub struct ServeArgs {
     /// Largest accepted image width or height, pixels.
     #[arg(long, env = "CMR_MAX_IMAGE_SIDE", default_value_t = 8192)]
     pub max_image_side: u32,
+    /// Largest decoded image, and largest resized image before the centre crop, in pixels
+    /// (16 MP: any car camera; a 64 MP image would hold 200 MB of RGB per decode).
+    #[arg(long, env = "CMR_MAX_IMAGE_PIXELS", default_value_t = 16_000_000)]
+    pub max_image_pixels: u64,
+    /// Images decoded at once (0 = number of CPU cores); others wait, holding their queue slot.
+    #[arg(long, env = "CMR_DECODE_CONCURRENCY", default_value_t = 0)]
+    pub decode_concurrency: usize,
     /// Default for requests without max_iterations.
     #[arg(long, env = "CMR_DEFAULT_ITERATIONS", default_value_t = 10)]
     pub default_max_iterations: u32,
@@ -64,41 +72,16 @@ pub struct ServeArgs {
     /// When set, map uploads/edits/deletes need `Authorization: Bearer <token>`.
     #[arg(long, env = "CMR_ADMIN_TOKEN", hide_env_values = true)]
     pub admin_token: Option<String>,
+    /// Open connections at most; more wait in the listen backlog until one closes.
+    #[arg(long, env = "CMR_MAX_CONNECTIONS", default_value_t = 512)]
+    pub max_connections: usize,
+    /// How long a client may take to send a request's headers, and how long a kept-alive
+    /// connection may sit idle before its next request, seconds.
+    #[arg(long, env = "CMR_HEADER_TIMEOUT_S", default_value_t = 10)]
+    pub header_timeout_s: u64,
     /// On SIGINT/SIGTERM, how long in-flight requests may take to finish, seconds.
     #[arg(long, env = "CMR_SHUTDOWN_GRACE_S", default_value_t = 10)]
     pub shutdown_grace_s: u64,
-}
-
-/// The hard upper bound of `max_iterations` in a request.
-pub const MAX_ITERATIONS: u32 = 50;
-
-/// Starts per request unless the request or `--default-hypotheses` says otherwise: the number
-/// chosen on the validation set (docs/evaluation.md, "Multi-start search").
-pub const DEFAULT_HYPOTHESES: u32 = 4;
-
-/// The search settings besides the number of starts: one set of flags for `serve`, `localize`
-/// and `eval`, so that all three run the same search. Defaults chosen on the validation set
-/// (docs/evaluation.md, "Multi-start search").
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::Args)]
-pub struct SearchTuning {
-    /// Once every start has taken this many steps, only the best-scoring one goes on (0 = all
-    /// run to the end). Cuts the search's cost at some accuracy.
-    #[arg(long, env = "CMR_NARROW_AFTER", default_value_t = 0)]
-    pub narrow_after: u32,
-    /// Stop a hypothesis once it comes within 1 m / 5° of an earlier one (`true`/`false`).
-    #[arg(long, env = "CMR_MERGE_DUPLICATES", default_value_t = true, action = clap::ArgAction::Set)]
-    pub merge_duplicates: bool,
-}
-
-impl SearchTuning {
-    pub fn search(&self, hypotheses: usize, max_iterations: usize) -> SearchConfig {
-        SearchConfig {
-            hypotheses,
-            max_iterations,
-            narrow_after: (self.narrow_after > 0).then_some(self.narrow_after as usize),
-            merge_duplicates: self.merge_duplicates,
-        }
-    }
 }
 
 impl ServeArgs {
@@ -111,10 +94,23 @@ impl ServeArgs {
     }
 
     pub fn intra_threads(&self) -> usize {
-        if self.intra_threads > 0 {
-            self.intra_threads
-        } else {
-            std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
+        if self.intra_threads > 0 { self.intra_threads } else { cores() }
+    }
+
+    pub fn scheduler(&self) -> SchedulerConfig {
+        SchedulerConfig { workers: self.workers, max_batch: self.max_batch, queue_capacity: self.queue_capacity }
+    }
+
+    pub fn localizer(&self) -> LocalizerConfig {
+        LocalizerConfig {
+            image: ImageLimits { max_side: self.max_image_side, max_pixels: self.max_image_pixels },
+            defaults: RequestDefaults { max_iterations: self.default_max_iterations, hypotheses: self.default_hypotheses, search: self.search },
+            request_timeout: std::time::Duration::from_millis(self.request_timeout_ms),
+            decode_permits: if self.decode_concurrency > 0 { self.decode_concurrency } else { cores() },
         }
     }
+}
+
+pub fn cores() -> usize {
+    std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1)
 }

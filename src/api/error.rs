@@ -6,8 +6,8 @@ use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
 
-use crate::agent::scheduler::{JobError, SubmitError};
 use crate::maps::MapError;
+use crate::serving::LocalizeError;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
@@ -37,6 +37,9 @@ pub enum ApiError {
     BodyTimeout(String),
     #[error("the request's deadline passed before the agent finished")]
     DeadlineExceeded,
+    /// The request's own numbers went out of range inside the agent.
+    #[error("{0}")]
+    Numerical(String),
     #[error("{0}")]
     Internal(String),
 }
@@ -59,7 +62,7 @@ impl ApiError {
             ApiError::NotFound(_) => StatusCode::NOT_FOUND,
             ApiError::PayloadTooLarge(_) => StatusCode::PAYLOAD_TOO_LARGE,
             ApiError::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            ApiError::Invalid(_) => StatusCode::UNPROCESSABLE_ENTITY,
+            ApiError::Invalid(_) | ApiError::Numerical(_) => StatusCode::UNPROCESSABLE_ENTITY,
             ApiError::QueueFull => StatusCode::TOO_MANY_REQUESTS,
             ApiError::NotReady(_) | ApiError::Draining | ApiError::DeadlineExceeded => StatusCode::SERVICE_UNAVAILABLE,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
@@ -76,6 +79,7 @@ impl ApiError {
             ApiError::PayloadTooLarge(_) => "payload_too_large",
             ApiError::UnsupportedMediaType(_) => "unsupported_media_type",
             ApiError::Invalid(_) => "invalid_input",
+            ApiError::Numerical(_) => "numerical_failure",
             ApiError::QueueFull => "queue_full",
             ApiError::NotReady(_) => "not_ready",
             ApiError::Draining => "draining",
@@ -109,20 +113,21 @@ impl From<MapError> for ApiError {
     }
 }
 
-impl From<SubmitError> for ApiError {
-    fn from(e: SubmitError) -> Self {
+impl From<LocalizeError> for ApiError {
+    fn from(e: LocalizeError) -> Self {
         match e {
-            SubmitError::QueueFull => ApiError::QueueFull,
-            SubmitError::Draining => ApiError::Draining,
-        }
-    }
-}
-
-impl From<JobError> for ApiError {
-    fn from(e: JobError) -> Self {
-        match e {
-            JobError::DeadlineExceeded => ApiError::DeadlineExceeded,
-            JobError::Inference(m) => ApiError::Internal(m),
+            LocalizeError::BadRequest(m) => ApiError::BadRequest(m),
+            LocalizeError::CorruptImage(m) => ApiError::CorruptImage(m),
+            LocalizeError::PayloadTooLarge(m) => ApiError::PayloadTooLarge(m),
+            LocalizeError::UnsupportedMediaType(m) => ApiError::UnsupportedMediaType(m),
+            LocalizeError::Invalid(m) => ApiError::Invalid(m),
+            LocalizeError::Numerical(_) => ApiError::Numerical(e.to_string()),
+            LocalizeError::Map(m) => m.into(),
+            LocalizeError::QueueFull => ApiError::QueueFull,
+            LocalizeError::NotReady(m) => ApiError::NotReady(m),
+            LocalizeError::Draining => ApiError::Draining,
+            LocalizeError::DeadlineExceeded => ApiError::DeadlineExceeded,
+            LocalizeError::Internal(m) => ApiError::Internal(m),
         }
     }
 }

@@ -3,8 +3,8 @@
 
 pub mod body_deadline;
 pub mod config;
-pub mod decode;
 pub mod error;
+pub mod extract;
 pub mod offline;
 pub mod openapi;
 pub mod routes;
@@ -12,7 +12,6 @@ pub mod types;
 
 use std::future::Future;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::Duration;
 
@@ -23,9 +22,9 @@ use axum::http::HeaderMap;
 use axum::routing::{get, post, put};
 use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
 
-use crate::agent::scheduler::{Scheduler, SchedulerConfig};
 use crate::maps::{MapCache, MapStore, Maps};
 use crate::model::{BackendOptions, ModelSet};
+use crate::serving::{Lifecycle, Localizer, Scheduler};
 
 pub use config::ServeArgs;
 pub use error::ApiError;
@@ -34,16 +33,16 @@ pub use error::ApiError;
 pub struct AppState {
     pub config: ServeArgs,
     pub models: ModelSet,
+    pub localizer: Localizer,
     pub maps: Arc<Maps>,
     pub scheduler: Arc<Scheduler>,
+    pub lifecycle: Arc<Lifecycle>,
     pub metrics: PrometheusHandle,
-    pub ready: AtomicBool,
-    pub draining: AtomicBool,
 }
 
 impl AppState {
     pub fn is_ready(&self) -> bool {
-        self.ready.load(Ordering::SeqCst) && !self.draining.load(Ordering::SeqCst)
+        self.lifecycle.is_ready()
     }
 
     /// Map management needs the bearer token when one is configured.
@@ -96,20 +95,11 @@ pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
         tracing::warn!("map store: {w}");
     }
     let cache = MapCache::new(config.cache_mb.saturating_mul(1024 * 1024));
-    let maps = Arc::new(Maps::new(store, cache, models.backend()?));
-    let scheduler = Arc::new(Scheduler::start(
-        &models,
-        SchedulerConfig { workers: config.workers, max_batch: config.max_batch, queue_capacity: config.queue_capacity },
-    )?);
-    Ok(Arc::new(AppState {
-        config,
-        models,
-        maps,
-        scheduler,
-        metrics: metrics_handle(),
-        ready: AtomicBool::new(false),
-        draining: AtomicBool::new(false),
-    }))
+    let maps = Arc::new(Maps::new(store, cache, Box::new(models.backend()?)));
+    let scheduler = Arc::new(Scheduler::start(&models.factory(), config.scheduler())?);
+    let lifecycle = Arc::new(Lifecycle::default());
+    let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), config.localizer());
+    Ok(Arc::new(AppState { config, models, localizer, maps, scheduler, lifecycle, metrics: metrics_handle() }))
 }
 
 pub fn router(state: Arc<AppState>) -> Router {
@@ -132,6 +122,7 @@ pub fn router(state: Arc<AppState>) -> Router {
             Duration::from_millis(state.config.body_timeout_ms),
             body_deadline::limit_body_time,
         ))
+        .layer(axum::middleware::from_fn_with_state(state.lifecycle.clone(), close_when_draining))
         .layer(axum::middleware::from_fn(count_requests))
         .layer(tower_http::trace::TraceLayer::new_for_http())
         .with_state(state)
@@ -153,6 +144,20 @@ async fn count_requests(request: axum::extract::Request, next: axum::middleware:
     response
 }
 
+/// While draining, every response asks the client to close its connection, so kept-alive
+/// connections end after their current request instead of being cut.
+async fn close_when_draining(
+    axum::extract::State(lifecycle): axum::extract::State<Arc<Lifecycle>>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> axum::response::Response {
+    let mut response = next.run(request).await;
+    if lifecycle.is_draining() {
+        response.headers_mut().insert(axum::http::header::CONNECTION, axum::http::HeaderValue::from_static("close"));
+    }
+    response
+}
+
 /// Prepares every stored map (from `<id>.emb` when valid) and runs one inference per graph, then
 /// marks the server ready. Runs on the blocking pool while the listener already answers /health.
 pub fn warm_up(state: &AppState) -> Result<()> {
@@ -162,12 +167,19 @@ pub fn warm_up(state: &AppState) -> Result<()> {
             Err(e) => tracing::warn!("map {:?} could not be prepared: {e}", entry.id),
         }
     }
-    state.ready.store(true, Ordering::SeqCst);
+    state.lifecycle.set_ready();
     Ok(())
 }
 
-/// Serves on `listener` until `shutdown` resolves, then drains: /ready turns false, new
-/// localizations get 503, in-flight ones get up to `shutdown_grace_s` to finish.
+/// Serves on `listener` until `shutdown` resolves, then drains in three phases:
+/// 1. draining: the listener still answers (`/ready` 503, new localizations 503 `draining`)
+///    while in-flight localizations finish, at most `shutdown_grace_s`;
+/// 2. the listener closes; open connections finish their current request (kept-alive idle ones
+///    close) within what is left of the grace;
+/// 3. the agent workers stop.
+///
+/// Connections: at most `max_connections` at once (more wait in the backlog), headers must
+/// arrive within `header_timeout_s`, and a kept-alive connection idle for that long is closed.
 pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<()> {
     let addr: SocketAddr = listener.local_addr()?;
     tracing::info!("listening on http://{addr}");
@@ -180,27 +192,67 @@ pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shut
         }
     });
     let grace = Duration::from_secs(state.config.shutdown_grace_s);
-    let drain_state = state.clone();
-    let signal = async move {
+    let lifecycle = state.lifecycle.clone();
+    let (drained_tx, drained_rx) = tokio::sync::oneshot::channel::<tokio::time::Instant>();
+    tokio::spawn(async move {
         shutdown.await;
-        tracing::info!("shutting down: draining for at most {grace:?}");
-        drain_state.draining.store(true, Ordering::SeqCst);
-    };
-    let server = axum::serve(listener, router(state.clone())).with_graceful_shutdown(signal);
-    let draining = state.clone();
-    tokio::select! {
-        result = server => result?,
-        _ = async {
-            while !draining.draining.load(Ordering::SeqCst) { tokio::time::sleep(Duration::from_millis(50)).await; }
-            tokio::time::sleep(grace).await;
-        } => tracing::warn!("grace period over; closing remaining connections"),
-    }
+        let grace_ends = tokio::time::Instant::now() + grace;
+        tracing::info!(in_flight = lifecycle.in_flight(), "shutting down: draining for at most {grace:?}");
+        lifecycle.start_drain();
+        if tokio::time::timeout_at(grace_ends, lifecycle.idle()).await.is_err() {
+            tracing::warn!(in_flight = lifecycle.in_flight(), "grace period over with localizations still in flight");
+        }
+        let _ = drained_tx.send(grace_ends);
+    });
+
+    accept(&state, listener, drained_rx).await;
     let scheduler = state.scheduler.clone();
     let finished = tokio::task::spawn_blocking(move || scheduler.shutdown(Duration::from_secs(2))).await.unwrap_or(false);
     if !finished {
         tracing::warn!("agent workers did not stop in time");
     }
     Ok(())
+}
+
+/// The accept loop: serves connections until `stop` fires, then closes the listener and lets
+/// open connections finish until the grace ends.
+async fn accept(state: &Arc<AppState>, listener: tokio::net::TcpListener, stop: tokio::sync::oneshot::Receiver<tokio::time::Instant>) {
+    use hyper_util::rt::{TokioIo, TokioTimer};
+    let app = router(state.clone());
+    let mut http = hyper::server::conn::http1::Builder::new();
+    http.timer(TokioTimer::new()).header_read_timeout(Duration::from_secs(state.config.header_timeout_s.max(1))).keep_alive(true);
+    let graceful = hyper_util::server::graceful::GracefulShutdown::new();
+    let connections = Arc::new(tokio::sync::Semaphore::new(state.config.max_connections.max(1)));
+    tokio::pin!(stop);
+    let grace_ends = loop {
+        let permit = tokio::select! {
+            permit = connections.clone().acquire_owned() => permit.expect("never closed"),
+            ends = &mut stop => break ends.unwrap_or_else(|_| tokio::time::Instant::now()),
+        };
+        let stream = tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok((stream, _)) => stream,
+                Err(e) => {
+                    // Out of descriptors or a connection reset before accept: back off briefly.
+                    tracing::warn!("accept failed: {e}");
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                    continue;
+                }
+            },
+            ends = &mut stop => break ends.unwrap_or_else(|_| tokio::time::Instant::now()),
+        };
+        let _ = stream.set_nodelay(true);
+        let service = hyper_util::service::TowerToHyperService::new(app.clone());
+        let connection = graceful.watch(http.serve_connection(TokioIo::new(stream), service));
+        tokio::spawn(async move {
+            let _ = connection.await;
+            drop(permit);
+        });
+    };
+    drop(listener);
+    if tokio::time::timeout_at(grace_ends, graceful.shutdown()).await.is_err() {
+        tracing::warn!("grace period over; closing remaining connections");
+    }
 }
 
 /// `cmr-agent serve`: binds, serves, stops on SIGINT/SIGTERM.

@@ -17,7 +17,7 @@ use crate::maps::MapMetadata;
         routes::list_maps, routes::get_map, routes::put_map, routes::put_metadata, routes::delete_map,
         routes::localize,
     ),
-    components(schemas(ErrorBody, LocalizeRequest, LocalizeResponse, MapList, MapSummary, MapMetadata, RegisterResponse, Info)),
+    components(schemas(ErrorBody, crate::serving::LocalizeRequest, crate::serving::Matrix4x4, LocalizeResponse, MapList, MapSummary, MapMetadata, RegisterResponse, Info)),
     modifiers(&BearerAuth),
 )]
 pub struct ApiDoc;

@@ -2,28 +2,22 @@
 //! pool; model inference runs on the agent workers.
 
 use std::sync::Arc;
-use std::sync::atomic::Ordering;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use axum::Json;
-use axum::body::Bytes;
+use axum::body::{Body, Bytes};
 use axum::extract::rejection::BytesRejection;
-use axum::extract::{Path, Query, State};
+use axum::extract::{Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use tokio::sync::oneshot;
-
-use crate::agent::search::MAX_HYPOTHESES;
-use crate::agent::{self, scheduler::Job};
-use crate::geometry::pose::PoseMatrix;
-use crate::geometry::{Intrinsics, Pose};
+use crate::agent::search::{MAX_HYPOTHESES, MAX_ITERATIONS};
 use crate::maps::formats::CloudFormat;
 use crate::maps::{MapMetadata, validate_id};
+use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest};
 
 use super::AppState;
-use super::config::MAX_ITERATIONS;
-use super::decode::{decode_base64_image, decode_image};
 use super::error::{ApiError, ErrorBody};
+use super::extract::{MapId, MapIdParam, ms};
 use super::types::*;
 
 type Shared = State<Arc<AppState>>;
@@ -48,7 +42,7 @@ pub async fn health() -> Json<Health> {
 #[utoipa::path(get, path = "/ready", responses((status = 200, body = Readiness), (status = 503, body = Readiness)))]
 pub async fn ready(State(st): Shared) -> Response {
     let ready = st.is_ready();
-    let body = Readiness { ready, draining: st.draining.load(Ordering::SeqCst), workers: st.config.workers.max(1) };
+    let body = Readiness { ready, draining: st.lifecycle.is_draining(), workers: st.config.workers.max(1) };
     let status = if ready { StatusCode::OK } else { StatusCode::SERVICE_UNAVAILABLE };
     (status, Json(body)).into_response()
 }
@@ -104,9 +98,9 @@ pub async fn list_maps(State(st): Shared) -> Result<Json<MapList>, ApiError> {
 }
 
 /// One map region.
-#[utoipa::path(get, path = "/v1/maps/{id}", params(("id" = String, Path, description = "map id")),
+#[utoipa::path(get, path = "/v1/maps/{id}", params(MapIdParam),
     responses((status = 200, body = MapSummary), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody)))]
-pub async fn get_map(State(st): Shared, Path(id): Path<String>) -> Result<Json<MapSummary>, ApiError> {
+pub async fn get_map(State(st): Shared, MapId(id): MapId) -> Result<Json<MapSummary>, ApiError> {
     let maps = st.maps.clone();
     let id2 = id.clone();
     let entry = blocking(move || maps.store.get(&id2)).await?;
@@ -116,7 +110,7 @@ pub async fn get_map(State(st): Shared, Path(id): Path<String>) -> Result<Json<M
 
 /// Uploads (or replaces) a map region from raw point-cloud bytes: KITTI .bin, PCD or PLY.
 /// The previous region stays intact unless the new one parses and encodes.
-#[utoipa::path(put, path = "/v1/maps/{id}", params(("id" = String, Path, description = "map id"), UploadParams),
+#[utoipa::path(put, path = "/v1/maps/{id}", params(MapIdParam, UploadParams),
     request_body(content = Vec<u8>, content_type = "application/octet-stream"),
     responses((status = 201, body = RegisterResponse), (status = 200, body = RegisterResponse),
         (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 408, body = ErrorBody),
@@ -124,7 +118,7 @@ pub async fn get_map(State(st): Shared, Path(id): Path<String>) -> Result<Json<M
     security(("bearer" = [])))]
 pub async fn put_map(
     State(st): Shared,
-    Path(id): Path<String>,
+    MapId(id): MapId,
     Query(params): Query<UploadParams>,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
@@ -153,7 +147,7 @@ pub async fn put_map(
         Ok::<_, ApiError>((entry, timings, replaced))
     })
     .await?;
-    let total = agent::ms(t);
+    let total = ms(t);
     metrics::histogram!("cmr_map_register_seconds").record(total / 1000.0);
     let status = if replaced { StatusCode::OK } else { StatusCode::CREATED };
     let body = RegisterResponse {
@@ -165,14 +159,14 @@ pub async fn put_map(
 }
 
 /// Replaces a region's metadata (description, initial_camera_from_map).
-#[utoipa::path(put, path = "/v1/maps/{id}/metadata", params(("id" = String, Path, description = "map id")),
+#[utoipa::path(put, path = "/v1/maps/{id}/metadata", params(MapIdParam),
     request_body = MapMetadata,
     responses((status = 200, body = MapSummary), (status = 400, body = ErrorBody), (status = 401, body = ErrorBody),
         (status = 404, body = ErrorBody), (status = 408, body = ErrorBody), (status = 422, body = ErrorBody)),
     security(("bearer" = [])))]
 pub async fn put_metadata(
     State(st): Shared,
-    Path(id): Path<String>,
+    MapId(id): MapId,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Json<MapSummary>, ApiError> {
@@ -187,10 +181,10 @@ pub async fn put_metadata(
 }
 
 /// Deletes a region and its cached embeddings.
-#[utoipa::path(delete, path = "/v1/maps/{id}", params(("id" = String, Path, description = "map id")),
+#[utoipa::path(delete, path = "/v1/maps/{id}", params(MapIdParam),
     responses((status = 204), (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 404, body = ErrorBody)),
     security(("bearer" = [])))]
-pub async fn delete_map(State(st): Shared, Path(id): Path<String>, headers: HeaderMap) -> Result<StatusCode, ApiError> {
+pub async fn delete_map(State(st): Shared, MapId(id): MapId, headers: HeaderMap) -> Result<StatusCode, ApiError> {
     st.authorize(&headers)?;
     let maps = st.maps.clone();
     blocking(move || maps.delete(&id)).await?;
@@ -200,21 +194,15 @@ pub async fn delete_map(State(st): Shared, Path(id): Path<String>, headers: Head
 /// Localizes a camera image in a map region: the pose, the agent's trajectory, a confidence
 /// signal and per-phase timings (also in the `Server-Timing` header). The body is either the JSON
 /// request, or the raw JPEG/PNG bytes (`content-type: image/jpeg|image/png`) with the intrinsics
-/// in the query.
-#[utoipa::path(post, path = "/v1/maps/{id}/localize", params(("id" = String, Path, description = "map id"), RawLocalizeParams),
+/// fx, fy, cx, cy in the query. Capacity is checked before the body is read: a 429 costs nothing.
+#[utoipa::path(post, path = "/v1/maps/{id}/localize", params(MapIdParam, RawLocalizeParams),
     request_body(content((LocalizeRequest = "application/json"), (Vec<u8> = "image/jpeg"), (Vec<u8> = "image/png"))),
     responses((status = 200, body = LocalizeResponse), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody),
         (status = 408, body = ErrorBody), (status = 413, body = ErrorBody), (status = 415, body = ErrorBody), (status = 422, body = ErrorBody),
-        (status = 429, body = ErrorBody), (status = 503, body = ErrorBody)))]
-pub async fn localize(
-    State(st): Shared,
-    Path(id): Path<String>,
-    query: axum::extract::RawQuery,
-    headers: HeaderMap,
-    body: Result<Bytes, BytesRejection>,
-) -> Response {
+        (status = 429, body = ErrorBody), (status = 500, body = ErrorBody), (status = 503, body = ErrorBody)))]
+pub async fn localize(State(st): Shared, MapId(id): MapId, query: axum::extract::RawQuery, headers: HeaderMap, body: Body) -> Response {
     let started = Instant::now();
-    let result = localize_inner(&st, &id, query.0.as_deref(), &headers, body, started).await;
+    let result = localize_inner(&st, &id, query.0.as_deref(), &headers, body).await;
     let outcome = match &result {
         Ok(_) => "ok",
         Err(e) => e.error_type(),
@@ -227,13 +215,7 @@ pub async fn localize(
     }
 }
 
-/// The image as sent: base64 text from the JSON body, or the raw body bytes.
-enum ImagePayload {
-    Base64(String),
-    Raw(Bytes),
-}
-
-/// Reads either request variant into one shape.
+/// Reads either request variant into one shape: the request and its image payload.
 fn read_request(query: Option<&str>, headers: &HeaderMap, body: Bytes) -> Result<(LocalizeRequest, ImagePayload), ApiError> {
     let ct = headers.get(header::CONTENT_TYPE).map(|v| v.to_str().unwrap_or("").to_ascii_lowercase()).unwrap_or_default();
     if ct.starts_with("image/jpeg") || ct.starts_with("image/png") {
@@ -257,78 +239,13 @@ fn serde_urlencoded_query<T: serde::de::DeserializeOwned>(query: &str) -> Result
     Query::<T>::try_from_uri(&uri).map(|q| q.0).map_err(|e| ApiError::Invalid(format!("query: {}", e.body_text())))
 }
 
-async fn localize_inner(
-    st: &Arc<AppState>,
-    id: &str,
-    query: Option<&str>,
-    headers: &HeaderMap,
-    body: Result<Bytes, BytesRejection>,
-    started: Instant,
-) -> Result<Response, ApiError> {
-    if st.draining.load(Ordering::SeqCst) {
-        return Err(ApiError::Draining);
-    }
-    if !st.is_ready() {
-        return Err(ApiError::NotReady("models are still loading; retry shortly".into()));
-    }
-    let body = body.map_err(ApiError::from_body)?;
+async fn localize_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, headers: &HeaderMap, body: Body) -> Result<Response, ApiError> {
+    let admission = st.localizer.admit()?;
+    let body = read_body(body, st.config.max_body_bytes).await?;
     let (request, payload) = read_request(query, headers, body)?;
-    validate_id(id)?;
-    let maps = st.maps.clone();
-    let id2 = id.to_string();
-    let entry = blocking(move || maps.store.get(&id2)).await?;
-
-    let k = request.intrinsics;
-    let intrinsics = Intrinsics { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy };
-    intrinsics.validate().map_err(|e| ApiError::Invalid(format!("intrinsics: {e}")))?;
-    let max_iterations = request.max_iterations.unwrap_or(st.config.default_max_iterations);
-    if !(1..=MAX_ITERATIONS).contains(&max_iterations) {
-        return Err(ApiError::Invalid(format!("max_iterations must be in 1..={MAX_ITERATIONS}, got {max_iterations}")));
-    }
-    let hypotheses = request.hypotheses.unwrap_or(st.config.default_hypotheses) as usize;
-    if !(1..=MAX_HYPOTHESES).contains(&hypotheses) {
-        return Err(ApiError::Invalid(format!("hypotheses must be in 1..={MAX_HYPOTHESES}, got {hypotheses}")));
-    }
-    let prior = match request.prior_camera_from_map {
-        Some(m) => Pose::try_from(PoseMatrix(m)).map_err(|e| ApiError::Invalid(format!("prior_camera_from_map: {e}")))?,
-        None => entry.metadata.initial_pose().unwrap_or_else(Pose::identity),
-    };
-
-    let t = Instant::now();
-    let manifest = st.models.manifest.clone();
-    let max_side = st.config.max_image_side;
-    let (tensor, crop_k) = blocking(move || -> Result<_, ApiError> {
-        let image = match payload {
-            ImagePayload::Base64(text) => decode_base64_image(&text, max_side)?,
-            ImagePayload::Raw(bytes) => decode_image(&bytes, max_side)?,
-        };
-        agent::prepare_image(&image, &intrinsics, &manifest).map_err(|e| ApiError::Invalid(format!("{e:#}")))
-    })
-    .await?;
-    let decode_ms = agent::ms(t);
-    metrics::histogram!("cmr_phase_seconds", "phase" => "decode").record(decode_ms / 1000.0);
-
-    let maps = st.maps.clone();
-    let map = blocking(move || maps.prepared_for(&entry)).await?;
-
-    let timeout = Duration::from_millis(st.config.request_timeout_ms);
-    let (reply, answer) = oneshot::channel();
-    st.scheduler.submit(Job {
-        map,
-        image_tensor: tensor,
-        intrinsics: crop_k,
-        prior,
-        search: st.config.search.search(hypotheses, max_iterations as usize),
-        deadline: started + timeout,
-        reply,
-    })?;
-    let finished = match tokio::time::timeout(timeout + Duration::from_millis(500), answer).await {
-        Ok(Ok(result)) => result?,
-        Ok(Err(_)) => return Err(ApiError::Internal("the worker dropped the request".into())),
-        Err(_) => return Err(ApiError::DeadlineExceeded),
-    };
-    let loc = &finished.localization;
-    let timings = TimingsMs::new(finished.queue_ms, decode_ms, &loc.timings, agent::ms(started));
+    let done = st.localizer.localize(admission, id, &request, payload).await?;
+    let loc = &done.localization;
+    let timings = TimingsMs::new(done.queue_ms, done.decode_ms, &loc.timings, done.total_ms);
     metrics::histogram!("cmr_iterations").record(loc.iterations() as f64);
     let body = LocalizeResponse::new(id, loc, timings);
     let mut response = Json(body).into_response();
@@ -336,6 +253,30 @@ async fn localize_inner(
         response.headers_mut().insert("server-timing", v);
     }
     Ok(response)
+}
+
+/// Reads a whole body of at most `limit` bytes (413 beyond), within the body deadline (408).
+async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
+    axum::body::to_bytes(body, limit).await.map_err(|e| {
+        if super::body_deadline::is_body_deadline(&e) {
+            ApiError::BodyTimeout(format!("request body too slow: {e}"))
+        } else if has_source::<http_body_util::LengthLimitError>(&e) {
+            ApiError::PayloadTooLarge(format!("request body is larger than {limit} bytes"))
+        } else {
+            ApiError::BadRequest(format!("cannot read the request body: {e}"))
+        }
+    })
+}
+
+fn has_source<E: std::error::Error + 'static>(error: &(dyn std::error::Error + 'static)) -> bool {
+    let mut current = Some(error);
+    while let Some(e) = current {
+        if e.is::<E>() {
+            return true;
+        }
+        current = e.source();
+    }
+    false
 }
 
 /// JSON syntax errors are 400; well-formed JSON with wrong fields or types is 422.

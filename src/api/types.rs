@@ -6,47 +6,17 @@ use utoipa::ToSchema;
 use crate::agent::{Localization, Step};
 use crate::geometry::Pose;
 use crate::maps::{MapEntry, MapMetadata};
+use crate::serving::Matrix4x4;
 
-/// A row-major 4x4 rigid transform.
-pub type Matrix4x4 = [[f64; 4]; 4];
-
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, ToSchema)]
-pub struct IntrinsicsBody {
-    pub fx: f64,
-    pub fy: f64,
-    pub cx: f64,
-    pub cy: f64,
-}
-
-#[derive(Debug, Deserialize, ToSchema)]
-#[serde(deny_unknown_fields)]
-pub struct LocalizeRequest {
-    /// Base64 (standard alphabet) JPEG or PNG bytes.
-    pub image: String,
-    /// Pinhole intrinsics of `image` in pixels (OpenCV convention, pixel centres at integers).
-    pub intrinsics: IntrinsicsBody,
-    /// Starting pose (camera_from_map, row-major 4x4); defaults to the map's
-    /// `initial_camera_from_map`, then to identity.
-    #[serde(default)]
-    #[schema(value_type = Option<Vec<Vec<f64>>>)]
-    pub prior_camera_from_map: Option<Matrix4x4>,
-    /// 1..=50; default 10.
-    #[serde(default)]
-    pub max_iterations: Option<u32>,
-    /// Starts of the multi-start search, 1..=16: the prior turned by k·360°/H about the map's
-    /// centroid; the answer is the hypothesis whose pose best explains the image. 1 runs the
-    /// paper's single trajectory (use it when the prior's heading is already good to ±45°).
-    /// Default: the server's `default_hypotheses`.
-    #[serde(default)]
-    pub hypotheses: Option<u32>,
-}
+/// A row-major 4x4 rigid transform (its JSON schema is `serving::Matrix4x4`).
+pub type Rows4x4 = [[f64; 4]; 4];
 
 /// A pose and what a person wants to read off it.
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct PoseBody {
     /// p_cam = R p_map + t, row-major 4x4.
-    #[schema(value_type = Vec<Vec<f64>>)]
-    pub camera_from_map: Matrix4x4,
+    #[schema(value_type = Matrix4x4)]
+    pub camera_from_map: Rows4x4,
     /// The camera centre in the map frame, metres.
     #[schema(value_type = Vec<f64>)]
     pub position_m: [f64; 3],
@@ -87,8 +57,8 @@ pub struct StepBody {
     /// The action chosen at the previous pose.
     pub action: ActionBody,
     /// The pose after the action.
-    #[schema(value_type = Vec<Vec<f64>>)]
-    pub camera_from_map: Matrix4x4,
+    #[schema(value_type = Matrix4x4)]
+    pub camera_from_map: Rows4x4,
     /// Softmax of the policy per DoF over the ascending steps.
     pub probabilities: PolicyProbabilities,
     /// Mean over DoF of the chosen step's probability.
@@ -135,8 +105,8 @@ pub struct HypothesisBody {
     /// Alignment score of the start and of the final pose.
     pub start_alignment: f32,
     pub alignment: f32,
-    #[schema(value_type = Vec<Vec<f64>>)]
-    pub camera_from_map: Matrix4x4,
+    #[schema(value_type = Matrix4x4)]
+    pub camera_from_map: Rows4x4,
     pub iterations: usize,
     pub converged: bool,
     /// Stopped early: it came within 1 m / 5° of an earlier hypothesis (`merge_duplicates`), or
@@ -184,8 +154,8 @@ pub struct LocalizeResponse {
     pub map_id: String,
     pub pose: PoseBody,
     /// The starting pose.
-    #[schema(value_type = Vec<Vec<f64>>)]
-    pub prior_camera_from_map: Matrix4x4,
+    #[schema(value_type = Matrix4x4)]
+    pub prior_camera_from_map: Rows4x4,
     /// The chosen hypothesis's steps.
     pub trajectory: Vec<StepBody>,
     pub confidence: ConfidenceBody,
@@ -281,17 +251,27 @@ pub struct UploadParams {
     pub description: Option<String>,
 }
 
-/// Query of the raw-image variant of localize (body = the JPEG/PNG bytes).
+/// Query of the raw-image variant of localize (body = the JPEG/PNG bytes, `content-type:
+/// image/jpeg` or `image/png`): fx, fy, cx and cy are required with it, and unused with a JSON
+/// body.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[serde(deny_unknown_fields)]
 pub struct RawLocalizeParams {
+    /// Focal length along x, pixels (> 0). Required with a raw image body.
+    #[param(exclusive_minimum = 0.0)]
     pub fx: Option<f64>,
+    /// Focal length along y, pixels (> 0). Required with a raw image body.
+    #[param(exclusive_minimum = 0.0)]
     pub fy: Option<f64>,
+    /// Principal point x, pixels. Required with a raw image body.
     pub cx: Option<f64>,
+    /// Principal point y, pixels. Required with a raw image body.
     pub cy: Option<f64>,
     /// 1..=50; default 10. The prior is the map's `initial_camera_from_map`.
+    #[param(minimum = 1, maximum = 50)]
     pub max_iterations: Option<u32>,
     /// Starts of the multi-start search, 1..=16; default: the server's `default_hypotheses`.
+    #[param(minimum = 1, maximum = 16)]
     pub hypotheses: Option<u32>,
 }
 

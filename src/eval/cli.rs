@@ -34,10 +34,10 @@ pub struct Args {
     pub iterations: usize,
     /// Starts of the agent's multi-start search (the server's default unless given); with more
     /// than one, the single-start agent is evaluated too.
-    #[arg(long, default_value_t = crate::api::config::DEFAULT_HYPOTHESES as usize)]
+    #[arg(long, default_value_t = crate::agent::DEFAULT_HYPOTHESES as usize)]
     pub hypotheses: usize,
     #[command(flatten)]
-    pub search: crate::api::config::SearchTuning,
+    pub search: crate::agent::SearchTuning,
     /// Seed of the perturbations when the file is created.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,

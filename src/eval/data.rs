@@ -6,8 +6,7 @@ use std::path::Path;
 
 use anyhow::{Context, Result, bail};
 
-use crate::agent::sample_points;
-use crate::agent::centroid;
+use crate::maps::{centroid, sample_points};
 use crate::kitti::{Sequence, discover_sequences};
 
 use super::methods::EvalCase;

@@ -1,5 +1,5 @@
 //! The learned methods, sharing one model backend and one map embedding per case:
-//! - the CMR agent, through the server's own synchronous path (`agent::prepare_map`,
+//! - the CMR agent, through the server's own step loop (`maps::prepare_map`,
 //!   `agent::prepare_image`, `agent::localize`), with the configured multi-start search and,
 //!   when that has more than one start, also alone from the given start (the paper's protocol);
 //! - the one-shot baseline on the same embeddings: points the frustum head predicts in view,
@@ -12,7 +12,10 @@ use std::time::Instant;
 use anyhow::Result;
 use serde_json::json;
 
-use crate::agent::{self, PreparedMap, SearchConfig};
+use std::sync::Arc;
+
+use crate::agent::{self, SearchConfig};
+use crate::maps::{PreparedMap, prepare_map};
 use crate::model::Backend;
 
 use super::matching::{MatchStrategy, cell_centre, find_matches};
@@ -26,7 +29,7 @@ pub const AGENT_SINGLE_START: &str = "cmr-agent, single start";
 pub const BASELINE: &str = "one-shot matching + RANSAC";
 
 pub struct Learned {
-    backend: Backend,
+    backend: Box<dyn Backend>,
     /// The agent's search as served; K = `search.max_iterations`.
     search: SearchConfig,
     ransac: RansacOptions,
@@ -34,7 +37,7 @@ pub struct Learned {
 }
 
 impl Learned {
-    pub fn new(backend: Backend, search: SearchConfig, ransac: RansacOptions, matching: MatchStrategy) -> Self {
+    pub fn new(backend: Box<dyn Backend>, search: SearchConfig, ransac: RansacOptions, matching: MatchStrategy) -> Self {
         Learned { backend, search, ransac, matching }
     }
 
@@ -46,13 +49,13 @@ impl Learned {
         BTreeMap::from([(AGENT.to_string(), agent), (AGENT_SINGLE_START.to_string(), agent), (BASELINE.to_string(), sum(&encoders))])
     }
 
-    fn run_agent(&mut self, case: &EvalCase, map: &PreparedMap, method: &str, search: SearchConfig) -> Result<MethodRun> {
+    fn run_agent(&mut self, case: &EvalCase, map: &Arc<PreparedMap>, method: &str, search: SearchConfig) -> Result<MethodRun> {
         let start = Instant::now();
         let manifest = self.backend.manifest().clone();
         let (tensor, crop_intrinsics) = agent::prepare_image(&case.image, &case.intrinsics, &manifest)?;
         let image_ms = ms(start);
         let k = search.max_iterations;
-        let loc = agent::localize(&mut self.backend, map, &tensor, crop_intrinsics, case.initial, search)?;
+        let loc = agent::localize(self.backend.as_mut(), map, &tensor, crop_intrinsics, case.initial, search)?;
         let t = loc.timings;
         // localize reports one total for all steps, so the time to reach step k is the time before
         // the loop plus k equal shares of it. Once hypotheses stop (merged, converged) later steps
@@ -169,7 +172,7 @@ impl Method for Learned {
 
     fn run(&mut self, case: &EvalCase) -> Result<Vec<MethodRun>> {
         let t = Instant::now();
-        let map = agent::prepare_map(&mut self.backend, &case.map_cloud)?;
+        let map = Arc::new(prepare_map(self.backend.as_mut(), &case.map_cloud)?);
         let prepare_ms = ms(t);
         let mut runs = vec![self.run_agent(case, &map, AGENT, self.search)?];
         // Once per map (the server caches it), so it is reported apart from per-request times.

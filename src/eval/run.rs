@@ -7,7 +7,7 @@ use anyhow::{Context, Result};
 use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::agent::SearchConfig;
-use crate::api::config::SearchTuning;
+use crate::agent::SearchTuning;
 use crate::geometry::{ActionSet, PoseError};
 use crate::model::{BackendOptions, ModelSet};
 
@@ -122,7 +122,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
             graph_parameters = map.iter().filter_map(|(k, v)| v.as_u64().map(|n| (k.clone(), n))).collect();
         }
         learned_index = Some(methods.len());
-        methods.push(Box::new(Learned::new(set.backend()?, config.search(), config.ransac, config.matching)));
+        methods.push(Box::new(Learned::new(Box::new(set.backend()?), config.search(), config.ransac, config.matching)));
     }
     methods.push(Box::new(Expert { actions, iterations: config.iterations }));
     methods.push(Box::new(NoOp));

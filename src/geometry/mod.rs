@@ -17,4 +17,4 @@ pub mod pose;
 pub use actions::{ActionSet, AgentAction, Dof};
 pub use camera::{Intrinsics, PreprocessPlan};
 pub use metrics::{PoseError, p2p_distance, step_reward};
-pub use pose::Pose;
+pub use pose::{MAX_COORDINATE_M, Pose};

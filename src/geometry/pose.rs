@@ -37,10 +37,14 @@ impl Pose {
         out
     }
 
-    /// From a row-major 4x4 matrix; the last row must be (0, 0, 0, 1) and R orthonormal.
+    /// From a row-major 4x4 matrix; the last row must be (0, 0, 0, 1), R orthonormal and each
+    /// translation component within ±[`MAX_COORDINATE_M`].
     pub fn from_matrix(m: &[[f64; 4]; 4]) -> Result<Self, String> {
         if m.iter().flatten().any(|v| !v.is_finite()) {
             return Err("pose contains a non-finite value".into());
+        }
+        if (0..3).any(|r| m[r][3].abs() > MAX_COORDINATE_M) {
+            return Err(format!("pose's translation is beyond ±{MAX_COORDINATE_M:e} m"));
         }
         let last = m[3];
         if (last[0].abs() + last[1].abs() + last[2].abs() + (last[3] - 1.0).abs()) > 1e-6 {
@@ -52,6 +56,14 @@ impl Pose {
             return Err("pose's rotation block is not a rotation matrix".into());
         }
         Ok(Self::from_rt(r, Vector3::new(m[0][3], m[1][3], m[2][3])))
+    }
+
+    /// Finite, with every translation component within ±[`MAX_COORDINATE_M`]: what the agent
+    /// can step from (the step loop checks every pose it reaches).
+    pub fn is_sane(&self) -> bool {
+        let t = self.0.translation.vector;
+        let q = self.0.rotation.coords;
+        t.iter().all(|v| v.is_finite() && v.abs() <= MAX_COORDINATE_M) && q.iter().all(|v| v.is_finite())
     }
 
     pub fn matrix(&self) -> Matrix4<f64> {
@@ -105,6 +117,10 @@ impl Pose {
         ))
     }
 }
+
+/// The largest coordinate (metres, any axis) a map point or a pose translation may have: UTM-size
+/// eastings and northings (< 1e7 m) pass; anything larger is an error in the input, not a place.
+pub const MAX_COORDINATE_M: f64 = 1e7;
 
 /// The JSON shape of a pose in the API and in manifests: a row-major 4x4 matrix.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]

@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use moka::notification::RemovalCause;
 use moka::sync::Cache;
 
-use crate::agent::PreparedMap;
+use super::PreparedMap;
 
 pub struct MapCache {
     inner: Cache<String, Arc<PreparedMap>>,

@@ -7,7 +7,7 @@
 
 use nalgebra::Point3;
 
-use crate::agent::PreparedMap;
+use super::PreparedMap;
 
 const MAGIC: &[u8; 8] = b"CMREMB01";
 const HEADER: usize = 8 + 64 + 64 + 8 * 3 + 8 * 3;

@@ -4,16 +4,17 @@
 pub mod cache;
 pub mod embeddings;
 pub mod formats;
+pub mod prepared;
 pub mod store;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
-use crate::agent::{self, PreparedMap};
 use crate::model::Backend;
 
 pub use cache::MapCache;
+pub use prepared::{PreparedMap, centroid, prepare_map, sample_points};
 pub use store::{MapEntry, MapMetadata, MapStore, validate_id};
 
 #[derive(Debug, Clone, thiserror::Error)]
@@ -45,7 +46,7 @@ pub struct Maps {
     pub store: MapStore,
     pub cache: MapCache,
     /// The point encoder used for registrations and cache misses (not the agent workers').
-    encoder: Mutex<Backend>,
+    encoder: Mutex<Box<dyn Backend>>,
     model_sha: String,
     /// The sha256 of the cloud each cached prepared map was made from. The store's files may be
     /// rewritten by another replica sharing the directory; a mismatch with the stored cloud's
@@ -57,7 +58,7 @@ pub struct Maps {
 }
 
 impl Maps {
-    pub fn new(store: MapStore, cache: MapCache, encoder: Backend) -> Self {
+    pub fn new(store: MapStore, cache: MapCache, encoder: Box<dyn Backend>) -> Self {
         let model_sha = encoder.manifest().point_encoder_sha256().to_string();
         Self {
             store,
@@ -103,7 +104,7 @@ impl Maps {
 
     fn encode(&self, cloud: &[[f32; 3]]) -> Result<PreparedMap, MapError> {
         let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
-        agent::prepare_map(&mut encoder, cloud).map_err(|e| MapError::Inference(format!("{e:#}")))
+        prepare_map(encoder.as_mut(), cloud).map_err(|e| MapError::Inference(format!("{e:#}")))
     }
 
     /// Parses, encodes and stores an uploaded cloud, replacing any region with the same id only
@@ -127,15 +128,15 @@ impl Maps {
         if cloud.xyz.is_empty() {
             return Err(MapError::BadCloud("the cloud has no points".into()));
         }
-        let parse_ms = agent::ms(t);
+        let parse_ms = ms(t);
         let t = Instant::now();
         let prepared = self.encode(&cloud.xyz)?;
-        let encode_ms = agent::ms(t);
+        let encode_ms = ms(t);
         let t = Instant::now();
         let entry = self.store.put(id, &cloud, metadata, &prepared, &self.model_sha)?;
         self.prepared_from.lock().expect("prepared_from").insert(id.to_string(), entry.source_sha256.clone());
         self.cache.insert(id, Arc::new(prepared));
-        let store_ms = agent::ms(t);
+        let store_ms = ms(t);
         Ok((entry, RegisterTimings { parse_ms, encode_ms, store_ms }))
     }
 
@@ -144,4 +145,8 @@ impl Maps {
         self.cache.invalidate(id);
         Ok(())
     }
+}
+
+fn ms(since: Instant) -> f64 {
+    since.elapsed().as_secs_f64() * 1000.0
 }

@@ -13,7 +13,7 @@ use std::time::SystemTime;
 
 use serde::{Deserialize, Serialize};
 
-use crate::agent::PreparedMap;
+use super::PreparedMap;
 use crate::geometry::pose::PoseMatrix;
 use crate::geometry::Pose;
 use crate::model::manifest::sha256_hex;

@@ -1,7 +1,7 @@
-//! The synchronous inference backend: one ONNX Runtime session per graph.
+//! The ONNX Runtime implementation of [`Backend`]: one session per graph.
 //!
-//! `Session::run` needs `&mut self`, so a `Backend` belongs to one thread at a time: every worker
-//! creates its own from the shared, validated `ModelSet`.
+//! `Session::run` needs `&mut self`, so an `OrtBackend` belongs to one thread at a time: every
+//! worker creates its own from the shared, validated `ModelSet`.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -13,6 +13,7 @@ use ort::value::TensorRef;
 
 use super::manifest::{Manifest, dims_from_onnx, format_shape, shapes_compatible, GRAPH_NAMES};
 use super::runtime;
+use super::{AgentOutput, Backend};
 
 /// How sessions are created.
 #[derive(Debug, Clone)]
@@ -49,7 +50,7 @@ impl ModelSet {
     }
 
     /// A fresh set of sessions for one thread.
-    pub fn backend(&self) -> Result<Backend> {
+    pub fn backend(&self) -> Result<OrtBackend> {
         let env = runtime::environment(self.options.ort_lib.as_deref())?;
         let mut sessions = Vec::with_capacity(4);
         for name in GRAPH_NAMES {
@@ -72,7 +73,7 @@ impl ModelSet {
         }
         let mut it = sessions.into_iter();
         let mut next = || it.next().expect("four sessions");
-        Ok(Backend {
+        Ok(OrtBackend {
             manifest: self.manifest.clone(),
             point_encoder: next(),
             image_encoder: next(),
@@ -113,17 +114,8 @@ fn check_session(manifest: &Manifest, name: &str, session: &Session) -> Result<(
     check("output", session.outputs(), &contract.outputs)
 }
 
-/// The agent's raw outputs for a batch of B states.
-#[derive(Debug, Clone)]
-pub struct AgentOutput {
-    /// [B, 3, A] row-major: DoF rows, ascending-step columns.
-    pub policy_logits: Vec<f32>,
-    /// [B].
-    pub value: Vec<f32>,
-}
-
 /// One thread's sessions. Inputs and outputs are flat row-major f32 buffers in contract layout.
-pub struct Backend {
+pub struct OrtBackend {
     manifest: Arc<Manifest>,
     point_encoder: Session,
     image_encoder: Session,
@@ -131,13 +123,12 @@ pub struct Backend {
     agent: Session,
 }
 
-impl Backend {
-    pub fn manifest(&self) -> &Arc<Manifest> {
+impl Backend for OrtBackend {
+    fn manifest(&self) -> &Arc<Manifest> {
         &self.manifest
     }
 
-    /// `points` [N, 3] map-frame xyz → `point_features` [N, D].
-    pub fn encode_points(&mut self, points: &[[f32; 3]]) -> Result<Vec<f32>> {
+    fn encode_points(&mut self, points: &[[f32; 3]]) -> Result<Vec<f32>> {
         let n = points.len();
         let dim = self.manifest.features.dim;
         let flat: &[f32] = bytemuck::cast_slice(points);
@@ -147,21 +138,19 @@ impl Backend {
         Ok(features)
     }
 
-    /// `image` [3, H, W] normalised → `image_features` [D, H/stride, W/stride].
-    pub fn encode_image(&mut self, image: &[f32]) -> Result<Vec<f32>> {
+    fn encode_image(&mut self, image: &[f32]) -> Result<Vec<f32>> {
         let spec = &self.manifest.image;
         let (h, w) = (spec.height as usize, spec.width as usize);
         if image.len() != 3 * h * w {
             bail!("image tensor has {} values, expected 3x{h}x{w}", image.len());
         }
-        let expected = self.image_feature_len();
+        let expected = self.manifest.image_feature_len();
         let input = TensorRef::from_array_view(([1usize, 3, h, w], image))?;
         let outputs = self.image_encoder.run(ort::inputs!["image" => input])?;
         extract(&outputs["image_features"], expected, "image_features")
     }
 
-    /// In-frustum logits [N] for the map's point features [N, D] given one image's features.
-    pub fn frustum_logits(&mut self, point_features: &[f32], image_features: &[f32]) -> Result<Vec<f32>> {
+    fn frustum_logits(&mut self, point_features: &[f32], image_features: &[f32]) -> Result<Vec<f32>> {
         let d = self.manifest.features.dim;
         let n = point_features.len() / d;
         let f = self.manifest.features.clone();
@@ -171,59 +160,39 @@ impl Backend {
         extract(&outputs["frustum_logits"], n, "frustum_logits")
     }
 
-    /// One batched policy step: `state_2d` [B, 2D, GH, GW] and `state_3d` [B, M, 5].
-    pub fn agent_step(&mut self, state_2d: &[f32], state_3d: &[f32], batch: usize) -> Result<AgentOutput> {
+    fn agent_step(&mut self, state_2d: &[f32], state_3d: &[f32], batch: usize) -> Result<AgentOutput> {
         let f = self.manifest.features.clone();
         let m = self.manifest.points.num_state_points;
         let a = self.manifest.num_actions();
-        if state_2d.len() != batch * self.state_2d_len() || state_3d.len() != batch * m * 5 {
+        if state_2d.len() != batch * self.manifest.state_2d_len() || state_3d.len() != batch * m * 5 {
             bail!("agent inputs do not hold {batch} states");
         }
         let s2 = TensorRef::from_array_view(([batch, 2 * f.dim, f.grid_height, f.grid_width], state_2d))?;
         let s3 = TensorRef::from_array_view(([batch, m, 5usize], state_3d))?;
         let outputs = self.agent.run(ort::inputs!["state_2d" => s2, "state_3d" => s3])?;
+        // Not checked for finiteness here: one row's NaN must fail only that row's request,
+        // which the step loop decides (`agent::batch`).
         Ok(AgentOutput {
-            policy_logits: extract(&outputs["policy_logits"], batch * 3 * a, "policy_logits")?,
-            value: extract(&outputs["value"], batch, "value")?,
+            policy_logits: extract_raw(&outputs["policy_logits"], batch * 3 * a, "policy_logits")?,
+            value: extract_raw(&outputs["value"], batch, "value")?,
         })
-    }
-
-    /// Runs every graph once on synthetic inputs so the first real request does not pay for
-    /// ONNX Runtime's lazy initialisation.
-    pub fn warm_up(&mut self) -> Result<()> {
-        let m = self.manifest.points.num_state_points;
-        let points: Vec<[f32; 3]> = (0..m).map(|i| {
-            let t = i as f32 * 0.618_034;
-            [10.0 * (t.fract() - 0.5), 10.0 * ((t * 1.7).fract() - 0.5), 2.0 * ((t * 2.3).fract() - 0.5)]
-        }).collect();
-        let point_features = self.encode_points(&points)?;
-        let (w, h) = (self.manifest.image.width as usize, self.manifest.image.height as usize);
-        let image: Vec<f32> = (0..3 * w * h).map(|i| ((i % 251) as f32 / 251.0) - 0.5).collect();
-        let image_features = self.encode_image(&image)?;
-        self.frustum_logits(&point_features, &image_features)?;
-        let state_2d = vec![0f32; self.state_2d_len()];
-        let state_3d = vec![0.1f32; m * 5];
-        self.agent_step(&state_2d, &state_3d, 1)?;
-        Ok(())
-    }
-
-    pub fn image_feature_len(&self) -> usize {
-        let f = &self.manifest.features;
-        f.dim * f.grid_height * f.grid_width
-    }
-
-    pub fn state_2d_len(&self) -> usize {
-        2 * self.image_feature_len()
     }
 }
 
+/// An output's values, checked for length and finiteness.
 fn extract(value: &ort::value::DynValue, expected_len: usize, name: &str) -> Result<Vec<f32>> {
+    let data = extract_raw(value, expected_len, name)?;
+    if data.iter().any(|v| !v.is_finite()) {
+        bail!("output {name:?} contains non-finite values");
+    }
+    Ok(data)
+}
+
+/// An output's values, checked for length only.
+fn extract_raw(value: &ort::value::DynValue, expected_len: usize, name: &str) -> Result<Vec<f32>> {
     let (_, data) = value.try_extract_tensor::<f32>().with_context(|| format!("output {name:?}"))?;
     if data.len() != expected_len {
         bail!("output {name:?} has {} values, expected {expected_len}", data.len());
-    }
-    if data.iter().any(|v| !v.is_finite()) {
-        bail!("output {name:?} contains non-finite values");
     }
     Ok(data.to_vec())
 }

@@ -199,6 +199,17 @@ impl Manifest {
         ActionSet { rotation_deg: self.actions.rotation_deg.clone(), translation_m: self.actions.translation_m.clone() }
     }
 
+    /// Values of one image's features: D · GH · GW.
+    pub fn image_feature_len(&self) -> usize {
+        let f = &self.features;
+        f.dim * f.grid_height * f.grid_width
+    }
+
+    /// Values of one agent `state_2d` row: 2D · GH · GW.
+    pub fn state_2d_len(&self) -> usize {
+        2 * self.image_feature_len()
+    }
+
     pub fn num_actions(&self) -> usize {
         self.actions.rotation_deg.len()
     }

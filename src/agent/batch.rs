@@ -1,0 +1,226 @@
+//! The step loop, once: a batch of requests whose running hypotheses step together in ONE policy
+//! call per iteration. The synchronous [`super::localize`] runs a batch of one request; the
+//! server's workers (`serving::scheduler`) admit requests into a batch and retire them at step
+//! boundaries (iteration-level batching).
+//!
+//! A row that goes wrong fails only its own request: a pose that is no longer finite (or leaves
+//! the coordinate bound) is caught before its state is built, and policy outputs are checked row
+//! by row after the call. A failing policy call as a whole fails the requests that were in it.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use crate::geometry::{ActionSet, Intrinsics, Pose};
+use crate::maps::PreparedMap;
+use crate::model::{Backend, Manifest};
+
+use super::episode::ImageEvidence;
+use super::search::Search;
+use super::state::{self, ScatterScratch, StateLayout};
+use super::{Localization, SearchConfig, Timings, ms};
+
+/// Why a request left the batch without a localization.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StepError {
+    /// The request's own numbers went out of range (a pose, its state, the policy's answer to it).
+    #[error("{0}")]
+    NonFinite(String),
+    /// A model call failed for a reason that is not this request's input.
+    #[error("inference failed: {0}")]
+    Inference(String),
+}
+
+/// What a request brings to the batch: everything `prepare_image` and the map store made.
+pub struct Start {
+    pub map: Arc<PreparedMap>,
+    /// [3, H, W] per the manifest, from `prepare_image`.
+    pub image_tensor: Vec<f32>,
+    /// The crop's intrinsics, from `prepare_image`.
+    pub intrinsics: Intrinsics,
+    /// camera_from_map to start from.
+    pub prior: Pose,
+    pub search: SearchConfig,
+}
+
+struct Running<T> {
+    tag: T,
+    map: Arc<PreparedMap>,
+    search: Search,
+    timings: Timings,
+    steps_started: Instant,
+    failed: Option<StepError>,
+}
+
+/// The requests a worker is stepping, with the buffers the steps reuse.
+pub struct Batch<T> {
+    running: Vec<Running<T>>,
+    layout: StateLayout,
+    actions: ActionSet,
+    scratch: ScatterScratch,
+    state_2d: Vec<f32>,
+    state_3d: Vec<f32>,
+}
+
+impl<T> Batch<T> {
+    pub fn new(manifest: &Manifest) -> Self {
+        Self {
+            running: Vec::new(),
+            layout: StateLayout::from_manifest(manifest),
+            actions: manifest.action_set(),
+            scratch: ScatterScratch::default(),
+            state_2d: Vec::new(),
+            state_3d: Vec::new(),
+        }
+    }
+
+    /// Requests in the batch.
+    pub fn len(&self) -> usize {
+        self.running.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.running.is_empty()
+    }
+
+    /// Hypotheses that will take a step in the next policy call.
+    pub fn rows(&self) -> usize {
+        self.running.iter().filter(|r| r.failed.is_none()).map(|r| r.search.running().count()).sum()
+    }
+
+    /// Runs the per-request graphs (image encoder, frustum head) and adds the request. On error
+    /// the tag comes back with the reason.
+    pub fn admit(&mut self, backend: &mut dyn Backend, start: Start, tag: T) -> Result<(), (T, StepError)> {
+        match begin(backend, &start) {
+            Ok((search, timings)) => {
+                self.running.push(Running { tag, map: start.map, search, timings, steps_started: Instant::now(), failed: None });
+                Ok(())
+            }
+            Err(e) => Err((tag, e)),
+        }
+    }
+
+    /// One batched policy call for every running hypothesis of every request; returns the rows
+    /// stepped (0 when nothing was left to step).
+    pub fn step(&mut self, backend: &mut dyn Backend) -> usize {
+        let (l2, l3) = (self.layout.state_2d_len(), self.layout.state_3d_len());
+        // Rows whose pose is unusable fail their request here, before any state is built.
+        for r in self.running.iter_mut().filter(|r| r.failed.is_none()) {
+            if let Some(h) = r.search.running().find(|&h| !r.search.episodes[h].pose.is_sane()) {
+                r.failed = Some(StepError::NonFinite(format!("hypothesis {h} reached a pose that is not finite or beyond the coordinate bound")));
+            }
+        }
+        let rows: Vec<(usize, usize)> = self
+            .running
+            .iter()
+            .enumerate()
+            .filter(|(_, r)| r.failed.is_none())
+            .flat_map(|(i, r)| r.search.running().map(move |h| (i, h)))
+            .collect();
+        if rows.is_empty() {
+            return 0;
+        }
+        self.state_2d.resize(rows.len() * l2, 0.0);
+        self.state_3d.resize(rows.len() * l3, 0.0);
+        for (slot, &(i, h)) in rows.iter().enumerate() {
+            let t = Instant::now();
+            let r = &mut self.running[i];
+            let s3 = &mut self.state_3d[slot * l3..(slot + 1) * l3];
+            r.search.episodes[h].write_state(&r.map, &self.layout, &mut self.scratch, &mut self.state_2d[slot * l2..(slot + 1) * l2], s3);
+            r.timings.state_build_ms += ms(t);
+        }
+        let output = match backend.agent_step(&self.state_2d, &self.state_3d, rows.len()) {
+            Ok(output) => output,
+            Err(e) => {
+                let e = StepError::Inference(format!("{e:#}"));
+                tracing::error!("policy call failed for {} rows: {e}", rows.len());
+                for &(i, _) in &rows {
+                    self.running[i].failed = Some(e.clone());
+                }
+                return rows.len();
+            }
+        };
+        let per = 3 * self.actions.num_actions();
+        for (slot, &(i, h)) in rows.iter().enumerate() {
+            let r = &mut self.running[i];
+            if r.failed.is_some() {
+                continue;
+            }
+            let logits = &output.policy_logits[slot * per..(slot + 1) * per];
+            if !(logits.iter().all(|v| v.is_finite()) && output.value[slot].is_finite()) {
+                r.failed = Some(StepError::NonFinite(format!("the policy answered non-finite values for hypothesis {h}")));
+                continue;
+            }
+            r.search.episodes[h].advance(&r.map, &self.actions, logits, output.value[slot]);
+        }
+        for r in self.running.iter_mut().filter(|r| r.failed.is_none()) {
+            r.search.after_step(&r.map, &self.layout, &mut self.scratch);
+        }
+        rows.len()
+    }
+
+    /// Fails every request still in the batch with `error` (used when a step panicked).
+    pub fn fail_all(&mut self, error: StepError) {
+        for r in &mut self.running {
+            r.failed = Some(error.clone());
+        }
+    }
+
+    /// Removes the requests whose tag matches `cancel` (deadline passed, client gone), unanswered.
+    pub fn cancel(&mut self, mut cancel: impl FnMut(&T) -> bool) -> Vec<T> {
+        let mut out = Vec::new();
+        let mut i = 0;
+        while i < self.running.len() {
+            if cancel(&self.running[i].tag) {
+                out.push(self.running.swap_remove(i).tag);
+            } else {
+                i += 1;
+            }
+        }
+        out
+    }
+
+    /// Removes and answers every request that is done or failed.
+    pub fn retire(&mut self) -> Vec<(T, Result<Localization, StepError>)> {
+        let mut out = Vec::new();
+        let mut i = 0;
+        while i < self.running.len() {
+            let r = &self.running[i];
+            if r.failed.is_none() && !r.search.is_done() {
+                i += 1;
+                continue;
+            }
+            let mut r = self.running.swap_remove(i);
+            let result = match r.failed.take() {
+                Some(e) => Err(e),
+                None => {
+                    r.timings.agent_steps_ms = ms(r.steps_started);
+                    Ok(r.search.finish(&r.map, &self.layout, &mut self.scratch, r.timings))
+                }
+            };
+            out.push((r.tag, result));
+        }
+        out
+    }
+}
+
+/// Runs the image encoder and the frustum head (everything per request that precedes the loop)
+/// and sets up the search's hypotheses.
+fn begin(backend: &mut dyn Backend, start: &Start) -> Result<(Search, Timings), StepError> {
+    let manifest = backend.manifest().clone();
+    let map = &start.map;
+    if map.features.len() != map.points.len() * manifest.features.dim || map.points.len() < manifest.points.num_state_points {
+        return Err(StepError::Inference("the prepared map does not match this model (feature dimension or point count)".into()));
+    }
+    if !start.prior.is_sane() {
+        return Err(StepError::NonFinite("the prior is not finite or beyond the coordinate bound".into()));
+    }
+    let t = Instant::now();
+    let image_features = backend.encode_image(&start.image_tensor).map_err(|e| StepError::Inference(format!("image encoder: {e:#}")))?;
+    let image_encoder_ms = ms(t);
+    let t = Instant::now();
+    let logits = backend.frustum_logits(&map.features, &image_features).map_err(|e| StepError::Inference(format!("frustum head: {e:#}")))?;
+    let frustum_head_ms = ms(t);
+    let evidence = ImageEvidence { image_features, frustum_probs: logits.iter().map(|l| state::sigmoid(*l)).collect(), intrinsics: start.intrinsics };
+    let search = Search::new(evidence, map, start.prior, start.search);
+    Ok((search, Timings { image_encoder_ms, frustum_head_ms, ..Default::default() }))
+}

@@ -1,0 +1,173 @@
+//! Request images: base64 → JPEG/PNG → RGB → the image encoder's tensor, with every size
+//! checked BEFORE the memory is spent: the header's dimensions against the decode budget, the
+//! preprocessing plan's resized size against the same budget, and the decoder's allocations
+//! against a hard cap. Callers hold a decode permit (`admission`) while this runs.
+
+use std::io::Cursor;
+
+use base64::Engine;
+use image::{ImageFormat, ImageReader, RgbImage};
+
+use crate::geometry::{Intrinsics, PreprocessPlan};
+use crate::model::Manifest;
+
+use super::error::LocalizeError;
+
+/// What one decode may cost.
+#[derive(Debug, Clone, Copy)]
+pub struct ImageLimits {
+    /// Largest width or height, pixels.
+    pub max_side: u32,
+    /// Largest decoded image AND largest resized image (before the centre crop), pixels.
+    pub max_pixels: u64,
+}
+
+/// The image as sent: base64 text from a JSON body, or raw bytes.
+pub enum ImagePayload {
+    Base64(String),
+    Raw(bytes::Bytes),
+}
+
+/// Decodes, resizes and crops one request image to the manifest's input; returns the tensor and
+/// the crop's intrinsics. Errors: 400 `bad_request` (base64), 400 `corrupt_image` (cut or broken
+/// bytes), 413 (over the budget), 415 (not JPEG/PNG), 422 (zero size, extreme aspect ratio, bad
+/// intrinsics).
+pub fn prepare_request_image(
+    payload: ImagePayload,
+    intrinsics: &Intrinsics,
+    manifest: &Manifest,
+    limits: ImageLimits,
+) -> Result<(Vec<f32>, Intrinsics), LocalizeError> {
+    let bytes = match payload {
+        ImagePayload::Base64(text) => base64::engine::general_purpose::STANDARD
+            .decode(text.trim().as_bytes())
+            .map_err(|e| LocalizeError::BadRequest(format!("image is not valid base64: {e}")))?
+            .into(),
+        ImagePayload::Raw(bytes) => bytes,
+    };
+    let image = decode_image(&bytes, manifest, limits)?;
+    crate::agent::prepare_image(&image, intrinsics, manifest).map_err(|e| LocalizeError::Invalid(format!("{e:#}")))
+}
+
+/// Decodes JPEG or PNG bytes (the format is read from the bytes, not from any header) within
+/// `limits`, after checking that the preprocessing plan's resize stays within them too.
+pub fn decode_image(bytes: &[u8], manifest: &Manifest, limits: ImageLimits) -> Result<RgbImage, LocalizeError> {
+    if bytes.is_empty() {
+        return Err(LocalizeError::CorruptImage("image is empty".into()));
+    }
+    let format = image::guess_format(bytes).map_err(|_| LocalizeError::UnsupportedMediaType("image must be JPEG or PNG".into()))?;
+    if !matches!(format, ImageFormat::Jpeg | ImageFormat::Png) {
+        return Err(LocalizeError::UnsupportedMediaType(format!("image must be JPEG or PNG, got {format:?}")));
+    }
+    if format == ImageFormat::Jpeg && !ends_with_eoi(bytes) {
+        // The JPEG decoder fills a cut-off scan with grey and reports success.
+        return Err(LocalizeError::CorruptImage("the JPEG is truncated: no end-of-image marker".into()));
+    }
+    let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
+        .into_dimensions()
+        .map_err(|e| classify(e, "cannot read the image header"))?;
+    check_size(w, h, manifest, limits)?;
+    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
+    let mut decode_limits = image::Limits::default();
+    decode_limits.max_image_width = Some(limits.max_side);
+    decode_limits.max_image_height = Some(limits.max_side);
+    // The decoded buffer (up to 16-bit RGBA) plus the decoder's own working memory.
+    decode_limits.max_alloc = Some(limits.max_pixels.saturating_mul(8) + (64 << 20));
+    reader.limits(decode_limits);
+    let decoded = reader.decode().map_err(|e| classify(e, "cannot decode the image"))?;
+    Ok(decoded.into_rgb8())
+}
+
+/// The header's size against the side and pixel budgets, and the resize the preprocessing plan
+/// would make (an extreme aspect ratio is scaled up enormously to cover the model input).
+fn check_size(w: u32, h: u32, manifest: &Manifest, limits: ImageLimits) -> Result<(), LocalizeError> {
+    if w == 0 || h == 0 {
+        return Err(LocalizeError::Invalid(format!("image has zero size ({w}x{h})")));
+    }
+    if w > limits.max_side || h > limits.max_side {
+        return Err(LocalizeError::PayloadTooLarge(format!("image is {w}x{h}; the limit is {} pixels per side", limits.max_side)));
+    }
+    let pixels = w as u64 * h as u64;
+    if pixels > limits.max_pixels {
+        return Err(LocalizeError::PayloadTooLarge(format!("image is {w}x{h} = {pixels} pixels; the limit is {}", limits.max_pixels)));
+    }
+    let spec = &manifest.image;
+    let plan = PreprocessPlan::centered(w, h, spec.nominal_scale, spec.width, spec.height);
+    let resized = plan.resized_width as u64 * plan.resized_height as u64;
+    if resized > limits.max_pixels {
+        return Err(LocalizeError::Invalid(format!(
+            "image is {w}x{h}: covering the model input {}x{} would resize it to {}x{}, over the budget of {} pixels; \
+             send an image with an aspect ratio nearer {:.2}",
+            spec.width,
+            spec.height,
+            plan.resized_width,
+            plan.resized_height,
+            limits.max_pixels,
+            spec.width as f64 / spec.height as f64
+        )));
+    }
+    Ok(())
+}
+
+/// A complete JPEG ends with the EOI marker (FF D9); trailing zero padding is tolerated.
+fn ends_with_eoi(bytes: &[u8]) -> bool {
+    let end = bytes.iter().rposition(|&b| b != 0).map_or(0, |i| i + 1);
+    bytes[..end].ends_with(&[0xFF, 0xD9])
+}
+
+fn classify(e: image::ImageError, context: &str) -> LocalizeError {
+    match e {
+        image::ImageError::Limits(l) => LocalizeError::PayloadTooLarge(format!("{context}: image exceeds decode limits ({l})")),
+        image::ImageError::Unsupported(u) => LocalizeError::UnsupportedMediaType(format!("{context}: {u}")),
+        other => LocalizeError::CorruptImage(format!("{context}: {other}")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn manifest() -> Manifest {
+        Manifest::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model")).unwrap()
+    }
+
+    fn png(w: u32, h: u32) -> Vec<u8> {
+        let mut out = Vec::new();
+        RgbImage::new(w, h).write_to(&mut Cursor::new(&mut out), ImageFormat::Png).unwrap();
+        out
+    }
+
+    fn jpeg(w: u32, h: u32) -> Vec<u8> {
+        let mut out = Vec::new();
+        let img = RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 7) as u8, (y * 3) as u8, 90]));
+        img.write_to(&mut Cursor::new(&mut out), ImageFormat::Jpeg).unwrap();
+        out
+    }
+
+    const LIMITS: ImageLimits = ImageLimits { max_side: 8192, max_pixels: 16_000_000 };
+
+    #[test]
+    fn budgets_refuse_from_the_header() {
+        let m = manifest();
+        assert!(decode_image(&png(1241, 376), &m, LIMITS).is_ok());
+        let big = decode_image(&png(5000, 4000), &m, LIMITS).unwrap_err();
+        assert!(matches!(big, LocalizeError::PayloadTooLarge(_)), "{big}");
+        // A thin strip would be resized to 512 x 4 million pixels to cover the model input.
+        let strip = decode_image(&png(1, 8192), &m, LIMITS).unwrap_err();
+        assert!(matches!(strip, LocalizeError::Invalid(ref s) if s.contains("aspect ratio")), "{strip}");
+    }
+
+    #[test]
+    fn a_cut_jpeg_is_corrupt_and_a_whole_one_decodes() {
+        let m = manifest();
+        let whole = jpeg(640, 200);
+        assert!(decode_image(&whole, &m, LIMITS).is_ok());
+        let mut padded = whole.clone();
+        padded.extend([0, 0, 0]);
+        assert!(decode_image(&padded, &m, LIMITS).is_ok());
+        let cut = decode_image(&whole[..whole.len() * 2 / 3], &m, LIMITS).unwrap_err();
+        assert!(matches!(cut, LocalizeError::CorruptImage(_)), "{cut}");
+        let gif = decode_image(b"GIF89a\x01\x00\x01\x00", &m, LIMITS).unwrap_err();
+        assert!(matches!(gif, LocalizeError::UnsupportedMediaType(_)), "{gif}");
+    }
+}

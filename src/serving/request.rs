@@ -1,0 +1,166 @@
+//! The localize request as it arrives (`LocalizeRequest`, also the OpenAPI schema) and as the
+//! rest of the server sees it (`ValidLocalizeRequest`): built once, from the wire request, the
+//! server's limits and the map entry, so every rule lives here and nowhere else.
+
+use serde::Deserialize;
+use utoipa::ToSchema;
+
+use crate::agent::search::{MAX_HYPOTHESES, MAX_ITERATIONS, SearchConfig, SearchTuning};
+use crate::geometry::{Intrinsics, Pose};
+use crate::maps::MapEntry;
+
+use super::error::LocalizeError;
+
+/// A row-major 4x4 rigid transform as JSON: 4 rows of 4 numbers. Read as nested lists so that a
+/// wrong shape is a 422 naming the row, not a JSON syntax error.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, Deserialize)]
+#[serde(transparent)]
+pub struct Matrix4x4(pub Vec<Vec<f64>>);
+
+impl Matrix4x4 {
+    pub fn from_rows(rows: [[f64; 4]; 4]) -> Self {
+        Self(rows.iter().map(|r| r.to_vec()).collect())
+    }
+
+    /// The matrix, or what is wrong with its shape.
+    pub fn rows(&self) -> Result<[[f64; 4]; 4], String> {
+        if self.0.len() != 4 {
+            return Err(format!("must have 4 rows, has {}", self.0.len()));
+        }
+        let mut out = [[0.0; 4]; 4];
+        for (i, row) in self.0.iter().enumerate() {
+            if row.len() != 4 {
+                return Err(format!("row {i} must have 4 numbers, has {}", row.len()));
+            }
+            out[i].copy_from_slice(row);
+        }
+        Ok(out)
+    }
+
+    pub fn pose(&self) -> Result<Pose, String> {
+        Pose::from_matrix(&self.rows()?)
+    }
+}
+
+impl utoipa::PartialSchema for Matrix4x4 {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        use utoipa::openapi::schema::{ArrayBuilder, ObjectBuilder, Type};
+        let row = ArrayBuilder::new().items(ObjectBuilder::new().schema_type(Type::Number)).min_items(Some(4)).max_items(Some(4));
+        ArrayBuilder::new()
+            .items(row)
+            .min_items(Some(4))
+            .max_items(Some(4))
+            .description(Some("Row-major 4x4 rigid transform: 4 rows of 4 numbers, last row [0, 0, 0, 1]."))
+            .into()
+    }
+}
+
+impl utoipa::ToSchema for Matrix4x4 {}
+
+/// Pinhole intrinsics in pixels (OpenCV convention, pixel centres at integers).
+#[derive(Debug, Clone, Copy, serde::Serialize, Deserialize, ToSchema)]
+pub struct IntrinsicsBody {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+#[derive(Debug, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct LocalizeRequest {
+    /// Base64 (standard alphabet) JPEG or PNG bytes.
+    pub image: String,
+    /// Pinhole intrinsics of `image` in pixels.
+    pub intrinsics: IntrinsicsBody,
+    /// Starting pose (camera_from_map); defaults to the map's `initial_camera_from_map`, then to
+    /// identity.
+    #[serde(default)]
+    pub prior_camera_from_map: Option<Matrix4x4>,
+    /// Policy steps per start, 1..=50; default: the server's `default_max_iterations` (10).
+    #[serde(default)]
+    #[schema(minimum = 1, maximum = 50)]
+    pub max_iterations: Option<u32>,
+    /// Starts of the multi-start search, 1..=16: the prior turned by k·360°/H about the map's
+    /// centroid; the answer is the hypothesis whose pose best explains the image. 1 runs the
+    /// paper's single trajectory (use it when the prior's heading is already good to ±45°).
+    /// Default: the server's `default_hypotheses`.
+    #[serde(default)]
+    #[schema(minimum = 1, maximum = 16)]
+    pub hypotheses: Option<u32>,
+}
+
+/// What the server fills in when a request leaves it out.
+#[derive(Debug, Clone, Copy)]
+pub struct RequestDefaults {
+    pub max_iterations: u32,
+    pub hypotheses: u32,
+    pub search: SearchTuning,
+}
+
+/// A localize request every later stage can trust.
+#[derive(Debug, Clone)]
+pub struct ValidLocalizeRequest {
+    pub map: MapEntry,
+    pub intrinsics: Intrinsics,
+    pub prior: Pose,
+    pub search: SearchConfig,
+}
+
+impl ValidLocalizeRequest {
+    /// Checks the request's numbers against the limits (422 `invalid_input` naming the field).
+    pub fn new(request: &LocalizeRequest, defaults: &RequestDefaults, map: MapEntry) -> Result<Self, LocalizeError> {
+        let invalid = |field: &str, e: String| LocalizeError::Invalid(format!("{field}: {e}"));
+        let k = request.intrinsics;
+        let intrinsics = Intrinsics { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy };
+        intrinsics.validate().map_err(|e| invalid("intrinsics", e.to_string()))?;
+        let max_iterations = request.max_iterations.unwrap_or(defaults.max_iterations);
+        if !(1..=MAX_ITERATIONS).contains(&max_iterations) {
+            return Err(invalid("max_iterations", format!("must be in 1..={MAX_ITERATIONS}, got {max_iterations}")));
+        }
+        let hypotheses = request.hypotheses.unwrap_or(defaults.hypotheses) as usize;
+        if !(1..=MAX_HYPOTHESES).contains(&hypotheses) {
+            return Err(invalid("hypotheses", format!("must be in 1..={MAX_HYPOTHESES}, got {hypotheses}")));
+        }
+        let prior = match &request.prior_camera_from_map {
+            Some(m) => m.pose().map_err(|e| invalid("prior_camera_from_map", e))?,
+            None => map.metadata.initial_pose().unwrap_or_else(Pose::identity),
+        };
+        let search = defaults.search.search(hypotheses, max_iterations as usize);
+        Ok(Self { map, intrinsics, prior, search })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn request(json: serde_json::Value) -> LocalizeRequest {
+        serde_json::from_value(json).unwrap()
+    }
+
+    fn entry() -> MapEntry {
+        MapEntry { id: "m".into(), num_points: 1, file_bytes: 16, source_sha256: String::new(), metadata: Default::default() }
+    }
+
+    const DEFAULTS: RequestDefaults = RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true } };
+
+    #[test]
+    fn every_field_is_checked_with_its_name() {
+        let k = serde_json::json!({"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0});
+        let ok = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &DEFAULTS, entry()).unwrap();
+        assert_eq!((ok.search.hypotheses, ok.search.max_iterations), (4, 10));
+        assert_eq!(ok.prior, Pose::identity());
+        let cases = [
+            (serde_json::json!({"image": "", "intrinsics": {"fx": -1.0, "fy": 700.0, "cx": 600.0, "cy": 180.0}}), "intrinsics"),
+            (serde_json::json!({"image": "", "intrinsics": k, "max_iterations": 0}), "max_iterations"),
+            (serde_json::json!({"image": "", "intrinsics": k, "hypotheses": 17}), "hypotheses"),
+            (serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": [[1, 0, 0, 0, 9], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}), "row 0 must have 4 numbers"),
+            (serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": [[1, 0, 0, 3e38], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}), "beyond"),
+        ];
+        for (json, needle) in cases {
+            let e = ValidLocalizeRequest::new(&request(json), &DEFAULTS, entry()).unwrap_err();
+            assert!(matches!(&e, LocalizeError::Invalid(m) if m.contains(needle)), "{e} should name {needle}");
+        }
+    }
+}
