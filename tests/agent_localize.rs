@@ -3,7 +3,10 @@
 
 use std::path::PathBuf;
 
-use cmr_agent::agent::{self, PreparedMap, SearchConfig};
+use std::sync::Arc;
+
+use cmr_agent::agent::{self, SearchConfig};
+use cmr_agent::maps::{PreparedMap, prepare_map};
 use cmr_agent::geometry::actions::{apply_action, apply_motion};
 use cmr_agent::geometry::{Intrinsics, Pose};
 use cmr_agent::model::{BackendOptions, ModelSet};
@@ -40,7 +43,7 @@ fn rig() -> Pose {
 fn localize_follows_the_disentangled_update_and_is_deterministic() {
     let set = models();
     let mut backend = set.backend().unwrap();
-    let map: PreparedMap = agent::prepare_map(&mut backend, &cloud()).unwrap();
+    let map: Arc<PreparedMap> = Arc::new(prepare_map(&mut backend, &cloud()).unwrap());
     assert_eq!(map.points.len(), 40960);
     assert_eq!(map.features.len(), 40960 * 64);
     let norms_ok = map.features.chunks(64).all(|f| (f.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-3);
@@ -118,7 +121,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 fn bad_inputs_are_refused() {
     let set = models();
     let mut backend = set.backend().unwrap();
-    assert!(agent::prepare_map(&mut backend, &[]).is_err());
+    assert!(prepare_map(&mut backend, &[]).is_err());
     let image = image::RgbImage::new(64, 32);
     let bad = Intrinsics { fx: -1.0, fy: 1.0, cx: 0.0, cy: 0.0 };
     assert!(agent::prepare_image(&image, &bad, &set.manifest).is_err());
@@ -129,13 +132,12 @@ fn bad_inputs_are_refused() {
 /// Requests stepped together in one batched policy call get exactly the answers they get alone.
 #[test]
 fn batched_workers_match_the_synchronous_loop() {
-    use cmr_agent::agent::scheduler::{Job, Scheduler, SchedulerConfig};
-    use std::sync::Arc;
+    use cmr_agent::serving::scheduler::{Job, Scheduler, SchedulerConfig};
     use std::time::{Duration, Instant};
 
     let set = models();
     let mut backend = set.backend().unwrap();
-    let map = Arc::new(agent::prepare_map(&mut backend, &cloud()).unwrap());
+    let map = Arc::new(prepare_map(&mut backend, &cloud()).unwrap());
     let k = Intrinsics { fx: 500.0, fy: 500.0, cx: 319.5, cy: 99.5 };
     let cases: Vec<(Vec<f32>, Intrinsics, Pose, SearchConfig)> = (0..6)
         .map(|i| {
@@ -153,12 +155,14 @@ fn batched_workers_match_the_synchronous_loop() {
         .map(|(t, ck, prior, n)| agent::localize(&mut backend, &map, t, *ck, *prior, *n).unwrap())
         .collect();
 
-    let scheduler = Scheduler::start(&set, SchedulerConfig { workers: 1, max_batch: 8, queue_capacity: 16 }).unwrap();
+    let scheduler = Scheduler::start(&set.factory(), SchedulerConfig { workers: 1, max_batch: 8, queue_capacity: 16 }).unwrap();
     let mut answers = Vec::new();
     for (tensor, crop_k, prior, search) in cases {
         let (reply, answer) = tokio::sync::oneshot::channel();
-        let job = Job { map: map.clone(), image_tensor: tensor, intrinsics: crop_k, prior, search, deadline: Instant::now() + Duration::from_secs(30), reply };
-        scheduler.submit(job).ok().expect("queued");
+        let start = agent::Start { map: map.clone(), image_tensor: tensor, intrinsics: crop_k, prior, search };
+        let job = Job { start, deadline: Instant::now() + Duration::from_secs(30), span: tracing::Span::none(), reply };
+        let slot = scheduler.reserve().ok().expect("room");
+        scheduler.submit(job, slot).ok().expect("queued");
         answers.push(answer);
     }
     for (answer, want) in answers.into_iter().zip(&expected) {

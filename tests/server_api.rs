@@ -324,7 +324,7 @@ async fn deadlines_and_draining_answer_503() {
     assert_eq!(status, 503, "{body}");
     assert_eq!(body["error_type"], "deadline_exceeded");
 
-    server.state.draining.store(true, std::sync::atomic::Ordering::SeqCst);
+    server.state.lifecycle.start_drain();
     let r = server.client.get(server.url("/ready")).send().await.unwrap();
     assert_eq!(r.status(), 503);
     let (status, body, _) = server.localize("street", &kitti_request(1)).await;

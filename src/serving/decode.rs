@@ -63,16 +63,16 @@ pub fn decode_image(bytes: &[u8], manifest: &Manifest, limits: ImageLimits) -> R
         // The JPEG decoder fills a cut-off scan with grey and reports success.
         return Err(LocalizeError::CorruptImage("the JPEG is truncated: no end-of-image marker".into()));
     }
-    let (w, h) = ImageReader::with_format(Cursor::new(bytes), format)
-        .into_dimensions()
-        .map_err(|e| classify(e, "cannot read the image header"))?;
-    check_size(w, h, manifest, limits)?;
-    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
     let mut decode_limits = image::Limits::default();
     decode_limits.max_image_width = Some(limits.max_side);
     decode_limits.max_image_height = Some(limits.max_side);
     // The decoded buffer (up to 16-bit RGBA) plus the decoder's own working memory.
     decode_limits.max_alloc = Some(limits.max_pixels.saturating_mul(8) + (64 << 20));
+    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
+    reader.limits(decode_limits.clone());
+    let (w, h) = reader.into_dimensions().map_err(|e| classify(e, "cannot read the image header"))?;
+    check_size(w, h, manifest, limits)?;
+    let mut reader = ImageReader::with_format(Cursor::new(bytes), format);
     reader.limits(decode_limits);
     let decoded = reader.decode().map_err(|e| classify(e, "cannot decode the image"))?;
     Ok(decoded.into_rgb8())
