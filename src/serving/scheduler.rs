@@ -345,3 +345,117 @@ impl Worker {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use super::*;
+    use crate::agent::{Localization, SearchConfig, localize};
+    use crate::geometry::{Intrinsics, Pose};
+    use crate::maps::{PreparedMap, prepare_map};
+    use crate::model::{BackendFactory, FakeBackend, Manifest};
+
+    fn manifest() -> Arc<Manifest> {
+        Arc::new(Manifest::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model")).unwrap())
+    }
+
+    fn fake_factory(manifest: &Arc<Manifest>) -> BackendFactory {
+        let m = manifest.clone();
+        Arc::new(move || Ok(Box::new(FakeBackend::new(m.clone())) as Box<dyn Backend>))
+    }
+
+    fn map(manifest: &Arc<Manifest>) -> Arc<PreparedMap> {
+        let cloud: Vec<[f32; 3]> = (0..5000).map(|i| [(i % 100) as f32 * 0.3 - 15.0, (i / 100) as f32 * 0.4 - 10.0, ((i * 7) % 13) as f32 * 0.2 - 1.7]).collect();
+        Arc::new(prepare_map(&mut FakeBackend::new(manifest.clone()), &cloud).unwrap())
+    }
+
+    fn start(manifest: &Arc<Manifest>, map: &Arc<PreparedMap>, i: usize, poisoned: bool) -> Start {
+        let n = 3 * manifest.image.width as usize * manifest.image.height as usize;
+        let mut image_tensor: Vec<f32> = (0..n).map(|p| ((p * (i + 1)) % 97) as f32 / 97.0).collect();
+        if poisoned {
+            image_tensor[0] = FakeBackend::POISON * 10.0;
+        }
+        let intrinsics = Intrinsics { fx: 250.0, fy: 250.0, cx: 255.5, cy: 79.5 };
+        let rig = Pose::from_rt(nalgebra::Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0), nalgebra::Vector3::zeros());
+        let prior = rig.compose(&Pose::ground_motion(0.2 * i as f64, i as f64 * 0.5, -1.0));
+        Start { map: map.clone(), image_tensor, intrinsics, prior, search: SearchConfig { hypotheses: 1 + i % 3, max_iterations: 6, narrow_after: None, merge_duplicates: i % 2 == 0 } }
+    }
+
+    fn submit(scheduler: &Scheduler, start: Start) -> oneshot::Receiver<Result<Finished, JobError>> {
+        let (reply, answer) = oneshot::channel();
+        let job = Job { start, deadline: Instant::now() + Duration::from_secs(30), span: tracing::Span::none(), reply };
+        scheduler.submit(job, scheduler.reserve().ok().expect("room")).ok().expect("queued");
+        answer
+    }
+
+    fn same(a: &Localization, b: &Localization) -> bool {
+        a.chosen == b.chosen
+            && a.hypotheses.len() == b.hypotheses.len()
+            && a.hypotheses.iter().zip(&b.hypotheses).all(|(x, y)| x.steps.len() == y.steps.len() && x.camera_from_map() == y.camera_from_map())
+    }
+
+    /// One request whose policy rows turn NaN fails alone, with a numerical error; the requests
+    /// stepped in the same batched calls get exactly the answers they get alone.
+    #[test]
+    fn a_failing_row_fails_only_its_own_request() {
+        let manifest = manifest();
+        let map = map(&manifest);
+        let expected: Vec<Localization> = (0..5)
+            .map(|i| {
+                let s = start(&manifest, &map, i, false);
+                localize(&mut FakeBackend::new(manifest.clone()), &map, &s.image_tensor, s.intrinsics, s.prior, s.search).unwrap()
+            })
+            .collect();
+        let scheduler = Scheduler::start(&fake_factory(&manifest), SchedulerConfig { workers: 1, max_batch: 16, queue_capacity: 16 }).unwrap();
+        let answers: Vec<_> = (0..6).map(|i| submit(&scheduler, start(&manifest, &map, i % 5, i == 2))).collect();
+        for (i, answer) in answers.into_iter().enumerate() {
+            let got = answer.blocking_recv().unwrap();
+            if i == 2 {
+                let e = got.err().expect("the poisoned request fails");
+                assert!(matches!(e, JobError::Step(StepError::NonFinite(_))), "{e}");
+            } else {
+                let got = got.ok().expect("batch-mates succeed").localization;
+                assert!(same(&got, &expected[i % 5]), "request {i} answers as it does alone");
+            }
+        }
+        assert!(scheduler.batch_stats().largest_batch > 3, "{:?}", scheduler.batch_stats());
+        assert!(scheduler.shutdown(Duration::from_secs(5)));
+    }
+
+    /// An absurd prior is refused at admission into the batch, without reaching a policy call.
+    #[test]
+    fn an_absurd_prior_fails_before_any_state_is_built() {
+        let manifest = manifest();
+        let map = map(&manifest);
+        let scheduler = Scheduler::start(&fake_factory(&manifest), SchedulerConfig { workers: 1, max_batch: 8, queue_capacity: 8 }).unwrap();
+        let mut bad = start(&manifest, &map, 1, false);
+        bad.prior = Pose::from_rt(nalgebra::Matrix3::identity(), nalgebra::Vector3::new(3e38, 0.0, 0.0));
+        let bad = submit(&scheduler, bad);
+        let good = submit(&scheduler, start(&manifest, &map, 1, false));
+        assert!(matches!(bad.blocking_recv().unwrap(), Err(JobError::Step(StepError::NonFinite(_)))));
+        assert!(good.blocking_recv().unwrap().is_ok());
+        assert!(scheduler.shutdown(Duration::from_secs(5)));
+    }
+
+    /// Slots count from reservation until a worker takes the job; a dropped slot frees its place.
+    #[test]
+    fn capacity_is_reserved_before_work_and_released() {
+        let manifest = manifest();
+        let scheduler = Scheduler::start(&fake_factory(&manifest), SchedulerConfig { workers: 1, max_batch: 8, queue_capacity: 2 }).unwrap();
+        let a = scheduler.reserve().ok().unwrap();
+        let _b = scheduler.reserve().ok().unwrap();
+        assert!(matches!(scheduler.reserve(), Err(SubmitError::QueueFull)));
+        assert_eq!(scheduler.queue_depth(), 2);
+        drop(a);
+        let c = scheduler.reserve().ok().expect("a released slot is free again");
+        let map = map(&manifest);
+        let (reply, answer) = oneshot::channel();
+        let job = Job { start: start(&manifest, &map, 0, false), deadline: Instant::now() + Duration::from_secs(30), span: tracing::Span::none(), reply };
+        scheduler.submit(job, c).ok().unwrap();
+        assert!(answer.blocking_recv().unwrap().is_ok());
+        assert_eq!(scheduler.queue_depth(), 1, "the taken job's slot is released; one is still held");
+        scheduler.close();
+        assert!(matches!(scheduler.reserve(), Err(SubmitError::Draining)));
+    }
+}
