@@ -113,6 +113,16 @@ fn png_header_only(width: u32, height: u32) -> Vec<u8> {
     out
 }
 
+/// A PNG that declares `width` x `height` and holds no pixel data: a decoder learns the size
+/// from it (the header and the start of the image data) before it would allocate anything.
+fn png_declaring(width: u32, height: u32) -> Vec<u8> {
+    let mut out = png_header_only(width, height);
+    out.extend_from_slice(&0u32.to_be_bytes());
+    out.extend_from_slice(b"IDAT");
+    out.extend_from_slice(&crc32(b"IDAT").to_be_bytes());
+    out
+}
+
 fn crc32(bytes: &[u8]) -> u32 {
     let mut crc = 0xffff_ffffu32;
     for b in bytes {
@@ -130,6 +140,7 @@ async fn bad_localize_requests_get_clear_errors() {
     let server = TestServer::start(&tiny_model(), maps.path(), &["--max-body-bytes", "400000"]).await;
     let good = kitti_request(2);
     let png = png_bytes(&test_image(640, 200));
+    let jpeg = jpeg_bytes(&test_image(640, 200));
     let k = json!({"fx": 500.0, "fy": 500.0, "cx": 319.5, "cy": 99.5});
     let with = |patch: serde_json::Value| {
         let mut v = json!({"image": b64(&png), "intrinsics": k, "max_iterations": 2});
@@ -155,6 +166,15 @@ async fn bad_localize_requests_get_clear_errors() {
         ("non-rigid prior", with(json!({"prior_camera_from_map": [[2.0,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]})), 422, "invalid_input"),
         ("missing image", json!({"intrinsics": k}), 422, "invalid_input"),
         ("unknown field", with(json!({"imgae": "x"})), 422, "invalid_input"),
+        // Well-formed JSON of the wrong shape is 422, not a syntax error.
+        ("prior row of 5", with(json!({"prior_camera_from_map": [[1,0,0,0,7],[0,1,0,0],[0,0,1,0],[0,0,0,1]]})), 422, "invalid_input"),
+        ("prior of 3 rows", with(json!({"prior_camera_from_map": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]})), 422, "invalid_input"),
+        ("absurd prior", with(json!({"prior_camera_from_map": [[1,0,0,3e38],[0,1,0,0],[0,0,1,0],[0,0,0,1]]})), 422, "invalid_input"),
+        ("truncated jpeg", with(json!({"image": b64(&jpeg[..jpeg.len() * 2 / 3])})), 400, "corrupt_image"),
+        // Inside the side limit, over the pixel budget: refused from the header alone.
+        ("64 MP image", with(json!({"image": b64(&png_declaring(8000, 8000))})), 413, "payload_too_large"),
+        // Covering the model input would resize a 1x8192 strip to 512x4,194,304 pixels.
+        ("thin strip", with(json!({"image": b64(&png_bytes(&test_image(1, 8192)))})), 422, "invalid_input"),
     ];
     for (name, body, status, error_type) in cases {
         let map = if name == "unknown map" { "nowhere" } else { "street" };

@@ -72,6 +72,18 @@ impl TestServer {
         format!("{}{}", self.base, path)
     }
 
+    /// host:port, for raw TCP clients.
+    pub fn addr(&self) -> String {
+        self.base.trim_start_matches("http://").to_string()
+    }
+
+    /// Sends the shutdown signal (SIGTERM's stand-in) without waiting for the server to stop.
+    pub fn signal_shutdown(&mut self) {
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+    }
+
     pub async fn stop(mut self) {
         if let Some(tx) = self.shutdown.take() {
             let _ = tx.send(());
