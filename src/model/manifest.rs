@@ -69,6 +69,10 @@ pub struct GraphSpec {
     pub sha256: String,
     pub inputs: BTreeMap<String, Vec<serde_json::Value>>,
     pub outputs: BTreeMap<String, Vec<serde_json::Value>>,
+    /// Floating-point operations of one run (N points, batch 1: per policy row for the agent),
+    /// counted from the ONNX file by `training/cmr/flops.py`; absent in older manifests.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub flops: Option<u64>,
 }
 
 /// One expected dimension: a fixed size, or any size (a dynamic axis such as N or B).

@@ -20,9 +20,11 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import onnx
 import torch
 
 from . import geometry as g
+from .flops import count as count_flops
 from .models import (FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, IMAGE_HEIGHT, IMAGE_WIDTH, NUM_DOFS, NUM_STEPS,
                      STRIDE, build_all, parameter_counts)
 
@@ -111,11 +113,14 @@ def git_commit() -> str:
         return "unknown"
 
 
-def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenance: dict, validation: dict) -> dict:
+def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenance: dict, validation: dict,
+             flops: dict[str, int] | None = None) -> dict:
     graphs = {}
     for name, (file, sha) in files.items():
         ins, outs = CONTRACT_SHAPES[name]
         graphs[name] = dict(file=file, sha256=sha, inputs=ins, outputs=outs)
+        if flops and name in flops:
+            graphs[name]["flops"] = flops[name]
     return {
         "format": MANIFEST_FORMAT,
         "image": dict(width=IMAGE_WIDTH, height=IMAGE_HEIGHT, nominal_scale=NOMINAL_SCALE, mean=list(IMAGE_MEAN),
@@ -133,15 +138,17 @@ def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenan
 
 def export_models(models: dict[str, torch.nn.Module], out_dir: Path, provenance: dict, validation: dict | None = None) -> dict:
     out_dir = Path(out_dir)
-    files = {}
+    files, flops = {}, {}
     for name, module in models.items():
         data = onnx_bytes(name, module)
         atomic_write_bytes(out_dir / f"{name}.onnx", data)
         files[name] = (f"{name}.onnx", hashlib.sha256(data).hexdigest())
+        sizes = {"N": NUM_POINTS, "B": 1}
+        flops[name] = count_flops(onnx.load_from_string(data), sizes)[0]
     provenance = dict(provenance)
     provenance.setdefault("git_commit", git_commit())
     provenance.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
-    doc = manifest(files, parameter_counts(models), provenance, validation or {})
+    doc = manifest(files, parameter_counts(models), provenance, validation or {}, flops)
     atomic_write_bytes(out_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
     return doc
 
