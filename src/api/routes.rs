@@ -153,8 +153,8 @@ fn gzip_encoded(headers: &HeaderMap) -> Result<bool, ApiError> {
         (status = 401, body = ErrorBody, description = "missing or wrong bearer token (checked before the body is read)"),
         (status = 408, body = ErrorBody, description = "the body did not arrive in time"),
         (status = 413, body = ErrorBody, description = "the body, or its gzip-inflated content, is larger than max_map_bytes"),
-        (status = 415, body = ErrorBody, description = "not a point cloud this server reads (image, archive, LAZ, unknown binary) or an unsupported Content-Encoding; the message names what was received"),
-        (status = 422, body = ErrorBody, description = "the cloud does not parse, has coordinates beyond ±1e7 m or no finite point, or contradicts `format`")),
+        (status = 415, body = ErrorBody, description = "recognised as something other than a point cloud this server reads (PNG/JPEG image, zip/7z/xz/zstd/bzip2 archive, LAZ, gzip inside gzip, JSON/HTML/PDF) or an unsupported Content-Encoding; the message names what was received"),
+        (status = 422, body = ErrorBody, description = "bytes of no known format, a cloud that does not parse, has a coordinate beyond ±1e7 m or no finite point, corrupt gzip, or a body whose header contradicts `format`")),
     security(("bearer" = [])))]
 pub async fn put_map(
     _admin: Admin,

@@ -27,7 +27,7 @@ pub enum MapError {
     #[error("cannot read the point cloud: {0}")]
     BadCloud(String),
     /// The body is not a point cloud in a format we read (an image, an archive, LAZ, ...).
-    #[error("not a point cloud this server reads: {0}")]
+    #[error("{0}")]
     Unsupported(String),
     /// The cloud file (inflated, for gzip) is larger than the map byte limit.
     #[error("{0}")]

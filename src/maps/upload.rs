@@ -1,10 +1,11 @@
 //! An uploaded map body, from bytes to a cloud: gzip is inflated (under the map byte bound), the
 //! content is named by its magic bytes, then parsed as the format it is.
 //!
-//! Refusals, as [`MapError`]s: a body that is not a point cloud (PNG, JPEG, zip, LAZ, gzip inside
-//! gzip, unknown binary) is `Unsupported` (HTTP 415) and says what it looks like and what is
-//! accepted; gzip that inflates past the bound is `TooLarge` (413); a cloud that does not parse,
-//! corrupt gzip, or a `format` that contradicts the body's own header is `BadCloud` (422).
+//! Refusals, as [`MapError`]s: a body recognised as something other than a point cloud (PNG,
+//! JPEG, zip, LAZ, gzip inside gzip, ...) is `Unsupported` (HTTP 415) and says what it looks like
+//! and what is accepted; gzip that inflates past the bound is `TooLarge` (413); bytes with no known
+//! signature that are not KITTI `.bin` either, a cloud that does not parse, corrupt gzip, or a
+//! `format` that contradicts the body's own header are `BadCloud` (422).
 
 use super::formats::sniff::{content, Content};
 use super::formats::{self, gzip, CloudFormat, FormatError, Limits, Parsed, ACCEPTED};
@@ -49,7 +50,7 @@ pub fn read_upload(upload: Upload, limits: Limits) -> Result<Parsed, MapError> {
         (Content::Unknown, Some(named)) => named,
         (Content::Unknown, None) if bytes.is_empty() => return Err(MapError::BadCloud(FormatError::Empty.to_string())),
         (Content::Unknown, None) => CloudFormat::sniff(bytes).ok_or_else(|| {
-            MapError::Unsupported(format!(
+            MapError::BadCloud(format!(
                 "{what} {} bytes with no known signature and not a KITTI .bin (a multiple of 16 bytes); send {ACCEPTED}",
                 bytes.len()
             ))
