@@ -6,7 +6,8 @@
 //! containers) and held under an exclusive advisory lock (`flock`) from creation until the rename.
 //! So a temp file whose lock can be taken belongs to no live writer: [`remove_orphaned_temp_files`]
 //! deletes only those, and never another live process's in-progress write (replicas sharing a
-//! map directory). The lock dies with its process, however it dies.
+//! map directory). The lock dies with its process, however it dies. On a filesystem without
+//! `flock` support, writes go ahead unlocked and the sweep leaves such files alone.
 
 use std::fs::File;
 use std::io::Write;
@@ -48,8 +49,15 @@ fn create_locked_temp(dir: &Path, name: &str) -> std::io::Result<(File, PathBuf)
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
             other => other?,
         };
-        if file.try_lock().is_ok() && same_file(&file, &at) {
-            return Ok((file, at));
+        match file.try_lock() {
+            Ok(()) if same_file(&file, &at) => return Ok((file, at)),
+            // Swept before we locked it (gone), or held by the sweep that is deleting it.
+            Ok(()) | Err(std::fs::TryLockError::WouldBlock) => continue,
+            // A filesystem without locks: write unprotected, as before locks were used.
+            Err(std::fs::TryLockError::Error(e)) => {
+                tracing::debug!("cannot lock {}: {e}; writing without a lock", at.display());
+                return Ok((file, at));
+            }
         }
     }
     Err(std::io::Error::other("could not create a temporary file that stays ours"))
@@ -71,6 +79,7 @@ pub fn remove_orphaned_temp_files(dir: &Path) -> usize {
         let Ok(file) = File::open(&path) else { continue };
         // Held: a live writer's. Taken: its writer is gone; the lock keeps a new writer from
         // reusing it while we delete it (it never would: names are created exclusively).
+        // An error other than "held" (no lock support) tells nothing: leave the file.
         if file.try_lock().is_ok() && same_file(&file, &path) && std::fs::remove_file(&path).is_ok() {
             tracing::info!("removed orphaned temporary file {}", path.display());
             removed += 1;

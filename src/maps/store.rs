@@ -33,6 +33,7 @@ pub fn validate_id(id: &str) -> Result<(), MapError> {
 /// What a user may attach to a region. Stored as the `<id>.json` sidecar; over HTTP it must be a
 /// JSON object with only these fields ([`MapMetadata::from_json`]).
 #[derive(Debug, Clone, Default, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct MapMetadata {
     /// Free text, at most 4096 bytes.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -49,7 +50,7 @@ pub struct MapMetadata {
     pub source: Option<serde_json::Value>,
 }
 
-/// A 4x4 matrix of numbers, rows first (the OpenAPI shape of `[[f64; 4]; 4]`).
+/// A 4x4 matrix of numbers, rows first (the OpenAPI shape of `[[f64; 4]; 4]`), or null.
 fn matrix4x4_schema() -> utoipa::openapi::schema::Array {
     use utoipa::openapi::schema::{ArrayBuilder, ObjectBuilder, SchemaType, Type};
     let row = ArrayBuilder::new().items(ObjectBuilder::new().schema_type(SchemaType::Type(Type::Number))).min_items(Some(4)).max_items(Some(4));
@@ -58,6 +59,7 @@ fn matrix4x4_schema() -> utoipa::openapi::schema::Array {
         .items(row)
         .min_items(Some(4))
         .max_items(Some(4))
+        .description(Some("The rig's initial camera_from_map: row-major 4x4 rigid transform (4 rows of 4 numbers, last row [0, 0, 0, 1]), the default prior of a localize request."))
         .build()
 }
 
@@ -90,6 +92,16 @@ impl MapMetadata {
         let metadata = MapMetadata { description: field(&fields, "description")?, initial_camera_from_map: field(&fields, "initial_camera_from_map")?, source };
         metadata.validate()?;
         Ok(metadata)
+    }
+
+    /// A stored sidecar: fields this version does not know (written by a newer replica sharing
+    /// the directory) are ignored rather than making the region unreadable.
+    pub fn from_sidecar(text: &[u8]) -> Result<Self, serde_json::Error> {
+        let mut value: serde_json::Value = serde_json::from_slice(text)?;
+        if let Some(fields) = value.as_object_mut() {
+            fields.retain(|k, _| METADATA_FIELDS.contains(&k.as_str()));
+        }
+        serde_json::from_value(value)
     }
 
     /// The checks the types do not make: description length, the matrix is a finite rigid
@@ -172,7 +184,7 @@ impl MapStore {
         let (cloud, sha, bytes) = self.read_cloud(id)?;
         let metadata = match std::fs::read(self.path(id, "json")) {
             Ok(text) => {
-                let m: MapMetadata = serde_json::from_slice(&text).map_err(|e| MapError::BadMetadata(format!("{id}.json: {e}")))?;
+                let m = MapMetadata::from_sidecar(&text).map_err(|e| MapError::BadMetadata(format!("{id}.json: {e}")))?;
                 m.validate()?;
                 m
             }
@@ -347,6 +359,16 @@ mod tests {
         drop(held);
         MapStore::open(dir.path()).unwrap();
         assert!(!live.exists(), "swept once its writer is gone");
+    }
+
+    #[test]
+    fn a_sidecar_with_fields_from_a_newer_version_still_loads() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("ok.bin"), [0u8; 32]).unwrap();
+        std::fs::write(dir.path().join("ok.json"), br#"{"description": "d", "source": 5, "added_later": true}"#).unwrap();
+        let (store, warnings) = MapStore::open(dir.path()).unwrap();
+        assert!(warnings.is_empty(), "{warnings:?}");
+        assert_eq!(store.get("ok").unwrap().metadata.description.as_deref(), Some("d"));
     }
 
     #[test]
