@@ -1,10 +1,13 @@
 //! Extractors whose rejections speak the API's error shape (`{error, error_type}` JSON) instead
 //! of axum's plain text.
 
+use std::sync::Arc;
+
 use axum::extract::{FromRequestParts, Path};
 use axum::http::request::Parts;
 use utoipa::IntoParams;
 
+use super::AppState;
 use super::error::ApiError;
 
 /// The `{id}` path segment of the map routes, percent-decoded. An undecodable segment is a 400
@@ -19,6 +22,19 @@ impl<S: Send + Sync> FromRequestParts<S> for MapId {
             Ok(Path(id)) => Ok(MapId(id)),
             Err(e) => Err(ApiError::BadRequest(format!("map id: {}", e.body_text()))),
         }
+    }
+}
+
+/// The bearer-token check of map management, as an extractor: it runs on the request head,
+/// before the body extractor, so an unauthenticated upload is refused (401) without reading or
+/// buffering its body (and a client that sent `Expect: 100-continue` never sends it).
+pub struct Admin;
+
+impl axum::extract::FromRequestParts<Arc<AppState>> for Admin {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut axum::http::request::Parts, st: &Arc<AppState>) -> Result<Self, ApiError> {
+        st.authorize(&parts.headers).map(|()| Admin)
     }
 }
 

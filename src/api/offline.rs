@@ -8,7 +8,7 @@ use std::sync::Arc;
 use anyhow::{Context, Result, anyhow};
 
 use crate::maps::formats::CloudFormat;
-use crate::maps::{MapCache, MapMetadata, MapStore, Maps};
+use crate::maps::{MapCache, MapMetadata, MapStore, Maps, Upload};
 use crate::model::{BackendOptions, ModelSet};
 use crate::serving::{ImagePayload, Lifecycle, LocalizeRequest, Localizer, Scheduler};
 
@@ -56,7 +56,7 @@ pub fn run(args: LocalizeArgs) -> Result<()> {
     let (store, _) = MapStore::open(dir.path()).map_err(|e| anyhow!("{e}"))?;
     let maps = Arc::new(Maps::new(store, MapCache::new(1 << 30), Box::new(models.backend()?)));
     let id = "map";
-    maps.register(id, &bytes, format, metadata).map_err(|e| anyhow!("{}: {e}", args.map.display()))?;
+    maps.register(id, Upload { bytes: &bytes, format, gzip: false, max_bytes: usize::MAX }, metadata).map_err(|e| anyhow!("{}: {e}", args.map.display()))?;
     let scheduler = Arc::new(Scheduler::start(&models.factory(), super::config::ServeArgs { workers: 1, ..config.clone() }.scheduler())?);
     let lifecycle = Arc::new(Lifecycle::default());
     lifecycle.set_ready();

@@ -12,12 +12,12 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use crate::agent::search::{MAX_HYPOTHESES, MAX_ITERATIONS};
 use crate::maps::formats::CloudFormat;
-use crate::maps::{MapMetadata, validate_id};
+use crate::maps::{MapMetadata, Upload, validate_id};
 use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest};
 
 use super::AppState;
 use super::error::{ApiError, ErrorBody};
-use super::extract::{MapId, MapIdParam, ms};
+use super::extract::{Admin, MapId, MapIdParam, ms};
 use super::types::*;
 
 type Shared = State<Arc<AppState>>;
@@ -108,33 +108,53 @@ pub async fn get_map(State(st): Shared, MapId(id): MapId) -> Result<Json<MapSumm
     Ok(Json(MapSummary::new(entry, cached)))
 }
 
-/// Uploads (or replaces) a map region from raw point-cloud bytes: KITTI .bin, PCD or PLY.
-/// The previous region stays intact unless the new one parses and encodes.
-#[utoipa::path(put, path = "/v1/maps/{id}", params(MapIdParam, UploadParams),
-    request_body(content = Vec<u8>, content_type = "application/octet-stream"),
-    responses((status = 201, body = RegisterResponse), (status = 200, body = RegisterResponse),
-        (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 408, body = ErrorBody),
-        (status = 413, body = ErrorBody), (status = 422, body = ErrorBody)),
+/// Whether the body is gzip-compressed by `Content-Encoding` (`gzip`, `x-gzip` or `identity`;
+/// anything else is 415).
+fn gzip_encoded(headers: &HeaderMap) -> Result<bool, ApiError> {
+    let Some(value) = headers.get(header::CONTENT_ENCODING) else { return Ok(false) };
+    match value.to_str().unwrap_or("").trim().to_ascii_lowercase().as_str() {
+        "" | "identity" => Ok(false),
+        "gzip" | "x-gzip" => Ok(true),
+        other => Err(ApiError::UnsupportedMediaType(format!("Content-Encoding {other:?} is not supported; send gzip or identity"))),
+    }
+}
+
+/// Uploads (or replaces) a map region from raw point-cloud bytes: KITTI .bin, PCD, PLY or LAS
+/// 1.0-1.4, optionally gzip-compressed (`Content-Encoding: gzip`, or a gzip body recognised by
+/// its magic bytes; inflated size bounded by `max_map_bytes`). Coordinates must be finite-or-NaN
+/// and within ±1e7 m (points with a NaN/infinite coordinate are dropped). The previous region stays
+/// intact unless the new one parses, encodes and is stored. With an admin token, the token is
+/// checked before the body is read.
+#[utoipa::path(put, path = "/v1/maps/{id}", params(MapIdParam, UploadParams,
+        ("Content-Encoding" = Option<String>, Header, description = "`gzip` when the body is gzip-compressed (also recognised without it); `identity` or absent otherwise")),
+    request_body(content = Vec<u8>, content_type = "application/octet-stream",
+        description = "The point-cloud file: KITTI .bin (float32 x, y, z, intensity), PCD (ascii, binary, binary_compressed), PLY (ascii, binary), LAS 1.0-1.4 (not LAZ); optionally gzip-compressed"),
+    responses((status = 201, body = RegisterResponse, description = "new region"), (status = 200, body = RegisterResponse, description = "region replaced"),
+        (status = 400, body = ErrorBody, description = "invalid map id or unreadable body"),
+        (status = 401, body = ErrorBody, description = "missing or wrong bearer token (checked before the body is read)"),
+        (status = 408, body = ErrorBody, description = "the body did not arrive in time"),
+        (status = 413, body = ErrorBody, description = "the body, or its gzip-inflated content, is larger than max_map_bytes"),
+        (status = 415, body = ErrorBody, description = "recognised as something other than a point cloud this server reads (PNG/JPEG image, zip/7z/xz/zstd/bzip2 archive, LAZ, gzip inside gzip, JSON/HTML/PDF) or an unsupported Content-Encoding; the message names what was received"),
+        (status = 422, body = ErrorBody, description = "bytes of no known format, a cloud that does not parse, has a coordinate beyond ±1e7 m or no finite point, corrupt gzip, or a body whose header contradicts `format`")),
     security(("bearer" = [])))]
 pub async fn put_map(
+    _admin: Admin,
     State(st): Shared,
     MapId(id): MapId,
     Query(params): Query<UploadParams>,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
-    st.authorize(&headers)?;
     validate_id(&id)?;
-    let body = body.map_err(ApiError::from_body)?;
+    let gzip = gzip_encoded(&headers)?;
     let format = match params.format.as_deref() {
         None | Some("") => None,
-        Some("kitti_bin" | "bin" | "kitti") => Some(CloudFormat::KittiBin),
-        Some("pcd") => Some(CloudFormat::Pcd),
-        Some("ply") => Some(CloudFormat::Ply),
-        Some(other) => return Err(ApiError::Invalid(format!("unknown format {other:?}; use kitti_bin, pcd or ply"))),
+        Some(name) => Some(name.parse::<CloudFormat>().map_err(ApiError::Invalid)?),
     };
+    let body = body.map_err(ApiError::from_body)?;
     let t = Instant::now();
     let maps = st.maps.clone();
+    let max_bytes = st.config.max_map_bytes;
     let (entry, timings, replaced) = blocking(move || {
         let existing = maps.store.get(&id).ok();
         let replaced = existing.is_some();
@@ -143,7 +163,7 @@ pub async fn put_map(
             m.description = Some(d);
             m
         });
-        let (entry, timings) = maps.register(&id, &body, format, metadata)?;
+        let (entry, timings) = maps.register(&id, Upload { bytes: &body, format, gzip, max_bytes }, metadata)?;
         Ok::<_, ApiError>((entry, timings, replaced))
     })
     .await?;
@@ -158,21 +178,22 @@ pub async fn put_map(
     Ok((status, Json(body)).into_response())
 }
 
-/// Replaces a region's metadata (description, initial_camera_from_map).
+/// Replaces a region's metadata (description, initial_camera_from_map, source). The body must be a
+/// JSON object with only those fields, each of its schema's type (else 422).
 #[utoipa::path(put, path = "/v1/maps/{id}/metadata", params(MapIdParam),
     request_body = MapMetadata,
     responses((status = 200, body = MapSummary), (status = 400, body = ErrorBody), (status = 401, body = ErrorBody),
-        (status = 404, body = ErrorBody), (status = 408, body = ErrorBody), (status = 422, body = ErrorBody)),
+        (status = 404, body = ErrorBody), (status = 408, body = ErrorBody), (status = 413, body = ErrorBody), (status = 422, body = ErrorBody)),
     security(("bearer" = [])))]
 pub async fn put_metadata(
+    _admin: Admin,
     State(st): Shared,
     MapId(id): MapId,
-    headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Json<MapSummary>, ApiError> {
-    st.authorize(&headers)?;
+    validate_id(&id)?;
     let body = body.map_err(ApiError::from_body)?;
-    let metadata: MapMetadata = parse_json(&body)?;
+    let metadata = MapMetadata::from_json(parse_json(&body)?)?;
     let maps = st.maps.clone();
     let id2 = id.clone();
     let entry = blocking(move || maps.store.set_metadata(&id2, metadata)).await?;
@@ -184,8 +205,7 @@ pub async fn put_metadata(
 #[utoipa::path(delete, path = "/v1/maps/{id}", params(MapIdParam),
     responses((status = 204), (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 404, body = ErrorBody)),
     security(("bearer" = [])))]
-pub async fn delete_map(State(st): Shared, MapId(id): MapId, headers: HeaderMap) -> Result<StatusCode, ApiError> {
-    st.authorize(&headers)?;
+pub async fn delete_map(_admin: Admin, State(st): Shared, MapId(id): MapId) -> Result<StatusCode, ApiError> {
     let maps = st.maps.clone();
     blocking(move || maps.delete(&id)).await?;
     Ok(StatusCode::NO_CONTENT)

@@ -245,7 +245,8 @@ pub struct RegisterTimingsMs {
 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 pub struct UploadParams {
-    /// `kitti_bin`, `pcd` or `ply`; sniffed from the bytes when absent.
+    /// `kitti_bin`, `pcd`, `ply` or `las`; sniffed from the bytes when absent (a body whose own
+    /// header names another format is refused with 422).
     pub format: Option<String>,
     /// Optional description stored in the sidecar (metadata can also be set with PUT .../metadata).
     pub description: Option<String>,

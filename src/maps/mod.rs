@@ -6,6 +6,7 @@ pub mod embeddings;
 pub mod formats;
 pub mod prepared;
 pub mod store;
+pub mod upload;
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -16,6 +17,7 @@ use crate::model::Backend;
 pub use cache::MapCache;
 pub use prepared::{PreparedMap, centroid, prepare_map, sample_points};
 pub use store::{MapEntry, MapMetadata, MapStore, validate_id};
+pub use upload::Upload;
 
 #[derive(Debug, Clone, thiserror::Error)]
 pub enum MapError {
@@ -25,6 +27,12 @@ pub enum MapError {
     NotFound(String),
     #[error("cannot read the point cloud: {0}")]
     BadCloud(String),
+    /// The body is not a point cloud in a format we read (an image, an archive, LAZ, ...).
+    #[error("{0}")]
+    Unsupported(String),
+    /// The cloud file (inflated, for gzip) is larger than the map byte limit.
+    #[error("{0}")]
+    TooLarge(String),
     #[error("invalid map metadata: {0}")]
     BadMetadata(String),
     #[error("storage error: {0}")]
@@ -107,27 +115,19 @@ impl Maps {
         prepare_map(encoder.as_mut(), cloud).map_err(|e| MapError::Inference(format!("{e:#}")))
     }
 
-    /// Parses, encodes and stores an uploaded cloud, replacing any region with the same id only
-    /// once everything succeeded. Blocking.
-    pub fn register(
-        &self,
-        id: &str,
-        bytes: &[u8],
-        format: Option<formats::CloudFormat>,
-        metadata: Option<MapMetadata>,
-    ) -> Result<(MapEntry, RegisterTimings), MapError> {
+    /// Parses (see [`upload::read_upload`]), encodes and stores an uploaded cloud, replacing any
+    /// region with the same id only once everything succeeded. Blocking.
+    pub fn register(&self, id: &str, upload: Upload, metadata: Option<MapMetadata>) -> Result<(MapEntry, RegisterTimings), MapError> {
         validate_id(id)?;
         if let Some(m) = &metadata {
             m.validate()?;
         }
         let t = Instant::now();
-        let format = format
-            .or_else(|| formats::CloudFormat::sniff(bytes))
-            .ok_or_else(|| MapError::BadCloud("unrecognised point-cloud format; pass ?format=kitti_bin|pcd|ply".into()))?;
-        let cloud = formats::parse(bytes, format).map_err(|e| MapError::BadCloud(e.to_string()))?;
-        if cloud.xyz.is_empty() {
-            return Err(MapError::BadCloud("the cloud has no points".into()));
+        let parsed = upload::read_upload(upload, formats::Limits::default())?;
+        if parsed.dropped_non_finite > 0 {
+            tracing::info!(map = id, dropped = parsed.dropped_non_finite, kept = parsed.cloud.len(), "dropped points with non-finite coordinates");
         }
+        let cloud = parsed.cloud;
         let parse_ms = ms(t);
         let t = Instant::now();
         let prepared = self.encode(&cloud.xyz)?;

@@ -30,22 +30,70 @@ pub fn validate_id(id: &str) -> Result<(), MapError> {
     if ok { Ok(()) } else { Err(MapError::InvalidId(id.to_string())) }
 }
 
-/// What a user may attach to a region.
+/// What a user may attach to a region. Stored as the `<id>.json` sidecar; over HTTP it must be a
+/// JSON object with only these fields ([`MapMetadata::from_json`]).
 #[derive(Debug, Clone, Default, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
 pub struct MapMetadata {
+    /// Free text, at most 4096 bytes.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(max_length = 4096)]
     pub description: Option<String>,
-    /// The rig's initial camera_from_map (row-major 4x4): the default prior of a localize request.
+    /// The rig's initial camera_from_map (row-major 4x4 rigid transform: rotation, translation in
+    /// metres, last row 0 0 0 1): the default prior of a localize request.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    #[schema(value_type = Option<Vec<Vec<f64>>>)]
+    #[schema(value_type = Option<crate::geometry::pose::Matrix4x4>)]
     pub initial_camera_from_map: Option<[[f64; 4]; 4]>,
-    /// Free-form provenance (kept as given).
+    /// Free-form provenance: a JSON object, kept as given.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schema(value_type = Option<Object>)]
     pub source: Option<serde_json::Value>,
 }
 
+/// The fields a metadata object may have.
+const METADATA_FIELDS: [&str; 3] = ["description", "initial_camera_from_map", "source"];
+
 impl MapMetadata {
+    /// Metadata from a request's JSON, checked against the schema: an object with only the known
+    /// fields, each `null` or of its type (description a string, initial_camera_from_map a 4x4
+    /// rigid transform, source an object), then [`MapMetadata::validate`].
+    /// Errors: `MapError::BadMetadata` naming the field.
+    pub fn from_json(value: serde_json::Value) -> Result<Self, MapError> {
+        let bad = |m: String| MapError::BadMetadata(m);
+        let serde_json::Value::Object(fields) = value else {
+            return Err(bad(format!("the metadata must be a JSON object, got {}", json_kind(&value))));
+        };
+        if let Some(unknown) = fields.keys().find(|k| !METADATA_FIELDS.contains(&k.as_str())) {
+            return Err(bad(format!("unknown field {unknown:?}; the fields are {}", METADATA_FIELDS.join(", "))));
+        }
+        fn field<T: serde::de::DeserializeOwned>(fields: &serde_json::Map<String, serde_json::Value>, name: &str) -> Result<Option<T>, MapError> {
+            match fields.get(name) {
+                None | Some(serde_json::Value::Null) => Ok(None),
+                Some(v) => T::deserialize(v).map(Some).map_err(|e| MapError::BadMetadata(format!("{name}: {e}"))),
+            }
+        }
+        let source: Option<serde_json::Value> = field(&fields, "source")?;
+        if let Some(s) = source.as_ref().filter(|s| !s.is_object()) {
+            return Err(bad(format!("source must be a JSON object, got {}", json_kind(s))));
+        }
+        let metadata = MapMetadata { description: field(&fields, "description")?, initial_camera_from_map: field(&fields, "initial_camera_from_map")?, source };
+        metadata.validate()?;
+        Ok(metadata)
+    }
+
+    /// A stored sidecar: fields this version does not know (written by a newer replica sharing
+    /// the directory) are ignored rather than making the region unreadable.
+    pub fn from_sidecar(text: &[u8]) -> Result<Self, serde_json::Error> {
+        let mut value: serde_json::Value = serde_json::from_slice(text)?;
+        if let Some(fields) = value.as_object_mut() {
+            fields.retain(|k, _| METADATA_FIELDS.contains(&k.as_str()));
+        }
+        serde_json::from_value(value)
+    }
+
+    /// The checks the types do not make: description length, the matrix is a finite rigid
+    /// transform. (Not the type of `source`, so sidecars written before it was checked still load.)
+    /// Errors: `MapError::BadMetadata`.
     pub fn validate(&self) -> Result<(), MapError> {
         if let Some(m) = self.initial_camera_from_map {
             Pose::try_from(PoseMatrix(m)).map_err(|e| MapError::BadMetadata(format!("initial_camera_from_map: {e}")))?;
@@ -95,7 +143,7 @@ impl MapStore {
         std::fs::create_dir_all(dir).map_err(|e| MapError::Io(format!("cannot create {}: {e}", dir.display())))?;
         let store = MapStore { dir: dir.to_path_buf(), registry: RwLock::new(BTreeMap::new()), writes: Mutex::new(()) };
         let mut warnings = Vec::new();
-        remove_stale_temp_files(dir);
+        crate::atomic_file::remove_orphaned_temp_files(dir);
         let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)
             .map_err(|e| MapError::Io(format!("cannot list {}: {e}", dir.display())))?
             .filter_map(|e| e.ok().map(|e| e.path()))
@@ -123,7 +171,7 @@ impl MapStore {
         let (cloud, sha, bytes) = self.read_cloud(id)?;
         let metadata = match std::fs::read(self.path(id, "json")) {
             Ok(text) => {
-                let m: MapMetadata = serde_json::from_slice(&text).map_err(|e| MapError::BadMetadata(format!("{id}.json: {e}")))?;
+                let m = MapMetadata::from_sidecar(&text).map_err(|e| MapError::BadMetadata(format!("{id}.json: {e}")))?;
                 m.validate()?;
                 m
             }
@@ -256,16 +304,14 @@ impl MapStore {
     }
 }
 
-/// Temp files left by a crash in the middle of `write_atomic` (`.<name>.tmp-<pid>-<n>`).
-fn remove_stale_temp_files(dir: &Path) {
-    let Ok(entries) = std::fs::read_dir(dir) else { return };
-    for entry in entries.flatten() {
-        let name = entry.file_name();
-        let name = name.to_string_lossy();
-        if name.starts_with('.') && name.contains(".tmp-") {
-            tracing::info!("removing stale temporary file {}", entry.path().display());
-            let _ = std::fs::remove_file(entry.path());
-        }
+fn json_kind(value: &serde_json::Value) -> &'static str {
+    match value {
+        serde_json::Value::Null => "null",
+        serde_json::Value::Bool(_) => "a boolean",
+        serde_json::Value::Number(_) => "a number",
+        serde_json::Value::String(_) => "a string",
+        serde_json::Value::Array(_) => "an array",
+        serde_json::Value::Object(_) => "an object",
     }
 }
 
@@ -284,6 +330,52 @@ mod tests {
         assert!(!dir.path().join(".a.bin.tmp-1-0").exists());
         assert_eq!(store.list().iter().map(|e| e.id.as_str()).collect::<Vec<_>>(), ["ok"]);
         assert_eq!(warnings.len(), 2, "{warnings:?}");
+    }
+
+    #[test]
+    fn opening_spares_a_temp_file_that_a_live_writer_holds() {
+        let dir = tempfile::tempdir().unwrap();
+        let live = dir.path().join(".yard.bin.tmp-7-0-0badc0de");
+        let held = std::fs::File::create(&live).unwrap();
+        held.lock().unwrap(); // as another replica's write_atomic holds it
+        let orphan = dir.path().join(".yard.emb.tmp-7-1-0badc0de");
+        std::fs::write(&orphan, b"left by a kill -9").unwrap();
+        MapStore::open(dir.path()).unwrap();
+        assert!(live.exists(), "another replica's upload in progress survives a store opening");
+        assert!(!orphan.exists());
+        drop(held);
+        MapStore::open(dir.path()).unwrap();
+        assert!(!live.exists(), "swept once its writer is gone");
+    }
+
+    #[test]
+    fn a_sidecar_with_fields_from_a_newer_version_still_loads() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("ok.bin"), [0u8; 32]).unwrap();
+        std::fs::write(dir.path().join("ok.json"), br#"{"description": "d", "source": 5, "added_later": true}"#).unwrap();
+        let (store, warnings) = MapStore::open(dir.path()).unwrap();
+        assert!(warnings.is_empty(), "{warnings:?}");
+        assert_eq!(store.get("ok").unwrap().metadata.description.as_deref(), Some("d"));
+    }
+
+    #[test]
+    fn metadata_from_json_follows_the_schema() {
+        let ok = MapMetadata::from_json(serde_json::json!({"description": "d", "source": {"by": "lidar"}, "initial_camera_from_map": null})).unwrap();
+        assert_eq!(ok.description.as_deref(), Some("d"));
+        assert!(ok.initial_camera_from_map.is_none());
+        for (bad, says) in [
+            (serde_json::json!({"source": 5}), "source must be a JSON object, got a number"),
+            (serde_json::json!({"source": "x"}), "source must be a JSON object, got a string"),
+            (serde_json::json!({"description": 5}), "description:"),
+            (serde_json::json!({"initial_camera_from_map": [[1, 0, 0, 0]]}), "initial_camera_from_map:"),
+            (serde_json::json!({"initial_camera_from_map": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}), "initial_camera_from_map:"),
+            (serde_json::json!({"descripton": "typo"}), "unknown field \"descripton\""),
+            (serde_json::json!(["d", null, null]), "must be a JSON object, got an array"),
+            (serde_json::json!({"description": "x".repeat(4097)}), "longer than 4096"),
+        ] {
+            let err = MapMetadata::from_json(bad.clone()).unwrap_err().to_string();
+            assert!(err.contains(says), "{bad}: {err}");
+        }
     }
 
     #[test]

@@ -18,5 +18,6 @@ pub use decode::{ImageLimits, ImagePayload};
 pub use error::LocalizeError;
 pub use lifecycle::Lifecycle;
 pub use localizer::{Admission, Localized, Localizer, LocalizerConfig};
-pub use request::{IntrinsicsBody, LocalizeRequest, Matrix4x4, RequestDefaults, ValidLocalizeRequest};
+pub use crate::geometry::pose::Matrix4x4;
+pub use request::{IntrinsicsBody, LocalizeRequest, RequestDefaults, ValidLocalizeRequest};
 pub use scheduler::{Scheduler, SchedulerConfig};

@@ -6,56 +6,11 @@ use serde::Deserialize;
 use utoipa::ToSchema;
 
 use crate::agent::search::{MAX_HYPOTHESES, MAX_ITERATIONS, SearchConfig, SearchTuning};
+use crate::geometry::pose::Matrix4x4;
 use crate::geometry::{Intrinsics, Pose};
 use crate::maps::MapEntry;
 
 use super::error::LocalizeError;
-
-/// A row-major 4x4 rigid transform as JSON: 4 rows of 4 numbers. Read as nested lists so that a
-/// wrong shape is a 422 naming the row, not a JSON syntax error.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, Deserialize)]
-#[serde(transparent)]
-pub struct Matrix4x4(pub Vec<Vec<f64>>);
-
-impl Matrix4x4 {
-    pub fn from_rows(rows: [[f64; 4]; 4]) -> Self {
-        Self(rows.iter().map(|r| r.to_vec()).collect())
-    }
-
-    /// The matrix, or what is wrong with its shape.
-    pub fn rows(&self) -> Result<[[f64; 4]; 4], String> {
-        if self.0.len() != 4 {
-            return Err(format!("must have 4 rows, has {}", self.0.len()));
-        }
-        let mut out = [[0.0; 4]; 4];
-        for (i, row) in self.0.iter().enumerate() {
-            if row.len() != 4 {
-                return Err(format!("row {i} must have 4 numbers, has {}", row.len()));
-            }
-            out[i].copy_from_slice(row);
-        }
-        Ok(out)
-    }
-
-    pub fn pose(&self) -> Result<Pose, String> {
-        Pose::from_matrix(&self.rows()?)
-    }
-}
-
-impl utoipa::PartialSchema for Matrix4x4 {
-    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
-        use utoipa::openapi::schema::{ArrayBuilder, ObjectBuilder, Type};
-        let row = ArrayBuilder::new().items(ObjectBuilder::new().schema_type(Type::Number)).min_items(Some(4)).max_items(Some(4));
-        ArrayBuilder::new()
-            .items(row)
-            .min_items(Some(4))
-            .max_items(Some(4))
-            .description(Some("Row-major 4x4 rigid transform: 4 rows of 4 numbers, last row [0, 0, 0, 1]."))
-            .into()
-    }
-}
-
-impl utoipa::ToSchema for Matrix4x4 {}
 
 /// Pinhole intrinsics in pixels (OpenCV convention, pixel centres at integers).
 #[derive(Debug, Clone, Copy, serde::Serialize, Deserialize, ToSchema)]

@@ -1,22 +1,33 @@
-//! Point clouds from the files a LiDAR user has: KITTI `.bin`, PCD and PLY.
+//! Point clouds from the files a LiDAR user has: KITTI `.bin`, PCD, PLY and LAS.
 //!
 //! Everything here parses untrusted bytes (map uploads), so every reader:
 //! - never panics and never allocates more than the input justifies (declared counts are checked
 //!   against the bytes present and against [`Limits::max_points`]);
 //! - answers with a [`FormatError`] that says what is wrong (truncated data, header/data mismatch,
-//!   bad numbers, unsupported variants, no points);
+//!   bad numbers, unsupported variants, coordinates out of range, no points);
 //! - **drops** points whose x, y or z is not finite (organised PCD clouds mark missing returns with
-//!   NaN, so rejecting them would refuse ordinary files) and fails with [`FormatError::NoPoints`]
-//!   when nothing finite is left. A non-finite intensity is kept as it is.
+//!   NaN, so rejecting them would refuse ordinary files), counts them in
+//!   [`Parsed::dropped_non_finite`], and fails with [`FormatError::NoPoints`] when nothing finite
+//!   is left. A non-finite intensity is kept as it is;
+//! - **refuses** the whole file ([`FormatError::OutOfRange`]) when a finite coordinate is beyond
+//!   ±[`Limits::max_abs_coordinate`] metres: such values are a wrong format or a broken export,
+//!   and would overflow the point encoder.
 //!
 //! Only x, y, z and an optional intensity are kept; every other field or element is skipped.
-//! PCD's VIEWPOINT is ignored (points are taken as written, like most tools do).
+//! Intensity is read from the first field/property named (case-insensitively) one of
+//! [`INTENSITY_NAMES`]. PCD's VIEWPOINT is ignored (points are taken as written, like most tools do).
+//!
+//! [`sniff::content`] names a body by its magic bytes (cloud formats, gzip, images, archives) and
+//! [`gzip::decompress`] inflates gzip under a size bound.
 
+pub mod gzip;
 mod kitti_bin;
+mod las;
 mod lzf;
 mod pcd;
 mod ply;
 mod scalar;
+pub mod sniff;
 
 use std::io::Write;
 
@@ -32,30 +43,29 @@ pub enum CloudFormat {
     Pcd,
     /// Stanford PLY (ascii, binary_little_endian or binary_big_endian).
     Ply,
+    /// ASPRS LAS 1.0-1.4, uncompressed (point formats 0-10; LAZ is refused).
+    Las,
 }
 
 impl CloudFormat {
-    /// Guesses the format from the first bytes. Headerless KITTI `.bin` is recognised only by
-    /// its length being a non-zero multiple of 16 bytes, so call this after ruling out the rest.
+    /// Guesses the format from the first bytes (PLY, PCD and LAS by their headers, see
+    /// [`sniff::content`]). Headerless KITTI `.bin` is recognised only by its length being a
+    /// non-zero multiple of 16 bytes and no other known signature; anything else is `None`.
     pub fn sniff(bytes: &[u8]) -> Option<CloudFormat> {
-        if bytes.starts_with(b"ply\n") || bytes.starts_with(b"ply\r\n") {
-            return Some(CloudFormat::Ply);
+        match sniff::content(bytes) {
+            sniff::Content::Cloud(format) => Some(format),
+            sniff::Content::Unknown if !bytes.is_empty() && bytes.len() % kitti_bin::RECORD_BYTES == 0 => Some(CloudFormat::KittiBin),
+            _ => None,
         }
-        if pcd::looks_like_pcd(bytes) {
-            return Some(CloudFormat::Pcd);
-        }
-        if !bytes.is_empty() && bytes.len() % kitti_bin::RECORD_BYTES == 0 {
-            return Some(CloudFormat::KittiBin);
-        }
-        None
     }
 
-    /// The format conventionally stored under a file extension (`bin`, `pcd`, `ply`).
+    /// The format conventionally stored under a file extension (`bin`, `pcd`, `ply`, `las`).
     pub fn from_extension(extension: &str) -> Option<CloudFormat> {
         match extension.to_ascii_lowercase().as_str() {
             "bin" => Some(CloudFormat::KittiBin),
             "pcd" => Some(CloudFormat::Pcd),
             "ply" => Some(CloudFormat::Ply),
+            "las" => Some(CloudFormat::Las),
             _ => None,
         }
     }
@@ -65,8 +75,32 @@ impl CloudFormat {
             CloudFormat::KittiBin => "kitti_bin",
             CloudFormat::Pcd => "pcd",
             CloudFormat::Ply => "ply",
+            CloudFormat::Las => "las",
         }
     }
+
+    /// What a person calls it, for messages.
+    pub fn label(self) -> &'static str {
+        match self {
+            CloudFormat::KittiBin => "KITTI .bin",
+            CloudFormat::Pcd => "PCD",
+            CloudFormat::Ply => "PLY",
+            CloudFormat::Las => "LAS",
+        }
+    }
+}
+
+/// The formats an upload may be in, for messages.
+pub const ACCEPTED: &str = "KITTI .bin, PCD, PLY or LAS 1.0-1.4, each optionally gzip-compressed";
+
+/// Names of the intensity field (PCD) or vertex property (PLY), compared case-insensitively, in
+/// order of preference: PCL, CloudCompare (`scalar_Intensity`), KITTI/SemanticKITTI
+/// (`reflectance`, `remission`) and short (`i`) spellings.
+pub const INTENSITY_NAMES: [&str; 5] = ["intensity", "scalar_intensity", "reflectance", "remission", "i"];
+
+/// The index of the first of `fields` that names intensity (see [`INTENSITY_NAMES`]).
+pub(crate) fn intensity_field<'a>(fields: impl Iterator<Item = &'a str> + Clone) -> Option<usize> {
+    INTENSITY_NAMES.iter().find_map(|want| fields.clone().position(|f| f.eq_ignore_ascii_case(want)))
 }
 
 impl std::str::FromStr for CloudFormat {
@@ -76,7 +110,8 @@ impl std::str::FromStr for CloudFormat {
             "kitti_bin" | "kitti" | "bin" => Ok(CloudFormat::KittiBin),
             "pcd" => Ok(CloudFormat::Pcd),
             "ply" => Ok(CloudFormat::Ply),
-            other => Err(format!("unknown point-cloud format {other:?} (expected kitti_bin, pcd or ply)")),
+            "las" => Ok(CloudFormat::Las),
+            other => Err(format!("unknown point-cloud format {other:?} (expected kitti_bin, pcd, ply or las)")),
         }
     }
 }
@@ -98,6 +133,14 @@ impl PointCloud {
     }
 }
 
+/// A parsed cloud and what was left out of it.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Parsed {
+    pub cloud: PointCloud,
+    /// Points dropped because x, y or z was NaN or infinite.
+    pub dropped_non_finite: usize,
+}
+
 /// Why a point-cloud file was refused.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum FormatError {
@@ -117,21 +160,30 @@ pub enum FormatError {
     TooManyPoints { count: u64, max: usize },
     #[error("the cloud has no point with finite coordinates")]
     NoPoints,
+    #[error("point {index} has {axis} = {value:e} m, beyond the ±{max:e} m this server accepts (a wrong format, or coordinates not in metres?)")]
+    OutOfRange { index: usize, axis: char, value: f64, max: f64 },
     #[error("corrupt compressed data: {0}")]
     Corrupt(String),
 }
 
 /// Bounds against absurd inputs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Limits {
     /// The most points (finite or not) a file may declare or contain.
     pub max_points: usize,
+    /// The largest |x|, |y| or |z| accepted, metres.
+    pub max_abs_coordinate: f64,
 }
 
+/// 10,000 km: every UTM easting/northing (northing ≤ 10,000,000 m) and ECEF coordinate passes,
+/// while garbage read as floats (3e38, 1e20) does not.
+pub const MAX_ABS_COORDINATE_M: f64 = 1.0e7;
+
 impl Default for Limits {
-    /// 20 million points: a dense multi-scan map region, about 320 MB as KITTI `.bin`.
+    /// 20 million points (a dense multi-scan map region, about 320 MB as KITTI `.bin`) within
+    /// ±[`MAX_ABS_COORDINATE_M`].
     fn default() -> Self {
-        Limits { max_points: 20_000_000 }
+        Limits { max_points: 20_000_000, max_abs_coordinate: MAX_ABS_COORDINATE_M }
     }
 }
 
@@ -140,57 +192,72 @@ pub fn parse(bytes: &[u8], format: CloudFormat) -> Result<PointCloud, FormatErro
     parse_with_limits(bytes, format, Limits::default())
 }
 
-/// Parses `bytes` as `format`, refusing files that declare or hold more than `limits.max_points`.
+/// Parses `bytes` as `format` within `limits` (points, coordinate range).
 pub fn parse_with_limits(bytes: &[u8], format: CloudFormat, limits: Limits) -> Result<PointCloud, FormatError> {
+    parse_counted(bytes, format, limits).map(|p| p.cloud)
+}
+
+/// Like [`parse_with_limits`], also saying how many non-finite points were dropped.
+pub fn parse_counted(bytes: &[u8], format: CloudFormat, limits: Limits) -> Result<Parsed, FormatError> {
     if bytes.is_empty() {
         return Err(FormatError::Empty);
     }
-    let cloud = match format {
+    let parsed = match format {
         CloudFormat::KittiBin => kitti_bin::parse(bytes, limits)?,
         CloudFormat::Pcd => pcd::parse(bytes, limits)?,
         CloudFormat::Ply => ply::parse(bytes, limits)?,
+        CloudFormat::Las => las::parse(bytes, limits)?,
     };
-    if cloud.is_empty() {
+    if parsed.cloud.is_empty() {
         return Err(FormatError::NoPoints);
     }
-    Ok(cloud)
+    Ok(parsed)
 }
 
-/// Collects points while reading, dropping the ones with non-finite coordinates.
+/// Collects points while reading: drops the ones with non-finite coordinates, refuses finite
+/// ones beyond the coordinate bound.
 pub(crate) struct CloudBuilder {
-    cloud: PointCloud,
-    dropped: usize,
+    parsed: Parsed,
+    max_abs: f64,
+    index: usize,
 }
 
 impl CloudBuilder {
     /// `capacity_hint` must already be bounded by the input size.
-    pub(crate) fn new(capacity_hint: usize, with_intensity: bool) -> Self {
-        CloudBuilder {
-            cloud: PointCloud {
-                xyz: Vec::with_capacity(capacity_hint),
-                intensity: with_intensity.then(|| Vec::with_capacity(capacity_hint)),
-            },
-            dropped: 0,
-        }
+    pub(crate) fn new(capacity_hint: usize, with_intensity: bool, limits: Limits) -> Self {
+        let cloud = PointCloud {
+            xyz: Vec::with_capacity(capacity_hint),
+            intensity: with_intensity.then(|| Vec::with_capacity(capacity_hint)),
+        };
+        CloudBuilder { parsed: Parsed { cloud, dropped_non_finite: 0 }, max_abs: limits.max_abs_coordinate, index: 0 }
     }
 
-    pub(crate) fn push(&mut self, x: f64, y: f64, z: f64, intensity: f64) {
+    /// Adds the file's next point (`x, y, z` in metres).
+    pub(crate) fn push(&mut self, x: f64, y: f64, z: f64, intensity: f64) -> Result<(), FormatError> {
+        let index = self.index;
+        self.index += 1;
+        let out_of_range = ['x', 'y', 'z'].into_iter().zip([x, y, z]).find(|(_, v)| v.is_finite() && v.abs() > self.max_abs);
+        if let Some((axis, value)) = out_of_range {
+            return Err(FormatError::OutOfRange { index, axis, value, max: self.max_abs });
+        }
         let p = [x as f32, y as f32, z as f32];
-        if p.iter().all(|c| c.is_finite()) {
-            self.cloud.xyz.push(p);
-            if let Some(i) = self.cloud.intensity.as_mut() {
-                i.push(intensity as f32);
-            }
-        } else {
-            self.dropped += 1;
+        if !p.iter().all(|c| c.is_finite()) {
+            self.parsed.dropped_non_finite += 1;
+            return Ok(());
         }
+        let cloud = &mut self.parsed.cloud;
+        cloud.xyz.push(p);
+        if let Some(i) = cloud.intensity.as_mut() {
+            i.push(intensity as f32);
+        }
+        Ok(())
     }
 
-    pub(crate) fn finish(self) -> PointCloud {
-        if self.dropped > 0 {
-            tracing::debug!(dropped = self.dropped, kept = self.cloud.xyz.len(), "dropped points with non-finite coordinates");
+    pub(crate) fn finish(self) -> Parsed {
+        if self.parsed.dropped_non_finite > 0 {
+            tracing::debug!(dropped = self.parsed.dropped_non_finite, kept = self.parsed.cloud.len(), "dropped points with non-finite coordinates");
         }
-        self.cloud
+        self.parsed
     }
 }
 

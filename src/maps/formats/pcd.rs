@@ -1,10 +1,12 @@
 //! PCD (Point Cloud Library) files: DATA ascii, binary and binary_compressed (LZF, columns).
 //!
-//! Fields may come in any order with types F/U/I of sizes 1/2/4/8; fields other than
-//! x, y, z and intensity are skipped (with any COUNT); x, y, z and intensity need COUNT 1.
+//! Fields may come in any order with types F/U/I of sizes 1/2/4/8 (type letters, header keys and
+//! DATA values in either case, as PCL and Open3D read them); fields other than x, y, z and the
+//! intensity (any of [`super::INTENSITY_NAMES`]) are skipped with any COUNT (`rgb`, `normal_x`,
+//! PCL's `_` padding, ...); x, y, z and intensity need COUNT 1.
 
 use super::scalar::Scalar;
-use super::{check_count, lzf, CloudBuilder, FormatError, Limits, PointCloud};
+use super::{check_count, intensity_field, lzf, CloudBuilder, FormatError, Limits, Parsed};
 
 /// Headers longer than this are refused rather than scanned (a real one is a few hundred bytes).
 const MAX_HEADER_BYTES: usize = 64 * 1024;
@@ -51,15 +53,16 @@ pub(crate) fn looks_like_pcd(bytes: &[u8]) -> bool {
     head.lines()
         .map(str::trim)
         .find(|l| !l.is_empty() && !l.starts_with('#'))
-        .is_some_and(|l| l.starts_with("VERSION") || l.starts_with("FIELDS"))
+        .map(|l| l.split_ascii_whitespace().next().unwrap_or_default().to_ascii_uppercase())
+        .is_some_and(|key| key == "VERSION" || key == "FIELDS")
 }
 
-pub(crate) fn parse(bytes: &[u8], limits: Limits) -> Result<PointCloud, FormatError> {
+pub(crate) fn parse(bytes: &[u8], limits: Limits) -> Result<Parsed, FormatError> {
     let header = parse_header(bytes, limits)?;
     let columns = find_columns(&header.fields)?;
     let data = &bytes[header.data_start..];
     match header.encoding {
-        Encoding::Ascii => parse_ascii(data, &header, &columns),
+        Encoding::Ascii => parse_ascii(data, &header, &columns, limits),
         Encoding::Binary => {
             let needed = header.points.checked_mul(header.row_bytes).ok_or_else(|| FormatError::Header("POINTS × row size overflows".into()))?;
             if data.len() < needed {
@@ -70,19 +73,19 @@ pub(crate) fn parse(bytes: &[u8], limits: Limits) -> Result<PointCloud, FormatEr
                     header.row_bytes
                 )));
             }
-            Ok(read_rows(&header, &columns, |field, i| {
+            read_rows(&header, &columns, limits, |field, i| {
                 let f = &header.fields[field];
                 field_value(f.scalar, &data[i * header.row_bytes + f.offset..])
-            }))
+            })
         }
         Encoding::BinaryCompressed => {
             let raw = decompress_columns(data, &header)?;
             let points = header.points;
-            Ok(read_rows(&header, &columns, |field, i| {
+            read_rows(&header, &columns, limits, |field, i| {
                 let f = &header.fields[field];
                 // Columns: all points of field 0, then all points of field 1, ...
                 field_value(f.scalar, &raw[f.offset * points + i * f.scalar.size() * f.count..])
-            }))
+            })
         }
     }
 }
@@ -91,13 +94,13 @@ fn field_value(scalar: Scalar, at: &[u8]) -> f64 {
     scalar.read(at, false)
 }
 
-fn read_rows(header: &Header, c: &Columns, value: impl Fn(usize, usize) -> f64) -> PointCloud {
-    let mut builder = CloudBuilder::new(header.points, c.intensity.is_some());
+fn read_rows(header: &Header, c: &Columns, limits: Limits, value: impl Fn(usize, usize) -> f64) -> Result<Parsed, FormatError> {
+    let mut builder = CloudBuilder::new(header.points, c.intensity.is_some(), limits);
     for i in 0..header.points {
         let intensity = c.intensity.map_or(0.0, |f| value(f, i));
-        builder.push(value(c.x, i), value(c.y, i), value(c.z, i), intensity);
+        builder.push(value(c.x, i), value(c.y, i), value(c.z, i), intensity)?;
     }
-    builder.finish()
+    Ok(builder.finish())
 }
 
 fn decompress_columns(data: &[u8], header: &Header) -> Result<Vec<u8>, FormatError> {
@@ -124,7 +127,7 @@ fn decompress_columns(data: &[u8], header: &Header) -> Result<Vec<u8>, FormatErr
     lzf::decompress(compressed, raw_len)
 }
 
-fn parse_ascii(data: &[u8], header: &Header, c: &Columns) -> Result<PointCloud, FormatError> {
+fn parse_ascii(data: &[u8], header: &Header, c: &Columns, limits: Limits) -> Result<Parsed, FormatError> {
     let text = std::str::from_utf8(data).map_err(|e| FormatError::BadNumber {
         token: "<non-UTF-8 bytes>".into(),
         context: format!("ascii PCD data at byte {}", e.valid_up_to()),
@@ -141,7 +144,7 @@ fn parse_ascii(data: &[u8], header: &Header, c: &Columns) -> Result<PointCloud, 
         .flatten()
         .map(|f| (first_token[f], header.fields[f].scalar))
         .collect();
-    let mut builder = CloudBuilder::new(header.points.min(data.len() / 6 + 1), c.intensity.is_some());
+    let mut builder = CloudBuilder::new(header.points.min(data.len() / 6 + 1), c.intensity.is_some(), limits);
     let mut rows = 0usize;
     let mut values = [0.0f64; 4];
     for (line_no, line) in text.lines().map(str::trim).filter(|l| !l.is_empty()).enumerate() {
@@ -163,7 +166,7 @@ fn parse_ascii(data: &[u8], header: &Header, c: &Columns) -> Result<PointCloud, 
                 context: format!("data row {}", line_no + 1),
             })?;
         }
-        builder.push(values[0], values[1], values[2], values[3]);
+        builder.push(values[0], values[1], values[2], values[3])?;
         rows += 1;
     }
     if rows < header.points {
@@ -173,21 +176,22 @@ fn parse_ascii(data: &[u8], header: &Header, c: &Columns) -> Result<PointCloud, 
 }
 
 fn find_columns(fields: &[Field]) -> Result<Columns, FormatError> {
-    let find = |name: &str| -> Result<Option<usize>, FormatError> {
-        let mut hits = fields.iter().enumerate().filter(|(_, f)| f.name == name);
-        let hit = hits.next().map(|(i, _)| i);
-        if hits.next().is_some() {
+    let names = fields.iter().map(|f| f.name.as_str());
+    let check = |hit: Option<usize>| -> Result<Option<usize>, FormatError> {
+        let Some(i) = hit else { return Ok(None) };
+        let name = &fields[i].name;
+        if fields.iter().filter(|f| f.name.eq_ignore_ascii_case(name)).count() > 1 {
             return Err(FormatError::Header(format!("field {name:?} appears twice")));
         }
-        if let Some(i) = hit {
-            if fields[i].count != 1 {
-                return Err(FormatError::Unsupported(format!("field {name:?} with COUNT {}", fields[i].count)));
-            }
+        if fields[i].count != 1 {
+            return Err(FormatError::Unsupported(format!("field {name:?} with COUNT {}", fields[i].count)));
         }
-        Ok(hit)
+        Ok(Some(i))
     };
-    let need = |name: &str| find(name)?.ok_or_else(|| FormatError::Unsupported(format!("PCD without a {name:?} field")));
-    Ok(Columns { x: need("x")?, y: need("y")?, z: need("z")?, intensity: find("intensity")? })
+    let need = |name: &str| {
+        check(names.clone().position(|f| f.eq_ignore_ascii_case(name)))?.ok_or_else(|| FormatError::Unsupported(format!("PCD without a {name:?} field")))
+    };
+    Ok(Columns { x: need("x")?, y: need("y")?, z: need("z")?, intensity: check(intensity_field(names.clone()))? })
 }
 
 fn parse_header(bytes: &[u8], limits: Limits) -> Result<Header, FormatError> {
@@ -212,7 +216,7 @@ fn parse_header(bytes: &[u8], limits: Limits) -> Result<Header, FormatError> {
             continue;
         }
         let mut parts = line.split_ascii_whitespace();
-        let key = parts.next().unwrap_or_default();
+        let key = parts.next().unwrap_or_default().to_ascii_uppercase();
         let rest: Vec<&str> = parts.collect();
         let number = |what: &str, token: &str| -> Result<u64, FormatError> {
             token.parse::<u64>().map_err(|_| FormatError::BadNumber { token: token.chars().take(40).collect(), context: format!("PCD {what}") })
@@ -223,7 +227,7 @@ fn parse_header(bytes: &[u8], limits: Limits) -> Result<Header, FormatError> {
                 _ => Err(FormatError::Header(format!("{what} needs one value, got {:?}", rest))),
             }
         };
-        match key {
+        match key.as_str() {
             "VERSION" | "VIEWPOINT" => {}
             "FIELDS" => names = Some(rest.iter().map(|s| s.to_string()).collect()),
             "SIZE" => sizes = Some(rest.iter().map(|t| number("SIZE", t).map(|v| v as usize)).collect::<Result<_, _>>()?),
@@ -239,11 +243,11 @@ fn parse_header(bytes: &[u8], limits: Limits) -> Result<Header, FormatError> {
             "HEIGHT" => height = Some(single("HEIGHT")?),
             "POINTS" => points = Some(single("POINTS")?),
             "DATA" => {
-                let encoding = match rest.as_slice() {
-                    ["ascii"] => Encoding::Ascii,
-                    ["binary"] => Encoding::Binary,
-                    ["binary_compressed"] => Encoding::BinaryCompressed,
-                    other => return Err(FormatError::Unsupported(format!("PCD DATA {:?}", other.join(" ")))),
+                let encoding = match rest.iter().map(|w| w.to_ascii_lowercase()).collect::<Vec<_>>().as_slice() {
+                    [one] if one == "ascii" => Encoding::Ascii,
+                    [one] if one == "binary" => Encoding::Binary,
+                    [one] if one == "binary_compressed" => Encoding::BinaryCompressed,
+                    _ => return Err(FormatError::Unsupported(format!("PCD DATA {:?} (ascii, binary or binary_compressed)", rest.join(" ")))),
                 };
                 return build_header(names, sizes, types, counts, (width, height, points), encoding, next, limits);
             }

@@ -1,11 +1,12 @@
 //! PLY files: ascii, binary_little_endian and binary_big_endian.
 //!
-//! The `vertex` element must have scalar x, y, z (any numeric type) and may have `intensity`
-//! (or CloudCompare's `scalar_intensity`); its other properties, and every other element before
-//! it (with list properties too), are skipped. Elements after `vertex` are not read.
+//! The `vertex` element must have scalar x, y, z (any numeric type, names case-insensitive) and
+//! may have an intensity (any of [`super::INTENSITY_NAMES`], e.g. CloudCompare's
+//! `scalar_Intensity`); its other properties, and every other element before it (with list
+//! properties too), are skipped. Elements after `vertex` are not read.
 
 use super::scalar::Scalar;
-use super::{check_count, CloudBuilder, FormatError, Limits, PointCloud};
+use super::{check_count, intensity_field, CloudBuilder, FormatError, Limits, Parsed};
 
 const MAX_HEADER_BYTES: usize = 64 * 1024;
 
@@ -29,7 +30,7 @@ struct Element {
     properties: Vec<Property>,
 }
 
-pub(crate) fn parse(bytes: &[u8], limits: Limits) -> Result<PointCloud, FormatError> {
+pub(crate) fn parse(bytes: &[u8], limits: Limits) -> Result<Parsed, FormatError> {
     let (encoding, elements, data_start) = parse_header(bytes)?;
     let vertex_index = elements
         .iter()
@@ -37,11 +38,15 @@ pub(crate) fn parse(bytes: &[u8], limits: Limits) -> Result<PointCloud, FormatEr
         .ok_or_else(|| FormatError::Unsupported("PLY without a vertex element".into()))?;
     let vertex = &elements[vertex_index];
     let count = check_count(vertex.count, limits)?;
-    let slot = |names: &[&str]| {
-        vertex.properties.iter().position(|p| matches!(p, Property::Scalar { name, .. } if names.contains(&name.as_str())))
+    // Property names of the vertex element ("" for lists, which are never read).
+    let names = vertex.properties.iter().map(|p| match p {
+        Property::Scalar { name, .. } => name.as_str(),
+        Property::List { .. } => "",
+    });
+    let need = |n: &str| {
+        names.clone().position(|p| p.eq_ignore_ascii_case(n)).ok_or_else(|| FormatError::Unsupported(format!("PLY vertex element without a scalar {n:?} property")))
     };
-    let need = |n: &str| slot(&[n]).ok_or_else(|| FormatError::Unsupported(format!("PLY vertex element without a scalar {n:?} property")));
-    let wanted = [Some(need("x")?), Some(need("y")?), Some(need("z")?), slot(&["intensity", "scalar_intensity"])];
+    let wanted = [Some(need("x")?), Some(need("y")?), Some(need("z")?), intensity_field(names.clone())];
     let data = &bytes[data_start..];
     match encoding {
         Encoding::Ascii => {
@@ -53,7 +58,7 @@ pub(crate) fn parse(bytes: &[u8], limits: Limits) -> Result<PointCloud, FormatEr
             for element in &elements[..vertex_index] {
                 skip_ascii(&mut tokens, element)?;
             }
-            read_vertices(count, wanted, vertex, |props| read_ascii_row(&mut tokens, &vertex.properties, props))
+            read_vertices(count, limits, wanted, vertex, |props| read_ascii_row(&mut tokens, &vertex.properties, props))
         }
         Encoding::LittleEndian | Encoding::BigEndian => {
             let big = encoding == Encoding::BigEndian;
@@ -69,23 +74,24 @@ pub(crate) fn parse(bytes: &[u8], limits: Limits) -> Result<PointCloud, FormatEr
                     return Err(FormatError::Truncated(format!("{count} vertices × {row} bytes do not fit in the {available} bytes left")));
                 }
             }
-            read_vertices(count, wanted, vertex, |props| read_binary_row(&mut cursor, &vertex.properties, props))
+            read_vertices(count, limits, wanted, vertex, |props| read_binary_row(&mut cursor, &vertex.properties, props))
         }
     }
 }
 
 fn read_vertices(
     count: usize,
+    limits: Limits,
     wanted: [Option<usize>; 4],
     vertex: &Element,
     mut read_row: impl FnMut(&mut [f64]) -> Result<(), FormatError>,
-) -> Result<PointCloud, FormatError> {
-    let mut builder = CloudBuilder::new(count.min(1 << 20), wanted[3].is_some());
+) -> Result<Parsed, FormatError> {
+    let mut builder = CloudBuilder::new(count.min(1 << 20), wanted[3].is_some(), limits);
     let mut row = vec![0.0f64; vertex.properties.len()];
     for _ in 0..count {
         read_row(&mut row)?;
         let get = |slot: Option<usize>| slot.map_or(0.0, |i| row[i]);
-        builder.push(get(wanted[0]), get(wanted[1]), get(wanted[2]), get(wanted[3]));
+        builder.push(get(wanted[0]), get(wanted[1]), get(wanted[2]), get(wanted[3]))?;
     }
     Ok(builder.finish())
 }

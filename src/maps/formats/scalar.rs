@@ -17,8 +17,9 @@ pub(crate) enum Scalar {
 
 impl Scalar {
     /// PCD spells a type as a letter (I, U, F) plus a size in bytes.
+    /// The letter may be lower case (`TYPE f f f`), as PCL and Open3D accept it.
     pub(crate) fn from_pcd(kind: &str, size: usize) -> Option<Self> {
-        Some(match (kind, size) {
+        Some(match (kind.to_ascii_uppercase().as_str(), size) {
             ("I", 1) => Scalar::I8,
             ("U", 1) => Scalar::U8,
             ("I", 2) => Scalar::I16,

@@ -112,7 +112,44 @@ fn valid_files() -> Vec<(CloudFormat, Vec<u8>)> {
         (CloudFormat::Ply, write_ply(&cloud, "ascii")),
         (CloudFormat::Ply, write_ply(&cloud, "binary_little_endian")),
         (CloudFormat::Ply, write_ply(&cloud, "binary_big_endian")),
+        (CloudFormat::Las, write_las(&cloud, (1, 2), 1)),
+        (CloudFormat::Las, write_las(&cloud, (1, 4), 6)),
     ]
+}
+
+/// A LAS file written by the `las` crate (intensity as the 16-bit value of `cloud`'s).
+pub(super) fn write_las(cloud: &PointCloud, version: (u8, u8), point_format: u8) -> Vec<u8> {
+    let mut builder = ::las::Builder::from(version);
+    builder.point_format = ::las::point::Format::new(point_format).unwrap();
+    // Millimetres from an offset near the first point, as LAS writers store UTM-size coordinates.
+    let t = |axis: usize| ::las::Transform { scale: 0.001, offset: (cloud.xyz[0][axis] as f64 / 1000.0).floor() * 1000.0 };
+    builder.transforms = ::las::Vector { x: t(0), y: t(1), z: t(2) };
+    let mut writer = ::las::Writer::new(std::io::Cursor::new(Vec::new()), builder.into_header().unwrap()).unwrap();
+    let intensity = cloud.intensity.as_ref().unwrap();
+    let builder_format = ::las::point::Format::new(point_format).unwrap();
+    for (p, i) in cloud.xyz.iter().zip(intensity) {
+        let point = ::las::Point {
+            x: p[0] as f64,
+            y: p[1] as f64,
+            z: p[2] as f64,
+            intensity: *i as u16,
+            gps_time: builder_format.has_gps_time.then_some(1.0),
+            color: builder_format.has_color.then(::las::Color::default),
+            nir: builder_format.has_nir.then_some(0),
+            ..Default::default()
+        };
+        writer.write_point(point).unwrap();
+    }
+    writer.into_inner().unwrap().into_inner()
+}
+
+/// The cloud as LAS stores it: millimetre coordinates, integer intensity.
+fn as_las_stores(cloud: &PointCloud) -> PointCloud {
+    let mm = |v: f32| ((v as f64 * 1000.0).round() / 1000.0) as f32;
+    PointCloud {
+        xyz: cloud.xyz.iter().map(|p| [mm(p[0]), mm(p[1]), mm(p[2])]).collect(),
+        intensity: cloud.intensity.as_ref().map(|i| i.iter().map(|v| (*v as u16) as f32).collect()),
+    }
 }
 
 #[test]
@@ -121,7 +158,116 @@ fn every_format_round_trips_the_points_and_intensity() {
     for (format, bytes) in valid_files() {
         assert_eq!(CloudFormat::sniff(&bytes), Some(format));
         let parsed = parse(&bytes, format).unwrap_or_else(|e| panic!("{format:?}: {e}"));
-        assert_eq!(parsed, cloud, "{format:?}");
+        let want = if format == CloudFormat::Las { as_las_stores(&cloud) } else { cloud.clone() };
+        assert_eq!(parsed, want, "{format:?}");
+    }
+}
+
+#[test]
+fn las_keeps_coordinates_at_their_scale_and_16_bit_intensity() {
+    let mut cloud = sample_cloud(5);
+    cloud.intensity = Some(vec![0.0, 1.0, 255.0, 4096.0, 65535.0]);
+    // UTM-size coordinates (kept to float32 precision: 0.5 m at 5.4e6)
+    cloud.xyz.iter_mut().for_each(|p| *p = [p[0].round() + 500_000.0, p[1].round() + 5_400_000.0, p[2] + 300.0]);
+    for (version, point_format) in [((1, 2), 0), ((1, 2), 3), ((1, 3), 1), ((1, 4), 7)] {
+        let parsed = parse(&write_las(&cloud, version, point_format), CloudFormat::Las).unwrap_or_else(|e| panic!("{version:?}/{point_format}: {e}"));
+        assert_eq!(parsed, as_las_stores(&cloud), "{version:?} format {point_format}");
+    }
+}
+
+#[test]
+fn las_problems_are_named() {
+    let cloud = sample_cloud(20);
+    let las = write_las(&cloud, (1, 2), 1);
+    let cut = parse(&las[..las.len() - 10], CloudFormat::Las).unwrap_err();
+    assert!(matches!(cut, FormatError::Truncated(_)), "{cut}");
+    assert!(matches!(parse(&las[..100], CloudFormat::Las), Err(FormatError::Truncated(_))));
+    let mut many = las.clone();
+    many[107..111].copy_from_slice(&u32::MAX.to_le_bytes()); // legacy number of point records
+    assert!(matches!(parse(&many, CloudFormat::Las), Err(FormatError::TooManyPoints { .. })));
+    let mut laz = las.clone();
+    laz[104] |= 0x80;
+    assert!(matches!(parse(&laz, CloudFormat::Las), Err(FormatError::Unsupported(_))));
+    // LAS 1.4 with an extended VLR claiming far more bytes than the file has.
+    let mut v14 = write_las(&cloud, (1, 4), 6);
+    let start = v14.len() as u64;
+    v14[235..243].copy_from_slice(&start.to_le_bytes()); // start of first EVLR
+    v14[243..247].copy_from_slice(&1u32.to_le_bytes()); // number of EVLRs
+    v14.extend_from_slice(&[0u8; 20]);
+    v14.extend_from_slice(&u64::MAX.to_le_bytes());
+    v14.extend_from_slice(&[0u8; 32]);
+    assert!(matches!(parse(&v14, CloudFormat::Las), Err(FormatError::Truncated(_))));
+}
+
+#[test]
+fn coordinates_beyond_the_bound_refuse_the_file() {
+    let mut cloud = sample_cloud(4);
+    cloud.xyz[2][1] = 3.0e38;
+    let err = parse(&write_kitti_bin(&cloud), CloudFormat::KittiBin).unwrap_err();
+    assert!(matches!(err, FormatError::OutOfRange { index: 2, axis: 'y', .. }), "{err}");
+    assert!(err.to_string().contains("beyond"), "{err}");
+    cloud.xyz[2][1] = -1.0e7; // the bound itself passes
+    assert!(parse(&write_kitti_bin(&cloud), CloudFormat::KittiBin).is_ok());
+    cloud.xyz[2][1] = 2.0e7;
+    for data in ["ascii", "binary", "binary_compressed"] {
+        assert!(matches!(parse(&write_pcd(&cloud, data), CloudFormat::Pcd), Err(FormatError::OutOfRange { .. })), "{data}");
+    }
+    assert!(matches!(parse(&write_ply(&cloud, "ascii"), CloudFormat::Ply), Err(FormatError::OutOfRange { .. })));
+    // A double that overflows float32 is out of range, not a dropped non-finite point.
+    let ply = String::from_utf8(write_ply(&sample_cloud(3), "ascii")).unwrap().replacen("200 -3", "200 1e300", 1);
+    assert!(matches!(parse(ply.as_bytes(), CloudFormat::Ply), Err(FormatError::OutOfRange { index: 0, axis: 'x', .. })));
+    let tight = Limits { max_abs_coordinate: 1.0, ..Limits::default() };
+    assert!(matches!(parse_with_limits(&write_kitti_bin(&sample_cloud(3)), CloudFormat::KittiBin, tight), Err(FormatError::OutOfRange { .. })));
+}
+
+#[test]
+fn dropped_non_finite_points_are_counted() {
+    let mut cloud = sample_cloud(5);
+    cloud.xyz[0][0] = f32::NAN;
+    cloud.xyz[4][2] = f32::NEG_INFINITY;
+    let parsed = parse_counted(&write_kitti_bin(&cloud), CloudFormat::KittiBin, Limits::default()).unwrap();
+    assert_eq!((parsed.cloud.len(), parsed.dropped_non_finite), (3, 2));
+}
+
+#[test]
+fn pcd_quirks_that_pcl_and_open3d_read() {
+    let n = 3;
+    let header = |fields: &str, size: &str, kind: &str, count: &str| {
+        format!("VERSION .7\nFIELDS {fields}\nSIZE {size}\nTYPE {kind}\nCOUNT {count}\nWIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA ascii\n")
+    };
+    // Lower-case type letters.
+    let lower = header("x y z intensity", "4 4 4 4", "f f f f", "1 1 1 1") + "1 2 3 0.5\n4 5 6 0.25\n7 8 9 1\n";
+    let parsed = parse(lower.as_bytes(), CloudFormat::Pcd).unwrap();
+    assert_eq!(parsed.xyz[2], [7.0, 8.0, 9.0]);
+    assert_eq!(parsed.intensity, Some(vec![0.5, 0.25, 1.0]));
+    // Packed rgb (a float) and PCL's `_` padding are skipped; CRLF line ends.
+    let rgb = (header("x y z rgb _", "4 4 4 4 1", "F F F F U", "1 1 1 1 4") + "1 2 3 4.2e-38 0 0 0 0\n4 5 6 4.2e-38 0 0 0 0\n7 8 9 4.2e-38 0 0 0 0\n").replace('\n', "\r\n");
+    let parsed = parse(rgb.as_bytes(), CloudFormat::Pcd).unwrap();
+    assert_eq!((parsed.xyz[1], parsed.intensity), ([4.0, 5.0, 6.0], None));
+    // Intensity under other names; upper-case coordinates; lower-case keys and DATA.
+    for name in ["reflectance", "Intensity", "remission", "i", "scalar_Intensity"] {
+        let text = header(&format!("X Y Z {name}"), "4 4 4 4", "F F F F", "1 1 1 1").to_lowercase().replace("data ascii", "DATA Ascii") + "1 2 3 9\n4 5 6 8\n7 8 9 7\n";
+        assert_eq!(CloudFormat::sniff(text.as_bytes()), Some(CloudFormat::Pcd), "{name}");
+        assert_eq!(parse(text.as_bytes(), CloudFormat::Pcd).unwrap().intensity, Some(vec![9.0, 8.0, 7.0]), "{name}");
+    }
+    // NaN rows of an organised cloud are dropped.
+    let nan = header("x y z", "4 4 4", "F F F", "1 1 1") + "1 2 3\nnan nan nan\nNaN 1 1\n";
+    assert_eq!(parse_counted(nan.as_bytes(), CloudFormat::Pcd, Limits::default()).unwrap().dropped_non_finite, 2);
+}
+
+#[test]
+fn ply_keeps_intensity_under_its_usual_names() {
+    let cloud = sample_cloud(4);
+    for name in ["scalar_Intensity", "Intensity", "reflectance", "remission", "i"] {
+        for format in ["ascii", "binary_little_endian"] {
+            let ply = write_ply(&cloud, format);
+            let at = ply.windows(18).position(|w| w == b"property float int").unwrap();
+            let mut renamed = ply[..at].to_vec();
+            renamed.extend_from_slice(format!("property float {name}").as_bytes());
+            renamed.extend_from_slice(&ply[at + "property float intensity".len()..]);
+            let parsed = parse(&renamed, CloudFormat::Ply).unwrap_or_else(|e| panic!("{name}/{format}: {e}"));
+            assert_eq!(parsed.intensity, cloud.intensity, "{name}/{format}");
+        }
     }
 }
 
@@ -217,7 +363,7 @@ fn ply_problems_are_named() {
 
 #[test]
 fn limits_apply_to_every_format() {
-    let limits = Limits { max_points: 4 };
+    let limits = Limits { max_points: 4, ..Limits::default() };
     for (format, bytes) in valid_files() {
         assert!(matches!(parse_with_limits(&bytes, format, limits), Err(FormatError::TooManyPoints { .. })), "{format:?}");
     }
@@ -230,7 +376,13 @@ fn sniff_and_extension() {
     assert_eq!(CloudFormat::sniff(b"# comment\nVERSION 0.7\n"), Some(CloudFormat::Pcd));
     assert_eq!(CloudFormat::from_extension("PLY"), Some(CloudFormat::Ply));
     assert_eq!("pcd".parse::<CloudFormat>(), Ok(CloudFormat::Pcd));
-    assert!("las".parse::<CloudFormat>().is_err());
+    assert_eq!("las".parse::<CloudFormat>(), Ok(CloudFormat::Las));
+    assert_eq!(CloudFormat::from_extension("LAS"), Some(CloudFormat::Las));
+    assert!("laz".parse::<CloudFormat>().is_err());
+    // A PNG whose length is a multiple of 16 is no longer taken for KITTI .bin.
+    let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
+    png.resize(64, 0);
+    assert_eq!(CloudFormat::sniff(&png), None);
 }
 
 /// Random byte flips, insertions, deletions and truncations of valid files: parsing must end
@@ -269,7 +421,7 @@ fn mutated_files_never_panic() {
                 }
             }
             for f in [format, CloudFormat::KittiBin, CloudFormat::Pcd, CloudFormat::Ply] {
-                if let Ok(cloud) = parse_with_limits(&bytes, f, Limits { max_points: 1000 }) {
+                if let Ok(cloud) = parse_with_limits(&bytes, f, Limits { max_points: 1000, ..Limits::default() }) {
                     assert!(!cloud.is_empty());
                     assert!(cloud.xyz.iter().flatten().all(|c| c.is_finite()));
                     assert!(cloud.intensity.as_ref().is_none_or(|i| i.len() == cloud.len()));
