@@ -3,7 +3,7 @@ PORT ?= 8080
 CARGO ?= cargo
 PYTHON := .venv/bin/python
 
-.PHONY: serve test build runtime python bench-server openapi
+.PHONY: serve test build runtime python bench-server openapi check-schema
 
 serve: build runtime
 	./target/release/cmr-agent serve --port $(PORT)
@@ -11,6 +11,11 @@ serve: build runtime
 test: build runtime python
 	$(CARGO) test --release
 	cd training && ../$(PYTHON) -m pytest -q tests
+	bash scripts/check-schema.sh
+
+# The API contract: schemathesis, every check, against a live server (part of `make test`).
+check-schema: build runtime
+	bash scripts/check-schema.sh
 
 build:
 	$(CARGO) build --release

@@ -15,9 +15,15 @@ use super::error::LocalizeError;
 /// Pinhole intrinsics in pixels (OpenCV convention, pixel centres at integers).
 #[derive(Debug, Clone, Copy, serde::Serialize, Deserialize, ToSchema)]
 pub struct IntrinsicsBody {
+    /// Focal length along x, pixels.
+    #[schema(exclusive_minimum = 0.0)]
     pub fx: f64,
+    /// Focal length along y, pixels.
+    #[schema(exclusive_minimum = 0.0)]
     pub fy: f64,
+    /// Principal point x, pixels.
     pub cx: f64,
+    /// Principal point y, pixels.
     pub cy: f64,
 }
 
@@ -25,6 +31,7 @@ pub struct IntrinsicsBody {
 #[serde(deny_unknown_fields)]
 pub struct LocalizeRequest {
     /// Base64 (standard alphabet) JPEG or PNG bytes.
+    #[schema(min_length = 1, format = Byte)]
     pub image: String,
     /// Pinhole intrinsics of `image` in pixels.
     pub intrinsics: IntrinsicsBody,
