@@ -186,20 +186,39 @@ fn scatter(
 /// f_i · I(cell_i) equals Σ over cells of (Σ f_i) · I(cell), so the score needs only the sums.
 fn drain(layout: &StateLayout, image_features: &[f32], scratch: &mut ScatterScratch, mut means: Option<&mut [f32]>) -> f32 {
     let (d, cells) = (layout.dim, layout.cells());
-    let (mut dot, mut in_view) = (0f64, 0u64);
+    // Channel-major outputs: visiting the touched cells in ascending order per channel keeps the
+    // reads of `image_features` and the writes of `means` moving forward through memory.
+    scratch.touched.sort_unstable();
+    let mut in_view = 0u64;
+    for &cell in &scratch.touched {
+        in_view += scratch.counts[cell as usize] as u64;
+    }
+    let mut dot = 0f64;
+    for c in 0..d {
+        let image = &image_features[c * cells..(c + 1) * cells];
+        let mut channel = 0f64;
+        match means.as_deref_mut() {
+            Some(means) => {
+                let out = &mut means[c * cells..(c + 1) * cells];
+                for &cell in &scratch.touched {
+                    let cell = cell as usize;
+                    let s = scratch.sums[cell * d + c];
+                    channel += (s * image[cell]) as f64;
+                    out[cell] = s / scratch.counts[cell] as f32;
+                }
+            }
+            None => {
+                for &cell in &scratch.touched {
+                    let cell = cell as usize;
+                    channel += (scratch.sums[cell * d + c] * image[cell]) as f64;
+                }
+            }
+        }
+        dot += channel;
+    }
     for &cell in &scratch.touched {
         let cell = cell as usize;
-        let count = scratch.counts[cell];
-        let inv = 1.0 / count as f32;
-        let sum = &mut scratch.sums[cell * d..(cell + 1) * d];
-        for (c, s) in sum.iter_mut().enumerate() {
-            dot += (*s * image_features[c * cells + cell]) as f64;
-            if let Some(means) = means.as_deref_mut() {
-                means[c * cells + cell] = *s * inv;
-            }
-            *s = 0.0;
-        }
-        in_view += count as u64;
+        scratch.sums[cell * d..(cell + 1) * d].fill(0.0);
         scratch.counts[cell] = 0;
     }
     if in_view == 0 { -1.0 } else { (dot / in_view as f64) as f32 }
