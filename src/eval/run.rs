@@ -8,7 +8,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::agent::SearchConfig;
 use crate::agent::SearchTuning;
-use crate::geometry::{ActionSet, PoseError};
+use crate::geometry::{ActionFrame, ActionSet, PoseError};
 use crate::model::{BackendOptions, ModelSet};
 
 use super::data::Dataset;
@@ -41,6 +41,11 @@ pub struct EvalConfig {
     pub seed: u64,
     pub frame_stride: usize,
     pub max_cases: Option<usize>,
+    /// Motions drawn per selected frame when the perturbation file is created (consecutive
+    /// cases of one frame; 1 = the file format's original one-per-frame layout).
+    pub cases_per_frame: usize,
+    /// The expert's action frame; `None`: the model's (`camera_y` without a model).
+    pub action_frame: Option<ActionFrame>,
     /// N when no model is given (the model's manifest decides otherwise).
     pub num_points: usize,
     pub ransac: RansacOptions,
@@ -100,7 +105,11 @@ pub fn peak_rss_bytes() -> Option<u64> {
 /// The whole command: load, evaluate, write `eval.json`, `cases.json`, `tables.md` and the plots.
 pub fn run(config: &EvalConfig) -> Result<EvalReport> {
     let dataset = Dataset::open(&config.data)?;
-    let frames = dataset.frames(config.frame_stride, config.max_cases);
+    let frames: Vec<(String, usize)> = dataset
+        .frames(config.frame_stride, config.max_cases)
+        .into_iter()
+        .flat_map(|f| std::iter::repeat_n(f, config.cases_per_frame.max(1)))
+        .collect();
     let (file, created) = PerturbationFile::load_or_create(&config.perturbations, &frames, config.seed)?;
     if created {
         tracing::info!(cases = file.cases.len(), path = %config.perturbations.display(), seed = config.seed, "wrote new perturbation file");
@@ -124,6 +133,10 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
         learned_index = Some(methods.len());
         methods.push(Box::new(Learned::new(Box::new(set.backend()?), config.search(), config.ransac, config.matching)));
     }
+    if let Some(frame) = config.action_frame {
+        actions = actions.with_frame(frame);
+    }
+    tracing::info!(action_frame = %actions.frame, "expert's action frame");
     methods.push(Box::new(Expert { actions, iterations: config.iterations }));
     methods.push(Box::new(NoOp));
 
@@ -224,6 +237,8 @@ pub(crate) mod tests {
             seed: 3,
             frame_stride: 1,
             max_cases: None,
+            cases_per_frame: 1,
+            action_frame: None,
             num_points: 2048,
             ransac: RansacOptions::default(),
             matching: MatchStrategy::Ratio,
