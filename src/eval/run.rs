@@ -287,6 +287,27 @@ pub(crate) mod tests {
         assert!(tables.contains("## Table 1") && tables.contains("## Table 4: expert (oracle)") && tables.contains("## Table 2"));
     }
 
+    /// `--cases-per-frame K` draws K consecutive motions per frame (one per frame draws exactly
+    /// what the one-per-frame layout always drew), and `--action-frame map_z` steps the expert
+    /// about the map's up axis (on this level generated rig it reaches the same floor).
+    #[test]
+    fn several_cases_per_frame_and_the_map_z_expert() {
+        let dir = tempfile::tempdir().unwrap();
+        let (data, out) = (dir.path().join("data"), dir.path().join("out"));
+        write_tiny_sequence(&data, 2);
+        let config = EvalConfig { cases_per_frame: 3, action_frame: Some(ActionFrame::MapZ), iterations: 10, ..config(&data, &out) };
+        let report = run(&config).unwrap();
+        assert_eq!(report.cases, 6);
+        let cases = PerturbationFile::read(&config.perturbations).unwrap().cases;
+        let frames: Vec<usize> = cases.iter().map(|c| c.frame).collect();
+        assert_eq!(frames, vec![0, 0, 0, 1, 1, 1]);
+        assert_eq!(cases[0], PerturbationFile::generate(&[("00".into(), 0)], config.seed).cases[0]);
+        assert!(cases[0] != cases[1]);
+        let expert = &report.methods[0];
+        assert_eq!(expert.summary.registration_recall, 1.0);
+        assert!(expert.summary.all.rte_m.mean < 0.06 && expert.summary.all.rre_geodesic_deg.mean < 0.06);
+    }
+
     #[test]
     fn a_perturbation_file_naming_unknown_frames_is_refused() {
         let dir = tempfile::tempdir().unwrap();

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from . import geometry as g
 from .data import find_sequences, list_frames, make_sample, split_frames
 from .episodes import embed, embed_many, gae, rollout
 from .export import atomic_write_bytes
