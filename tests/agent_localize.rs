@@ -8,7 +8,7 @@ use std::sync::Arc;
 use cmr_agent::agent::{self, SearchConfig};
 use cmr_agent::maps::{PreparedMap, prepare_map};
 use cmr_agent::geometry::actions::{apply_action, apply_motion};
-use cmr_agent::geometry::{Intrinsics, Pose};
+use cmr_agent::geometry::{ActionFrame, Intrinsics, Pose};
 use cmr_agent::model::{BackendOptions, ModelSet};
 use nalgebra::{Matrix3, Vector3};
 
@@ -66,7 +66,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
     assert_eq!(best.converged, best.steps.last().unwrap().action.is_zero());
     let mut pose = prior;
     for step in &best.steps {
-        pose = apply_action(&pose, &map.pivot, &step.action);
+        pose = apply_action(ActionFrame::CameraY, &pose, &map.pivot, &step.action);
         assert_eq!(pose, step.camera_from_map);
         assert!((-1.0..=1.0).contains(&step.alignment), "every step is scored: {}", step.alignment);
         for row in &step.probabilities {
@@ -87,7 +87,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
     assert!((first.camera_from_map().matrix() - best.camera_from_map().matrix()).abs().max() < 1e-9);
     for (h, offset) in multi.hypotheses.iter().zip([0.0, 90.0, 180.0, -90.0]) {
         assert_eq!(h.start_yaw_offset_deg, offset);
-        let turned = apply_motion(&prior, &map.pivot, offset, 0.0, 0.0);
+        let turned = apply_motion(ActionFrame::CameraY, &prior, &map.pivot, offset, 0.0, 0.0);
         assert!((h.start.matrix() - turned.matrix()).abs().max() < 1e-12, "start {offset}");
         assert!(multi.best().alignment() >= h.alignment());
     }

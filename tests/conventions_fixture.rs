@@ -5,8 +5,8 @@
 //! Regenerate (after a deliberate convention change) with
 //! `REGENERATE_FIXTURES=1 cargo test --test conventions_fixture`.
 
-use cmr_agent::geometry::actions::{apply_action, needed_motion};
-use cmr_agent::geometry::{ActionSet, Intrinsics, PoseError, PreprocessPlan, Pose, p2p_distance, step_reward};
+use cmr_agent::geometry::actions::{apply_action, ground_heading, needed_motion};
+use cmr_agent::geometry::{ActionFrame, ActionSet, Intrinsics, PoseError, PreprocessPlan, Pose, p2p_distance, step_reward};
 use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -27,6 +27,67 @@ fn random_pose(rng: &mut ChaCha8Rng) -> Pose {
         rng.random_range(-10.0..10.0),
         rng.random_range(-10.0..10.0),
     ))
+}
+
+/// A rig pitched by up to ±12° and rolled by up to ±8° relative to the map's up axis (a tilt in the
+/// camera frame: about camera x, then camera z), at a random heading and place.
+fn tilted_rig(rng: &mut ChaCha8Rng) -> Pose {
+    let rig = Pose::from_rt(Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0), Vector3::new(0.06, -0.08, -0.27));
+    let (pitch, roll) = (rng.random_range(-0.21..0.21), rng.random_range(-0.14..0.14));
+    Pose::from_rt(Rotation3::from_euler_angles(pitch, 0.0, roll).into_inner(), Vector3::zeros()).compose(&rig)
+}
+
+fn ground(rng: &mut ChaCha8Rng) -> Pose {
+    Pose::ground_motion(rng.random_range(-3.14..3.14), rng.random_range(-10.0..10.0), rng.random_range(-10.0..10.0))
+}
+
+/// The `map_z` action frame (yaw about the map's up axis, translation in its ground plane along
+/// the camera's heading) on pitched and rolled rigs. Even cases: current and target are the same
+/// rig at two ground poses (the protocol's error); odd cases: two unrelated tilted rigs. Drawn
+/// from their own seed so the `camera_y` cases above stay as they were.
+fn map_z_cases() -> (Vec<Value>, Vec<Value>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(20260511);
+    let set = ActionSet::default().with_frame(ActionFrame::MapZ);
+    let poses = (0..16)
+        .map(|i| {
+            let rig = tilted_rig(&mut rng);
+            let current = rig.compose(&ground(&mut rng));
+            let target = if i % 2 == 0 { rig.compose(&ground(&mut rng)) } else { tilted_rig(&mut rng).compose(&ground(&mut rng)) };
+            let pivot = point(&mut rng);
+            let indices = [rng.random_range(0..11), rng.random_range(0..11), rng.random_range(0..11)];
+            let moved = set.apply(&current, &pivot, &set.action(indices));
+            let (yaw, tx, tz) = needed_motion(ActionFrame::MapZ, &current, &target, &pivot);
+            let (right, forward) = ground_heading(&current);
+            json!({
+                "current": rows(&current), "target": rows(&target), "pivot_map": [pivot.x, pivot.y, pivot.z],
+                "same_rig": i % 2 == 0, "ground_right": [right.x, right.y, right.z], "ground_forward": [forward.x, forward.y, forward.z],
+                "action_indices": indices, "after_action": rows(&moved),
+                "needed_motion": [yaw, tx, tz], "expert_indices": set.expert(&current, &target, &pivot).indices,
+            })
+        })
+        .collect();
+    // The greedy expert from a large ground error on a tilted rig: every step's indices and the
+    // pose it ends at (about zero error; the camera_y expert cannot get there on these rigs).
+    let rollouts = (0..4)
+        .map(|_| {
+            let truth = tilted_rig(&mut rng).compose(&ground(&mut rng));
+            let start = truth.compose(&ground(&mut rng));
+            let pivot = point(&mut rng);
+            let mut pose = start;
+            let mut steps = Vec::new();
+            for _ in 0..12 {
+                let action = set.expert(&pose, &truth, &pivot);
+                pose = set.apply(&pose, &pivot, &action);
+                steps.push(action.indices);
+            }
+            let error = PoseError::between(&pose, &truth);
+            json!({
+                "start": rows(&start), "truth": rows(&truth), "pivot_map": [pivot.x, pivot.y, pivot.z],
+                "expert_steps": steps, "final": rows(&pose), "final_rte_m": error.rte_m, "final_rre_geodesic_deg": error.rre_geodesic_deg,
+            })
+        })
+        .collect();
+    (poses, rollouts)
 }
 
 fn point(rng: &mut ChaCha8Rng) -> Point3<f64> {
@@ -64,8 +125,8 @@ fn compute() -> Value {
             let target = random_pose(&mut rng);
             let pivot = point(&mut rng);
             let indices = [rng.random_range(0..11), rng.random_range(0..11), rng.random_range(0..11)];
-            let moved = apply_action(&current, &pivot, &set.action(indices));
-            let (yaw, tx, tz) = needed_motion(&current, &target, &pivot);
+            let moved = apply_action(ActionFrame::CameraY, &current, &pivot, &set.action(indices));
+            let (yaw, tx, tz) = needed_motion(ActionFrame::CameraY, &current, &target, &pivot);
             let points: Vec<Point3<f64>> = (0..8).map(|_| point(&mut rng)).collect();
             let before = p2p_distance(&current, &target, &points);
             let after = p2p_distance(&moved, &target, &points);
@@ -84,11 +145,14 @@ fn compute() -> Value {
     let starts: serde_json::Map<String, Value> =
         [1, 2, 4, 8].iter().map(|&h| (h.to_string(), json!(cmr_agent::agent::start_yaw_offsets(h)))).collect();
 
+    let (map_z_poses, map_z_rollouts) = map_z_cases();
+
     json!({
         "about": "Shared geometry conventions; generated by tests/conventions_fixture.rs, read by Rust and Python tests.",
         "action_set": set, "intrinsics": k, "image_size": [512, 160],
         "projection": projection, "preprocess": preprocess, "poses": poses,
         "start_yaw_offsets_deg": starts,
+        "map_z_poses": map_z_poses, "map_z_expert_rollouts": map_z_rollouts,
     })
 }
 
@@ -97,4 +161,24 @@ fn geometry_matches_the_shared_fixture() {
     let computed = compute();
     let stored = common::stored_fixture(FIXTURE, &computed, |v| serde_json::to_string_pretty(v).unwrap());
     common::assert_json_close(&stored, &computed, 1e-9, "fixture");
+}
+
+/// The `map_z` expert reaches the truth on every tilted rig of the fixture, and for these rigs
+/// the two frames differ (so the cases pin something the `camera_y` ones do not).
+#[test]
+fn map_z_expert_reaches_the_truth_on_tilted_rigs() {
+    let (poses, rollouts) = map_z_cases();
+    for r in &rollouts {
+        assert!(r["final_rte_m"].as_f64().unwrap() < 0.1 && r["final_rre_geodesic_deg"].as_f64().unwrap() < 0.06, "{r}");
+    }
+    let differ = poses.iter().filter(|c| {
+        let m = |key: &str| -> [[f64; 4]; 4] { serde_json::from_value(c[key].clone()).unwrap() };
+        let (current, target) = (Pose::from_matrix(&m("current")).unwrap(), Pose::from_matrix(&m("target")).unwrap());
+        let pivot: [f64; 3] = serde_json::from_value(c["pivot_map"].clone()).unwrap();
+        let pivot = Point3::from(pivot);
+        let a = needed_motion(ActionFrame::CameraY, &current, &target, &pivot);
+        let b = needed_motion(ActionFrame::MapZ, &current, &target, &pivot);
+        (a.0 - b.0).abs() > 1e-3
+    });
+    assert!(differ.count() >= 12);
 }

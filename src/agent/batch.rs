@@ -221,6 +221,6 @@ fn begin(backend: &mut dyn Backend, start: &Start) -> Result<(Search, Timings), 
     let logits = backend.frustum_logits(&map.features, &image_features).map_err(|e| StepError::Inference(format!("frustum head: {e:#}")))?;
     let frustum_head_ms = ms(t);
     let evidence = ImageEvidence { image_features, frustum_probs: logits.iter().map(|l| state::sigmoid(*l)).collect(), intrinsics: start.intrinsics };
-    let search = Search::new(evidence, map, start.prior, start.search);
+    let search = Search::new(evidence, map, start.prior, start.search, manifest.action_frame());
     Ok((search, Timings { image_encoder_ms, frustum_head_ms, ..Default::default() }))
 }

@@ -4,7 +4,6 @@
 
 use std::sync::Arc;
 
-use crate::geometry::actions::apply_action;
 use crate::geometry::{ActionSet, AgentAction, Intrinsics, Pose};
 
 use super::state::{ScatterScratch, StateLayout, alignment, write_state};
@@ -125,7 +124,8 @@ impl Episode {
         self.steps.last().map_or(self.start_alignment, |s| s.alignment)
     }
 
-    /// Applies the policy's choice: argmax per DoF, then the disentangled update about the pivot.
+    /// Applies the policy's choice: argmax per DoF, then the disentangled update about the pivot
+    /// in the action set's frame (the model's `actions.frame`).
     pub fn advance(&mut self, map: &PreparedMap, actions: &ActionSet, policy_logits: &[f32], value: f32) {
         let a = actions.num_actions();
         let probabilities: [Vec<f32>; 3] = std::array::from_fn(|dof| softmax(&policy_logits[dof * a..(dof + 1) * a]));
@@ -137,7 +137,7 @@ impl Episode {
         if action.is_zero() {
             self.converged = true;
         } else {
-            self.pose = apply_action(&self.pose, &map.pivot, &action);
+            self.pose = actions.apply(&self.pose, &map.pivot, &action);
         }
         self.steps.push(Step {
             iteration: self.steps.len() + 1,

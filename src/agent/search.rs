@@ -5,7 +5,8 @@
 //! of its failures start more than 60° off in yaw and settle far from the truth. The map and the
 //! image embeddings give an independent judge, the alignment score (`state::alignment`), which
 //! ranks the true pose above wrong ones. So the search starts H trajectories from the prior
-//! turned by H evenly spaced yaws (about the map pivot, like the agent's own rotation steps),
+//! turned by H evenly spaced yaws (about the map pivot, in the model's action frame, like the
+//! agent's own rotation steps),
 //! runs them side by side in the same batched policy calls, and keeps the best-scoring one.
 //! With H = 1 it is the paper's single trajectory.
 //!
@@ -20,7 +21,7 @@
 
 use std::sync::Arc;
 
-use crate::geometry::{Pose, PoseError};
+use crate::geometry::{ActionFrame, Pose, PoseError};
 use crate::geometry::actions::apply_motion;
 
 use crate::maps::PreparedMap;
@@ -157,14 +158,15 @@ pub struct Search {
 }
 
 impl Search {
-    pub fn new(evidence: ImageEvidence, map: &PreparedMap, prior: Pose, config: SearchConfig) -> Self {
+    /// `frame`: the model's action frame, which the starts' turns follow.
+    pub fn new(evidence: ImageEvidence, map: &PreparedMap, prior: Pose, config: SearchConfig, frame: ActionFrame) -> Self {
         let evidence = Arc::new(evidence);
         let max_iterations = config.max_iterations;
         let offsets = start_yaw_offsets(config.hypotheses.clamp(1, MAX_HYPOTHESES));
         let episodes = offsets
             .iter()
             .map(|&yaw_deg| {
-                let start = if yaw_deg == 0.0 { prior } else { apply_motion(&prior, &map.pivot, yaw_deg, 0.0, 0.0) };
+                let start = if yaw_deg == 0.0 { prior } else { apply_motion(frame, &prior, &map.pivot, yaw_deg, 0.0, 0.0) };
                 Episode::new(evidence.clone(), start, max_iterations)
             })
             .collect();
@@ -265,7 +267,7 @@ mod tests {
         let map = PreparedMap { points: vec![[0.0, 0.0, 5.0]], features: vec![0.0; 64], pivot: Point3::new(0.0, 0.0, 5.0), source_points: 1 };
         let evidence = ImageEvidence { image_features: vec![], frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 } };
         let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true };
-        let mut search = Search::new(evidence, &map, Pose::identity(), config);
+        let mut search = Search::new(evidence, &map, Pose::identity(), config, ActionFrame::CameraY);
         let shifted = |dx: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(dx, 0.0, 0.0));
         // 0 and 1 meet (0.5 m apart); 2 is within 1 m of 1 but 1.2 m from 0; 3 is far from all.
         search.episodes[0].pose = shifted(0.0);
@@ -278,8 +280,8 @@ mod tests {
         assert_eq!(dropped, vec![false, true, false, false], "a dropped hypothesis drops nobody");
         // A turn of 6° is not a duplicate, 4° is; a stopped (converged) leader still counts.
         search.episodes[0].converged = true;
-        search.episodes[3].pose = apply_motion(&shifted(0.0), &map.pivot, 4.0, 0.0, 0.0);
-        search.episodes[2].pose = apply_motion(&shifted(0.0), &Point3::origin(), 6.0, 0.0, 0.0);
+        search.episodes[3].pose = apply_motion(ActionFrame::CameraY, &shifted(0.0), &map.pivot, 4.0, 0.0, 0.0);
+        search.episodes[2].pose = apply_motion(ActionFrame::CameraY, &shifted(0.0), &Point3::origin(), 6.0, 0.0, 0.0);
         search.after_step(&map, &layout, &mut scratch);
         let dropped: Vec<bool> = search.episodes.iter().map(|e| e.dropped).collect();
         assert_eq!(dropped, vec![false, true, false, true]);

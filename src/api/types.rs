@@ -33,11 +33,13 @@ impl From<Pose> for PoseBody {
 
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct ActionBody {
-    /// Rotation about the camera's y axis, degrees.
+    /// Yaw step, degrees: about the camera's y axis (model `actions.frame` = `camera_y`) or about
+    /// the map's up axis z (`map_z`), through the map pivot.
     pub yaw_deg: f64,
-    /// Translation along the camera's x axis, metres.
+    /// Step along the camera's x axis (`camera_y`) or its ground-plane right direction (`map_z`),
+    /// metres.
     pub tx_m: f64,
-    /// Translation along the camera's z axis, metres.
+    /// Step along the camera's z axis (`camera_y`) or its ground-plane heading (`map_z`), metres.
     pub tz_m: f64,
     /// Chosen step index per DoF (yaw, tx, tz) in the manifest's ascending action lists.
     #[schema(value_type = Vec<usize>)]

@@ -44,9 +44,18 @@ pub struct Args {
     /// Use every n-th frame when creating the perturbation file.
     #[arg(long, default_value_t = 1)]
     pub frame_stride: usize,
-    /// At most this many cases when creating the perturbation file.
+    /// At most this many frames when creating the perturbation file.
     #[arg(long)]
     pub max_cases: Option<usize>,
+    /// Motions per frame when creating the perturbation file (the paper's protocol on a few real
+    /// frames: 8); the cases of one frame are consecutive.
+    #[arg(long, default_value_t = 1)]
+    pub cases_per_frame: usize,
+    /// The greedy expert's action frame: `camera_y` (yaw about camera y, translation along
+    /// camera x / z) or `map_z` (yaw about the map's up axis, translation in its ground plane).
+    /// Default: the model's `actions.frame`, `camera_y` without --models.
+    #[arg(long)]
+    pub action_frame: Option<crate::geometry::ActionFrame>,
     /// RANSAC iterations of the one-shot baseline.
     #[arg(long, default_value_t = 1000)]
     pub ransac_iterations: usize,
@@ -79,6 +88,8 @@ pub fn main(args: Args) -> Result<()> {
         seed: args.seed,
         frame_stride: args.frame_stride,
         max_cases: args.max_cases,
+        cases_per_frame: args.cases_per_frame.max(1),
+        action_frame: args.action_frame,
         num_points: 40_960,
         ransac: RansacOptions { iterations: args.ransac_iterations, inlier_px: args.inlier_px, ..RansacOptions::default() },
         matching: args.matching,

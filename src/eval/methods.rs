@@ -6,7 +6,6 @@ use anyhow::Result;
 use image::RgbImage;
 use nalgebra::Point3;
 
-use crate::geometry::actions::apply_action;
 use crate::geometry::{ActionSet, Intrinsics, Pose};
 
 use super::perturbations::Perturbation;
@@ -89,7 +88,7 @@ impl Method for Expert {
         let mut elapsed_ms = Vec::with_capacity(self.iterations);
         for _ in 0..self.iterations {
             let action = self.actions.expert(&pose, &case.truth, &case.pivot);
-            pose = apply_action(&pose, &case.pivot, &action);
+            pose = self.actions.apply(&pose, &case.pivot, &action);
             poses.push(pose);
             elapsed_ms.push(start.elapsed().as_secs_f64() * 1e3);
         }

@@ -8,7 +8,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::agent::SearchConfig;
 use crate::agent::SearchTuning;
-use crate::geometry::{ActionSet, PoseError};
+use crate::geometry::{ActionFrame, ActionSet, PoseError};
 use crate::model::{BackendOptions, ModelSet};
 
 use super::data::Dataset;
@@ -41,6 +41,11 @@ pub struct EvalConfig {
     pub seed: u64,
     pub frame_stride: usize,
     pub max_cases: Option<usize>,
+    /// Motions drawn per selected frame when the perturbation file is created (consecutive
+    /// cases of one frame; 1 = the file format's original one-per-frame layout).
+    pub cases_per_frame: usize,
+    /// The expert's action frame; `None`: the model's (`camera_y` without a model).
+    pub action_frame: Option<ActionFrame>,
     /// N when no model is given (the model's manifest decides otherwise).
     pub num_points: usize,
     pub ransac: RansacOptions,
@@ -100,7 +105,11 @@ pub fn peak_rss_bytes() -> Option<u64> {
 /// The whole command: load, evaluate, write `eval.json`, `cases.json`, `tables.md` and the plots.
 pub fn run(config: &EvalConfig) -> Result<EvalReport> {
     let dataset = Dataset::open(&config.data)?;
-    let frames = dataset.frames(config.frame_stride, config.max_cases);
+    let frames: Vec<(String, usize)> = dataset
+        .frames(config.frame_stride, config.max_cases)
+        .into_iter()
+        .flat_map(|f| std::iter::repeat_n(f, config.cases_per_frame.max(1)))
+        .collect();
     let (file, created) = PerturbationFile::load_or_create(&config.perturbations, &frames, config.seed)?;
     if created {
         tracing::info!(cases = file.cases.len(), path = %config.perturbations.display(), seed = config.seed, "wrote new perturbation file");
@@ -124,6 +133,10 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
         learned_index = Some(methods.len());
         methods.push(Box::new(Learned::new(Box::new(set.backend()?), config.search(), config.ransac, config.matching)));
     }
+    if let Some(frame) = config.action_frame {
+        actions = actions.with_frame(frame);
+    }
+    tracing::info!(action_frame = %actions.frame, "expert's action frame");
     methods.push(Box::new(Expert { actions, iterations: config.iterations }));
     methods.push(Box::new(NoOp));
 
@@ -224,6 +237,8 @@ pub(crate) mod tests {
             seed: 3,
             frame_stride: 1,
             max_cases: None,
+            cases_per_frame: 1,
+            action_frame: None,
             num_points: 2048,
             ransac: RansacOptions::default(),
             matching: MatchStrategy::Ratio,
@@ -270,6 +285,27 @@ pub(crate) mod tests {
         assert_eq!(again.methods[1].summary, report.methods[1].summary);
         let tables = std::fs::read_to_string(out.join("tables.md")).unwrap();
         assert!(tables.contains("## Table 1") && tables.contains("## Table 4: expert (oracle)") && tables.contains("## Table 2"));
+    }
+
+    /// `--cases-per-frame K` draws K consecutive motions per frame (one per frame draws exactly
+    /// what the one-per-frame layout always drew), and `--action-frame map_z` steps the expert
+    /// about the map's up axis (on this level generated rig it reaches the same floor).
+    #[test]
+    fn several_cases_per_frame_and_the_map_z_expert() {
+        let dir = tempfile::tempdir().unwrap();
+        let (data, out) = (dir.path().join("data"), dir.path().join("out"));
+        write_tiny_sequence(&data, 2);
+        let config = EvalConfig { cases_per_frame: 3, action_frame: Some(ActionFrame::MapZ), iterations: 10, ..config(&data, &out) };
+        let report = run(&config).unwrap();
+        assert_eq!(report.cases, 6);
+        let cases = PerturbationFile::read(&config.perturbations).unwrap().cases;
+        let frames: Vec<usize> = cases.iter().map(|c| c.frame).collect();
+        assert_eq!(frames, vec![0, 0, 0, 1, 1, 1]);
+        assert_eq!(cases[0], PerturbationFile::generate(&[("00".into(), 0)], config.seed).cases[0]);
+        assert!(cases[0] != cases[1]);
+        let expert = &report.methods[0];
+        assert_eq!(expert.summary.registration_recall, 1.0);
+        assert!(expert.summary.all.rte_m.mean < 0.06 && expert.summary.all.rre_geodesic_deg.mean < 0.06);
     }
 
     #[test]

@@ -14,7 +14,7 @@ pub mod camera;
 pub mod metrics;
 pub mod pose;
 
-pub use actions::{ActionSet, AgentAction, Dof};
+pub use actions::{ActionFrame, ActionSet, AgentAction, Dof};
 pub use camera::{Intrinsics, PreprocessPlan};
 pub use metrics::{PoseError, p2p_distance, step_reward};
 pub use pose::{MAX_COORDINATE_M, Pose};

@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::geometry::ActionSet;
+use crate::geometry::{ActionFrame, ActionSet};
 
 /// The only manifest format this build understands.
 pub const MANIFEST_FORMAT: &str = "cmr-agent-manifest/1";
@@ -61,6 +61,12 @@ pub struct ActionSpec {
     pub dofs: Vec<String>,
     pub rotation_deg: Vec<f64>,
     pub translation_m: Vec<f64>,
+    /// The axes the actions act along (`geometry::actions::ActionFrame`): `"camera_y"` (yaw about
+    /// camera y, translation along camera x / z; what every model up to v3 was trained with, and
+    /// the meaning when the field is absent) or `"map_z"` (yaw about the map's up axis,
+    /// translation in the map's ground plane along the camera's heading).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<String>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -175,6 +181,9 @@ impl Manifest {
         if self.actions.dofs != ["yaw_deg", "tx_m", "tz_m"] {
             return Err(format!("actions.dofs must be [\"yaw_deg\", \"tx_m\", \"tz_m\"], got {:?}", self.actions.dofs));
         }
+        if let Some(frame) = &self.actions.frame {
+            ActionFrame::parse(frame).map_err(|e| format!("actions.frame: {e}"))?;
+        }
         self.action_set().validate().map_err(|e| format!("actions: {e}"))?;
         for name in GRAPH_NAMES {
             let spec = self.graphs.get(name).ok_or_else(|| format!("graph {name:?} is missing"))?;
@@ -199,8 +208,19 @@ impl Manifest {
         dir.join(&self.graphs[name].file)
     }
 
+    /// The model's steps, acting in the model's frame.
     pub fn action_set(&self) -> ActionSet {
-        ActionSet { rotation_deg: self.actions.rotation_deg.clone(), translation_m: self.actions.translation_m.clone() }
+        ActionSet {
+            rotation_deg: self.actions.rotation_deg.clone(),
+            translation_m: self.actions.translation_m.clone(),
+            frame: self.action_frame(),
+        }
+    }
+
+    /// `actions.frame`; `camera_y` when absent (checked by `load`, so an unknown name read
+    /// without `load` falls back to `camera_y` too).
+    pub fn action_frame(&self) -> ActionFrame {
+        self.actions.frame.as_deref().and_then(|f| ActionFrame::parse(f).ok()).unwrap_or_default()
     }
 
     /// Values of one image's features: D · GH · GW.
@@ -335,6 +355,8 @@ mod tests {
             (Box::new(|v| v["graphs"]["image_encoder"]["sha256"] = "00".into()), "sha256"),
             (Box::new(|v| v["graphs"]["agent"]["inputs"]["state_3d"] = serde_json::json!(["B", 2048, 4])), "contract needs"),
             (Box::new(|v| v["actions"]["dofs"] = serde_json::json!(["tx_m", "yaw_deg", "tz_m"])), "actions.dofs"),
+            (Box::new(|v| v["actions"]["frame"] = "camera_z".into()), "actions.frame"),
+            (Box::new(|v| v["actions"]["frame"] = serde_json::json!(3)), "malformed"),
         ];
         for (edit, needle) in cases {
             let dir = tempfile::tempdir().unwrap();
@@ -342,6 +364,23 @@ mod tests {
             edit_manifest(dir.path(), edit);
             let err = Manifest::load(dir.path()).unwrap_err().to_string();
             assert!(err.contains(needle), "{err} should mention {needle}");
+        }
+    }
+
+    #[test]
+    fn action_frame_defaults_to_camera_y_and_reads_map_z() {
+        let m = Manifest::load(&fixture_dir()).unwrap();
+        assert!(m.actions.frame.is_none());
+        assert_eq!(m.action_frame(), ActionFrame::CameraY);
+        assert_eq!(m.action_set().frame, ActionFrame::CameraY);
+        // Absent stays absent when written back (old readers see the same manifest).
+        assert!(serde_json::to_value(&m).unwrap()["actions"].get("frame").is_none());
+        for (name, frame) in [("camera_y", ActionFrame::CameraY), ("map_z", ActionFrame::MapZ)] {
+            let dir = tempfile::tempdir().unwrap();
+            copy_fixture(dir.path());
+            edit_manifest(dir.path(), |v| v["actions"]["frame"] = name.into());
+            let m = Manifest::load(dir.path()).unwrap();
+            assert_eq!((m.action_frame(), m.action_set().frame), (frame, frame));
         }
     }
 }

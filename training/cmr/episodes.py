@@ -27,6 +27,8 @@ class Episodes:
     initial: list[np.ndarray]
     pivots: list[np.ndarray]
     reward_points: list[np.ndarray]
+    # The axes the actions act along (g.ACTION_FRAMES); the manifest's `actions.frame`.
+    action_frame: str = g.CAMERA_Y
 
     def __len__(self) -> int:
         return len(self.truth)
@@ -36,7 +38,7 @@ class Episodes:
         pick = lambda xs: [xs[i] for i in rows]  # noqa: E731
         return Episodes(self.points[idx], self.point_features[idx], self.image_features[idx], self.frustum_prob[idx],
                         self.intrinsics[idx], pick(self.truth), pick(self.initial), pick(self.pivots),
-                        pick(self.reward_points))
+                        pick(self.reward_points), self.action_frame)
 
     def replace(self, rows: list[int], other: "Episodes") -> None:
         """Overwrite entries `rows` with `other` (same order): the agent stage's rolling pool."""
@@ -66,7 +68,7 @@ class Episodes:
 
 
 @torch.no_grad()
-def embed(models: dict, samples: list[Sample], device: torch.device) -> Episodes:
+def embed(models: dict, samples: list[Sample], device: torch.device, action_frame: str = g.CAMERA_Y) -> Episodes:
     points = torch.as_tensor(np.stack([s.points for s in samples]), device=device)
     images = torch.as_tensor(np.stack([s.image for s in samples]), device=device)
     pf = models["point_encoder"](points)
@@ -79,20 +81,23 @@ def embed(models: dict, samples: list[Sample], device: torch.device) -> Episodes
     return Episodes(points=points, point_features=pf, image_features=imf, frustum_prob=prob,
                     intrinsics=torch.as_tensor(np.stack([s.intrinsics for s in samples]), dtype=torch.float32, device=device),
                     truth=[s.truth for s in samples], initial=[s.initial for s in samples],
-                    pivots=[s.points.astype(np.float64).mean(axis=0) for s in samples], reward_points=reward_points)
+                    pivots=[s.points.astype(np.float64).mean(axis=0) for s in samples], reward_points=reward_points,
+                    action_frame=g.check_frame(action_frame))
 
 
-def embed_many(models: dict, samples: list[Sample], device: torch.device, chunk: int = 4) -> Episodes:
+def embed_many(models: dict, samples: list[Sample], device: torch.device, chunk: int = 4,
+               action_frame: str = g.CAMERA_Y) -> Episodes:
     """`embed` in chunks (the point encoder's activations for 40,960 points are large)."""
-    parts = [embed(models, samples[i:i + chunk], device) for i in range(0, len(samples), chunk)]
+    parts = [embed(models, samples[i:i + chunk], device, action_frame) for i in range(0, len(samples), chunk)]
     cat = lambda name: torch.cat([getattr(p, name) for p in parts])  # noqa: E731
     join = lambda name: [x for p in parts for x in getattr(p, name)]  # noqa: E731
     return Episodes(cat("points"), cat("point_features"), cat("image_features"), cat("frustum_prob"),
-                    cat("intrinsics"), join("truth"), join("initial"), join("pivots"), join("reward_points"))
+                    cat("intrinsics"), join("truth"), join("initial"), join("pivots"), join("reward_points"),
+                    g.check_frame(action_frame))
 
 
-def step_pose(pose: np.ndarray, pivot: np.ndarray, action) -> np.ndarray:
-    return g.apply_action(pose, pivot, *g.step_values(action))
+def step_pose(pose: np.ndarray, pivot: np.ndarray, action, frame: str = g.CAMERA_Y) -> np.ndarray:
+    return g.apply_action(pose, pivot, *g.step_values(action), frame=frame)
 
 
 @dataclass
@@ -131,7 +136,8 @@ def rollout(agent, episodes: Episodes, steps: int, mode: str = "greedy", expert_
                 states.append(observation)
         if t == steps:
             break
-        expert = np.array([g.expert_indices(p, episodes.truth[i], episodes.pivots[i]) for i, p in enumerate(current)])
+        expert = np.array([g.expert_indices(p, episodes.truth[i], episodes.pivots[i], episodes.action_frame)
+                           for i, p in enumerate(current)])
         experts[t] = expert
         if mode == "expert" or agent is None:
             chosen = expert
@@ -148,7 +154,7 @@ def rollout(agent, episodes: Episodes, steps: int, mode: str = "greedy", expert_
         actions[t] = chosen
         nxt = []
         for i, p in enumerate(current):
-            q = step_pose(p, episodes.pivots[i], chosen[i])
+            q = step_pose(p, episodes.pivots[i], chosen[i], episodes.action_frame)
             before = g.p2p_distance(p, episodes.truth[i], episodes.reward_points[i])
             after = g.p2p_distance(q, episodes.truth[i], episodes.reward_points[i])
             rewards[t, i] = g.step_reward(before, after)
@@ -173,7 +179,8 @@ def multi_start(agent, episodes: Episodes, steps: int,
     trajectories, scores = [], []
     try:
         for off in g.start_yaw_offsets(hypotheses):
-            episodes.initial = [g.apply_action(p, episodes.pivots[i], off, 0.0, 0.0) for i, p in enumerate(prior)]
+            episodes.initial = [g.apply_action(p, episodes.pivots[i], off, 0.0, 0.0, frame=episodes.action_frame)
+                                for i, p in enumerate(prior)]
             traj = rollout(agent, episodes, steps, "greedy")
             trajectories.append(traj)
             scores.append([episodes.alignment(traj.poses[t]) for t in range(1, steps + 1)])

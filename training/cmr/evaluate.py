@@ -79,11 +79,12 @@ def match_accuracy(episodes, samples, max_points: int = 512) -> float:
 @torch.no_grad()
 def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_points: int = 40960,
              chunk: int = 4, device: torch.device | str = "cpu", motions: list | None = None,
-             hypotheses: int = 1) -> dict:
+             hypotheses: int = 1, action_frame: str = g.CAMERA_Y) -> dict:
     """`motions`: one Q per frame (frozen cases, e.g. the Rust harness's); random ones otherwise.
     `hypotheses` > 1: `agent` is the multi-start search's selected poses, `agent_single_start`
     hypothesis 0 (the paper's single trajectory). 1 runs the plain rollout and scores nothing, so
-    training's periodic validation pays nothing for the search."""
+    training's periodic validation pays nothing for the search. `action_frame`: the model's (the
+    expert acts in the same frame)."""
     device = torch.device(device)
     for m in models.values():
         m.eval()
@@ -97,7 +98,7 @@ def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_p
         samples = [make_sample(f, np.random.default_rng([seed, start + j]), train=False, num_points=num_points,
                                motion=None if motions is None else motions[start + j])
                    for j, f in enumerate(frames[start:start + chunk])]
-        eps = embed(models, samples, device)
+        eps = embed(models, samples, device, action_frame)
         logits = models["frustum_head"](eps.point_features, eps.image_features).cpu().numpy()
         confusion += frustum_confusion(logits, samples)
         match_hits.append((match_accuracy(eps, samples), len(samples)))
@@ -113,7 +114,7 @@ def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_p
                 errors[k].extend(g.pose_error(p, t) for p, t in zip(poses[k], eps.truth))
     table = lambda errors: [dict(iteration=k + 1, **_summarise(e)) for k, e in enumerate(errors)]  # noqa: E731
     result = dict(
-        frames=len(frames), seed=seed, hypotheses=hypotheses,
+        frames=len(frames), seed=seed, hypotheses=hypotheses, action_frame=action_frame,
         initial=_summarise(initial),
         agent=table(agent_errors),
         expert=table(expert_errors),
@@ -142,7 +143,7 @@ def frozen_cases(frames: list, path: Path) -> tuple[list, list]:
 
 
 def main(argv=None) -> None:
-    from .export import load_models
+    from .export import action_frame_of, load_models
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--checkpoint", type=Path, required=True)
     ap.add_argument("--data", type=Path, required=True, help="KITTI-layout root or sequence directory")
@@ -156,7 +157,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
-    models, _ = load_models(args.checkpoint)
+    models, meta = load_models(args.checkpoint)
     frames = list_frames(find_sequences(args.data))
     motions = None
     if args.perturbations:
@@ -166,7 +167,8 @@ def main(argv=None) -> None:
         frames = frames[::step][: args.frames]
         if motions is not None:
             motions = motions[::step][: args.frames]
-    result = evaluate(models, frames, seed=args.seed, motions=motions, hypotheses=args.hypotheses)
+    result = evaluate(models, frames, seed=args.seed, motions=motions, hypotheses=args.hypotheses,
+                      action_frame=action_frame_of(meta))
     text = json.dumps(result, indent=2)
     if args.out:
         from .export import atomic_write_bytes

@@ -113,8 +113,14 @@ def git_commit() -> str:
         return "unknown"
 
 
+def action_frame_of(meta: dict) -> str:
+    """The action frame a checkpoint was trained in (its config's `action_frame`; older
+    checkpoints: camera_y)."""
+    return g.check_frame(meta.get("config", {}).get("action_frame", g.CAMERA_Y))
+
+
 def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenance: dict, validation: dict,
-             flops: dict[str, int] | None = None) -> dict:
+             action_frame: str = g.CAMERA_Y, flops: dict[str, int] | None = None) -> dict:
     graphs = {}
     for name, (file, sha) in files.items():
         ins, outs = CONTRACT_SHAPES[name]
@@ -128,7 +134,7 @@ def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenan
         "features": dict(dim=FEATURE_DIM, stride=STRIDE, grid_height=GRID_HEIGHT, grid_width=GRID_WIDTH),
         "points": dict(num_points=NUM_POINTS, num_state_points=NUM_STATE_POINTS, state_xyz_scale_m=STATE_XYZ_SCALE_M),
         "actions": dict(dofs=list(g.DOFS), rotation_deg=[float(x) for x in g.ROTATION_STEPS_DEG],
-                        translation_m=[float(x) for x in g.TRANSLATION_STEPS_M]),
+                        translation_m=[float(x) for x in g.TRANSLATION_STEPS_M], frame=g.check_frame(action_frame)),
         "graphs": graphs,
         "provenance": provenance,
         "validation": validation,
@@ -136,7 +142,8 @@ def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenan
     }
 
 
-def export_models(models: dict[str, torch.nn.Module], out_dir: Path, provenance: dict, validation: dict | None = None) -> dict:
+def export_models(models: dict[str, torch.nn.Module], out_dir: Path, provenance: dict, validation: dict | None = None,
+                  action_frame: str = g.CAMERA_Y) -> dict:
     out_dir = Path(out_dir)
     files, flops = {}, {}
     for name, module in models.items():
@@ -148,7 +155,7 @@ def export_models(models: dict[str, torch.nn.Module], out_dir: Path, provenance:
     provenance = dict(provenance)
     provenance.setdefault("git_commit", git_commit())
     provenance.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
-    doc = manifest(files, parameter_counts(models), provenance, validation or {}, flops)
+    doc = manifest(files, parameter_counts(models), provenance, validation or {}, action_frame, flops)
     atomic_write_bytes(out_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
     return doc
 
@@ -185,7 +192,7 @@ def main(argv=None) -> None:
         provenance = dict(data=meta.get("data", "unknown"), seeds=meta.get("seeds", {}),
                           checkpoint=str(args.checkpoint), training=meta.get("training", {}))
     validation = json.loads(args.validation.read_text()) if args.validation else {}
-    doc = export_models(models, args.out, provenance, validation)
+    doc = export_models(models, args.out, provenance, validation, action_frame_of(meta))
     print(json.dumps({k: doc[k] for k in ("parameters", "provenance")}, indent=2))
 
 

@@ -21,11 +21,25 @@ def _symmetric(unit: float, magnitudes: list[float]) -> np.ndarray:
     return np.array([-m * unit for m in reversed(magnitudes)] + [0.0] + [m * unit for m in magnitudes])
 
 
-# Ascending steps; the middle index is the zero step. DoF order: yaw about camera y (deg),
-# translation along camera x (m), translation along camera z (m).
+# Ascending steps; the middle index is the zero step. DoF order: yaw (deg), then the two
+# translations (m); which axes they act along is the action frame (see "Actions" below).
 ROTATION_STEPS_DEG = _symmetric(0.1, [1, 5, 25, 125, 625])
 TRANSLATION_STEPS_M = _symmetric(0.1, [1, 3, 9, 27, 81])
 DOFS = ("yaw_deg", "tx_m", "tz_m")
+
+# The action frames (Rust: geometry::actions::ActionFrame; a model's manifest names its own in
+# `actions.frame`, absent = "camera_y"):
+# - "camera_y": yaw about the camera's y axis, translation along camera x and camera z;
+# - "map_z": yaw about the map's z (up) axis, translation in the map's xy plane along the camera's
+#   ground heading (`ground_heading`). Same motion as "camera_y" for a level camera.
+CAMERA_Y, MAP_Z = "camera_y", "map_z"
+ACTION_FRAMES = (CAMERA_Y, MAP_Z)
+
+
+def check_frame(frame: str) -> str:
+    if frame not in ACTION_FRAMES:
+        raise ValueError(f"unknown action frame {frame!r}; expected one of {ACTION_FRAMES}")
+    return frame
 
 
 def step_values(indices) -> tuple[float, float, float]:
@@ -41,6 +55,12 @@ def rot_y(deg: float) -> np.ndarray:
     a = math.radians(deg)
     c, s = math.cos(a), math.sin(a)
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(deg: float) -> np.ndarray:
+    a = math.radians(deg)
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
 def ground_motion(yaw_rad: float, dx: float, dy: float) -> np.ndarray:
@@ -110,11 +130,38 @@ def adjust_intrinsics(plan: dict, k, in_w: int, in_h: int) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # Actions (disentangled update) and the greedy expert
 
-def apply_action(pose: np.ndarray, pivot_map: np.ndarray, yaw_deg: float, tx: float, tz: float) -> np.ndarray:
-    """Rotate about camera y through the pivot (cloud centroid), then translate in the camera frame."""
+def ground_heading(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's ground heading in the map frame: (right, forward), unit vectors in the map's xy
+    plane. forward = the optical axis projected onto xy and normalised (if it is within 1e-6 of
+    vertical: map z x the camera's x axis projected onto xy); right = forward x map z, which is
+    the camera's x axis for a level camera."""
+    r = pose[:3, :3]
+    forward = np.array([r[2, 0], r[2, 1], 0.0])
+    if np.linalg.norm(forward) < 1e-6:
+        forward = np.cross([0.0, 0.0, 1.0], [r[0, 0], r[0, 1], 0.0])
+    forward = forward / np.linalg.norm(forward)
+    return np.cross(forward, [0.0, 0.0, 1.0]), forward
+
+
+def apply_action(pose: np.ndarray, pivot_map: np.ndarray, yaw_deg: float, tx: float, tz: float,
+                 frame: str = CAMERA_Y) -> np.ndarray:
+    """The disentangled update: rotate about the frame's vertical axis through the pivot (cloud
+    centroid), then translate.
+    - camera_y: R' = Ry(yaw) R, t' = Ry(yaw) (t - c) + c + (tx, 0, tz), c = R p + t;
+    - map_z:    R' = R Rz(-yaw), t' = t + R (p - Rz(-yaw) p) + R (tx right + tz forward).
+    A positive yaw turns the camera's heading counter-clockwise about map +z (both frames, for a
+    level camera); a positive tx / tz moves the map along right / forward relative to the camera."""
+    out = np.eye(4)
+    if check_frame(frame) == MAP_Z:
+        r, t = pose[:3, :3], pose[:3, 3]
+        turn = rot_z(-yaw_deg)
+        right, forward = ground_heading(pose)
+        p = np.asarray(pivot_map, dtype=np.float64)
+        out[:3, :3] = r @ turn
+        out[:3, 3] = t + r @ (p - turn @ p) + r @ (tx * right + tz * forward)
+        return out
     pivot_cam = transform(pose, pivot_map)
     turn = rot_y(yaw_deg)
-    out = np.eye(4)
     out[:3, :3] = turn @ pose[:3, :3]
     out[:3, 3] = turn @ (pose[:3, 3] - pivot_cam) + pivot_cam + np.array([tx, 0.0, tz])
     return out
@@ -132,10 +179,21 @@ def start_yaw_offsets(h: int) -> list[float]:
     return offsets
 
 
-def needed_motion(current: np.ndarray, target: np.ndarray, pivot_map: np.ndarray) -> tuple[float, float, float]:
+def needed_motion(current: np.ndarray, target: np.ndarray, pivot_map: np.ndarray,
+                  frame: str = CAMERA_Y) -> tuple[float, float, float]:
+    """The continuous (yaw, tx, tz) the update in `frame` needs to take `current` to `target`.
+    map_z: yaw = atan2(M01 - M10, M00 + M11) of M = R_current^T R_target; the translations are the
+    pivot's shift as seen from the camera, dotted with R right and R forward (its vertical part is
+    out of reach and dropped)."""
+    shift = transform(target, pivot_map) - transform(current, pivot_map)
+    if check_frame(frame) == MAP_Z:
+        r = current[:3, :3]
+        m = r.T @ target[:3, :3]
+        yaw = math.degrees(math.atan2(m[0, 1] - m[1, 0], m[0, 0] + m[1, 1]))
+        right, forward = ground_heading(current)
+        return yaw, float((r @ right) @ shift), float((r @ forward) @ shift)
     delta_r = target[:3, :3] @ current[:3, :3].T
     yaw = math.degrees(math.atan2(delta_r[0, 2], delta_r[2, 2]))
-    shift = transform(target, pivot_map) - transform(current, pivot_map)
     return yaw, float(shift[0]), float(shift[2])
 
 
@@ -149,8 +207,9 @@ def nearest_step(steps: np.ndarray, value: float) -> int:
     return best
 
 
-def expert_indices(current: np.ndarray, target: np.ndarray, pivot_map: np.ndarray) -> tuple[int, int, int]:
-    yaw, tx, tz = needed_motion(current, target, pivot_map)
+def expert_indices(current: np.ndarray, target: np.ndarray, pivot_map: np.ndarray,
+                   frame: str = CAMERA_Y) -> tuple[int, int, int]:
+    yaw, tx, tz = needed_motion(current, target, pivot_map, frame)
     return (nearest_step(ROTATION_STEPS_DEG, yaw), nearest_step(TRANSLATION_STEPS_M, tx),
             nearest_step(TRANSLATION_STEPS_M, tz))
 

@@ -28,6 +28,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from . import geometry as g
 from .data import find_sequences, list_frames, make_sample, split_frames
 from .episodes import embed, embed_many, gae, rollout
 from .export import atomic_write_bytes
@@ -44,6 +45,9 @@ class Config:
     seed: int = 0
     num_points: int = 40960
     threads: int = 2
+    # The action frame the agent is trained in and the manifest names (geometry.ACTION_FRAMES):
+    # "camera_y" (yaw about camera y; every model up to v3) or "map_z" (yaw about the map's up axis).
+    action_frame: str = "camera_y"
     # stage 1: embeddings
     embed_steps: int = 1500
     embed_points: int = 16384  # N while training the encoders (speed); features are density-robust
@@ -102,6 +106,7 @@ class Run:
 
     def __init__(self, cfg: Config):
         self.cfg = cfg
+        g.check_frame(cfg.action_frame)
         self.dir = Path(cfg.out)
         self.dir.mkdir(parents=True, exist_ok=True)
         self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -280,12 +285,14 @@ class Run:
             self.models[k].eval()
         agent = self.models["agent"]
         # The pool is rebuilt deterministically on resume (seeded by iteration), then rolls.
-        pool = embed_many(self.models, self.samples(4, self.agent_iter, cfg.pool_size, cfg.num_points), self.device)
+        pool = embed_many(self.models, self.samples(4, self.agent_iter, cfg.pool_size, cfg.num_points), self.device,
+                          action_frame=cfg.action_frame)
         while self.agent_iter < cfg.agent_iters and time.time() < deadline:
             t0 = time.time()
             it = self.agent_iter
             fresh = [(it * cfg.pool_refresh + j) % cfg.pool_size for j in range(cfg.pool_refresh)]
-            pool.replace(fresh, embed(self.models, self.samples(2, it, cfg.pool_refresh, cfg.num_points), self.device))
+            pool.replace(fresh, embed(self.models, self.samples(2, it, cfg.pool_refresh, cfg.num_points), self.device,
+                                      cfg.action_frame))
             rows = sorted(set(fresh) | set(np.random.default_rng([cfg.seed, 5, it]).choice(
                 cfg.pool_size, cfg.agent_envs - len(fresh), replace=False).tolist()))
             eps = pool.subset(rows)
@@ -332,7 +339,8 @@ class Run:
         from .evaluate import evaluate
         if not self.val_frames:
             return {}
-        result = evaluate(self.shipped_models(), self.val_frames, num_points=self.cfg.num_points, device=self.device)
+        result = evaluate(self.shipped_models(), self.val_frames, num_points=self.cfg.num_points, device=self.device,
+                          action_frame=self.cfg.action_frame)
         final = result["agent"][-1]
         rec = dict(stage="val", step=self.agent_iter, embed_step=self.embed_step, frames=len(self.val_frames), time=time.time(),
                    final=final, expert_final=result["expert"][-1], frustum=result["frustum"],

@@ -63,3 +63,64 @@ def test_start_yaw_offsets():
     for h, offsets in table.items():
         ours = g.start_yaw_offsets(int(h))
         assert len(ours) == len(offsets) and np.allclose(ours, offsets, atol=TOL), (h, ours, offsets)
+
+
+# ---------------------------------------------------------------------------------------------
+# The map_z action frame (yaw about the map's up axis), on pitched and rolled rigs.
+
+@pytest.mark.parametrize("case", FIXTURE["map_z_poses"])
+def test_map_z_conventions(case):
+    current, target = np.array(case["current"]), np.array(case["target"])
+    pivot = np.array(case["pivot_map"])
+    right, forward = g.ground_heading(current)
+    assert np.allclose(right, case["ground_right"], atol=TOL) and np.allclose(forward, case["ground_forward"], atol=TOL)
+    yaw, tx, tz = g.step_values(case["action_indices"])
+    moved = g.apply_action(current, pivot, yaw, tx, tz, frame=g.MAP_Z)
+    assert np.allclose(moved, case["after_action"], atol=1e-9)
+    # The map's up axis as the camera sees it (its pitch and roll) does not change.
+    assert np.allclose(moved[:3, :3] @ [0, 0, 1], current[:3, :3] @ [0, 0, 1], atol=1e-12)
+    assert np.allclose(g.needed_motion(current, target, pivot, g.MAP_Z), case["needed_motion"], atol=1e-9)
+    assert list(g.expert_indices(current, target, pivot, g.MAP_Z)) == case["expert_indices"]
+
+
+@pytest.mark.parametrize("case", FIXTURE["map_z_expert_rollouts"])
+def test_map_z_expert_rollout(case):
+    truth, pivot = np.array(case["truth"]), np.array(case["pivot_map"])
+    pose = np.array(case["start"])
+    for expected in case["expert_steps"]:
+        indices = g.expert_indices(pose, truth, pivot, g.MAP_Z)
+        assert list(indices) == expected
+        pose = g.apply_action(pose, pivot, *g.step_values(indices), frame=g.MAP_Z)
+    assert np.allclose(pose, case["final"], atol=1e-9)
+    err = g.pose_error(pose, truth)
+    assert err["rre_geodesic_deg"] < 0.06 and err["rte_m"] < 0.1
+
+
+@pytest.mark.parametrize("case", FIXTURE["poses"])
+def test_map_z_equals_camera_y_for_a_near_level_camera(case):
+    """For a level camera (the fixture's pose with its tilt removed) map_z is camera_y."""
+    current, pivot = np.array(case["current"]), np.array(case["pivot_map"])
+    yaw, tx, tz = g.step_values(case["action_indices"])
+    level = current.copy()
+    level[:3, :3] = np.array([[0, -1, 0], [0, 0, -1], [1, 0, 0.0]]) @ g.rot_z(yaw * 0.37 + 11.0)
+    a = g.apply_action(level, pivot, yaw, tx, tz, frame=g.CAMERA_Y)
+    b = g.apply_action(level, pivot, yaw, tx, tz, frame=g.MAP_Z)
+    assert np.allclose(a, b, atol=1e-12)
+    assert np.allclose(g.needed_motion(level, current, pivot, g.CAMERA_Y), g.needed_motion(level, current, pivot, g.MAP_Z),
+                       atol=1e-9) or abs(current[1, 2]) > 0  # current is tilted: only the level pose is exact
+
+
+def test_unknown_frame_is_refused():
+    with pytest.raises(ValueError):
+        g.apply_action(np.eye(4), np.zeros(3), 1.0, 0.0, 0.0, frame="camera_z")
+
+
+def test_checkpoints_name_their_action_frame():
+    """export and evaluate read the frame from a checkpoint's config; older ones are camera_y."""
+    from cmr.export import action_frame_of, manifest
+    assert action_frame_of({}) == g.CAMERA_Y
+    assert action_frame_of({"config": {"action_frame": "map_z"}}) == g.MAP_Z
+    with pytest.raises(ValueError):
+        action_frame_of({"config": {"action_frame": "map_y"}})
+    assert manifest({}, {}, {}, {}, g.MAP_Z)["actions"]["frame"] == "map_z"
+    assert manifest({}, {}, {}, {})["actions"]["frame"] == "camera_y"

@@ -40,10 +40,11 @@ def test_selection_takes_the_best_hypothesis_per_iteration():
 
 class FakeEpisodes:
     """Two rows; a pose's alignment is highest when its yaw matches the row's truth."""
-    def __init__(self, truth_yaws):
+    def __init__(self, truth_yaws, action_frame=g.CAMERA_Y):
         self.initial = [PRIOR.copy(), PRIOR.copy()]
         self.pivots = [PIVOT, PIVOT]
-        self.truth = [g.apply_action(PRIOR, PIVOT, y, 0.0, 0.0) for y in truth_yaws]
+        self.action_frame = action_frame
+        self.truth = [g.apply_action(PRIOR, PIVOT, y, 0.0, 0.0, frame=action_frame) for y in truth_yaws]
 
     def __len__(self):
         return 2
@@ -52,19 +53,20 @@ class FakeEpisodes:
         return np.array([-g.pose_error(p, t)["rre_geodesic_deg"] for p, t in zip(poses, self.truth)])
 
 
-def test_multi_start_answers_with_the_best_aligned_start(monkeypatch):
+@pytest.mark.parametrize("frame", g.ACTION_FRAMES)
+def test_multi_start_answers_with_the_best_aligned_start(monkeypatch, frame):
     """With an agent that stands still, the answer is the start nearest the truth in yaw; hypothesis
     0 is the prior itself, and the batch's starts are restored afterwards."""
     def still(agent, episodes, steps, mode):
         assert mode == "greedy"
         return ep.Trajectory([list(episodes.initial)] * (steps + 1), *[None] * 5)
     monkeypatch.setattr(ep, "rollout", still)
-    eps = FakeEpisodes([100.0, -30.0])
+    eps = FakeEpisodes([100.0, -30.0], frame)
     prior = [p.copy() for p in eps.initial]
     selected, trajectories = ep.multi_start(None, eps, 3, 4)
     assert len(trajectories) == 4 and len(selected) == 3
     assert all(np.array_equal(a, b) for a, b in zip(eps.initial, prior))
     assert np.allclose(trajectories[0].poses[0][0], PRIOR, atol=1e-12)
     for poses in selected:
-        assert np.allclose(poses[0], g.apply_action(PRIOR, PIVOT, 90.0, 0.0, 0.0))
+        assert np.allclose(poses[0], g.apply_action(PRIOR, PIVOT, 90.0, 0.0, 0.0, frame=frame))
         assert np.allclose(poses[1], PRIOR)
