@@ -165,15 +165,18 @@ pub fn random_rig(rng: &mut impl Rng) -> Rig {
     let beams: u32 = rng.random_range(16..=128);
     let top: f32 = rng.random_range(2.0..22.0);
     let bottom: f32 = rng.random_range(-31.0..-15.0);
-    // Spacing warp: 1 = even; larger crowds beams towards the elevation nearest the horizon.
+    // Spacing warp: 1 = even; larger crowds beams towards the horizon (0°), blended with even
+    // spacing so no two beams come closer than 40 % of the even spacing.
     let gamma: f32 = if rng.random_bool(0.5) { 1.0 } else { rng.random_range(1.2..2.2) };
+    let blend: f32 = rng.random_range(0.3..0.6);
     let pivot = top / (top - bottom);
     let elevations: Vec<f32> = (0..beams)
         .map(|b| {
             let k = b as f32 / (beams - 1) as f32;
             let d = k - pivot;
             let span = if d < 0.0 { pivot } else { 1.0 - pivot };
-            let warped = pivot + d.signum() * span * (d.abs() / span).powf(gamma);
+            let x = d.abs() / span;
+            let warped = pivot + d.signum() * span * ((1.0 - blend) * x + blend * x.powf(gamma));
             top + (bottom - top) * warped
         })
         .collect();
