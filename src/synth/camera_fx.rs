@@ -4,6 +4,7 @@
 //! row banding, hot and dead pixels) and JPEG compression artefacts.
 
 use image::RgbImage;
+use rayon::prelude::*;
 use serde::Serialize;
 
 use super::noise::{gaussian, hash, unit};
@@ -102,13 +103,16 @@ pub fn develop(mut radiance: Vec<[f32; 3]>, w: usize, h: usize, exposure: f32, f
     let gain = exposure * 2f32.powf(fx.exposure_ev);
     let (cx, cy) = (w as f32 * 0.5, h as f32 * 0.5);
     let norm = 1.0 / (cx * cx + cy * cy);
-    for (i, p) in radiance.iter_mut().enumerate() {
-        let (x, y) = ((i % w) as f32 - cx, (i / w) as f32 - cy);
-        let v = 1.0 - fx.vignetting * (x * x + y * y) * norm;
-        for c in 0..3 {
-            p[c] *= gain * fx.white_balance[c] * v;
+    radiance.par_chunks_mut(w).enumerate().for_each(|(row, line)| {
+        let y = row as f32 - cy;
+        for (col, p) in line.iter_mut().enumerate() {
+            let x = col as f32 - cx;
+            let v = 1.0 - fx.vignetting * (x * x + y * y) * norm;
+            for c in 0..3 {
+                p[c] *= gain * fx.white_balance[c] * v;
+            }
         }
-    }
+    });
     let d = fx.defocus_px as usize;
     for _ in 0..2 {
         box_blur(&mut radiance, w, h, d, true);
@@ -117,21 +121,23 @@ pub fn develop(mut radiance: Vec<[f32; 3]>, w: usize, h: usize, exposure: f32, f
     box_blur(&mut radiance, w, h, fx.motion_px[0] as usize / 2, true);
     box_blur(&mut radiance, w, h, fx.motion_px[1] as usize / 2, false);
     let mut pixels = vec![0u8; w * h * 3];
-    for (i, p) in radiance.iter().enumerate() {
-        let row = (i / w) as u64;
-        let row_offset = fx.row_noise * gaussian(hash(&[seed, 0xB0, row]));
-        let bad = unit(hash(&[seed, 0xBAD, i as u64]));
-        for c in 0..3 {
-            let mapped = p[c] / (1.0 + 0.15 * p[c]);
-            let srgb = linear_to_srgb(mapped.clamp(0.0, 1.0)).powf(fx.contrast) * 255.0;
-            let sigma = (fx.read_noise * fx.read_noise + fx.shot_noise * fx.shot_noise * srgb).sqrt();
-            let mut value = srgb + sigma * gaussian(hash(&[seed, i as u64, c as u64])) + row_offset;
-            if bad < fx.bad_pixels {
-                value = if bad < fx.bad_pixels * 0.5 { 255.0 } else { 0.0 };
+    pixels.par_chunks_mut(w * 3).zip(radiance.par_chunks(w)).enumerate().for_each(|(row, (rgb, line))| {
+        let row_offset = fx.row_noise * gaussian(hash(&[seed, 0xB0, row as u64]));
+        for (col, p) in line.iter().enumerate() {
+            let i = (row * w + col) as u64;
+            let bad = unit(hash(&[seed, 0xBAD, i]));
+            for c in 0..3 {
+                let mapped = p[c] / (1.0 + 0.15 * p[c]);
+                let srgb = linear_to_srgb(mapped.clamp(0.0, 1.0)).powf(fx.contrast) * 255.0;
+                let sigma = (fx.read_noise * fx.read_noise + fx.shot_noise * fx.shot_noise * srgb).sqrt();
+                let mut value = srgb + sigma * gaussian(hash(&[seed, i, c as u64])) + row_offset;
+                if bad < fx.bad_pixels {
+                    value = if bad < fx.bad_pixels * 0.5 { 255.0 } else { 0.0 };
+                }
+                rgb[col * 3 + c] = value.round().clamp(0.0, 255.0) as u8;
             }
-            pixels[i * 3 + c] = value.round().clamp(0.0, 255.0) as u8;
         }
-    }
+    });
     let image = RgbImage::from_raw(w as u32, h as u32, pixels).expect("buffer size");
     let Some(quality) = fx.jpeg_quality else { return Ok(image) };
     let mut jpeg = Vec::new();

@@ -82,7 +82,12 @@ pub struct Terrain {
     /// [c, c', p, bank, junction mask] every `TABLE_STEP_M`.
     table: Vec<[f32; 5]>,
     z_min: f32,
-    z_max: f32,
+    /// Largest |d²c/dx²| of the centreline (1/m).
+    curvature: f32,
+    /// Highest ground over all x ≥ (ahead) and ≤ (behind) each table row: a ray climbing
+    /// above it can no longer meet the ground.
+    max_ahead: Vec<f32>,
+    max_behind: Vec<f32>,
 }
 
 /// Values along x at one point.
@@ -117,31 +122,59 @@ impl Terrain {
                 [waves(&shape.curve, x), slope, waves(&shape.profile, x), bank, junction]
             })
             .collect();
-        let (lo, hi) = table.iter().fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), r| (lo.min(r[2]), hi.max(r[2])));
+        let lo = table.iter().fold(f32::INFINITY, |lo, r| lo.min(r[2]));
         let bank_max = shape.bank_mean.abs() + shape.bank_wave[0].abs();
         let tilt = bank_max * shape.road_half_width_m;
         let up = shape.sides.iter().map(|s| s.slope_rise_m.max(0.0)).fold(0.0, f32::max) + shape.kerb_m;
         let down = shape.sides.iter().map(|s| s.ditch_depth_m + (-s.slope_rise_m).max(0.0)).fold(0.0, f32::max);
-        Terrain { shape, x0, table, z_min: lo - tilt - down - 0.01, z_max: hi + tilt + up + 0.01 }
+        let curvature = table.windows(2).map(|w| (w[1][1] - w[0][1]).abs() / TABLE_STEP_M).fold(0.0f32, f32::max) * 1.1 + 1e-6;
+        let top: Vec<f32> = table.iter().map(|r| r[2] + tilt + up + 0.01).collect();
+        let mut max_ahead = top.clone();
+        for i in (0..top.len().saturating_sub(1)).rev() {
+            max_ahead[i] = max_ahead[i].max(max_ahead[i + 1]);
+        }
+        let mut max_behind = top;
+        for i in 1..max_behind.len() {
+            max_behind[i] = max_behind[i].max(max_behind[i - 1]);
+        }
+        Terrain { shape, x0, table, z_min: lo - tilt - down - 0.01, curvature, max_ahead, max_behind }
+    }
+
+    /// The highest the ground gets from x onwards in the direction of `dx`'s sign.
+    fn max_towards(&self, x: f32, dx: f32) -> f32 {
+        let f = ((x - self.x0) / TABLE_STEP_M).clamp(0.0, (self.table.len() - 1) as f32);
+        if dx >= 0.0 { self.max_ahead[f.floor() as usize] } else { self.max_behind[f.ceil() as usize] }
+    }
+
+    /// Table row and fraction at x (queries outside the table use its ends).
+    #[inline]
+    fn row(&self, x: f32) -> (usize, f32) {
+        let f = ((x - self.x0) / TABLE_STEP_M).clamp(0.0, (self.table.len() - 2) as f32);
+        // f ≥ 0, so truncation is floor (and avoids a libm call).
+        let i = (f as usize).min(self.table.len() - 2);
+        (i, f - i as f32)
     }
 
     /// Road values at x.
     pub fn along(&self, x: f32) -> Along {
-        let f = ((x - self.x0) / TABLE_STEP_M).clamp(0.0, (self.table.len() - 2) as f32);
-        let i = f.floor() as usize;
-        let t = f - i as f32;
+        let (i, t) = self.row(x);
         let (a, b) = (&self.table[i], &self.table[i + 1]);
         let l = |k: usize| a[k] + (b[k] - a[k]) * t;
         Along { centre: l(0), centre_slope: l(1), height: l(2), bank: l(3), junction: l(4) }
     }
 
     /// Ground height at scene (x, y).
+    #[inline]
     pub fn height(&self, x: f32, y: f32) -> f32 {
-        let a = self.along(x);
-        a.height + self.cross(y - a.centre, &a)
+        let (i, t) = self.row(x);
+        let (a, b) = (&self.table[i], &self.table[i + 1]);
+        let l = |k: usize| a[k] + (b[k] - a[k]) * t;
+        let along = Along { centre: l(0), centre_slope: 0.0, height: l(2), bank: l(3), junction: l(4) };
+        along.height + self.cross(y - along.centre, &along)
     }
 
     /// Height of the cross-section above the centreline at lateral position `yh`.
+    #[inline]
     fn cross(&self, yh: f32, a: &Along) -> f32 {
         let s = &self.shape;
         let rw = s.road_half_width_m;
@@ -164,23 +197,26 @@ impl Terrain {
         z
     }
 
-    /// Upward unit normal at (x, y) (central differences over 5 cm).
+    /// Upward unit normal at (x, y) (forward differences over 5 cm).
     pub fn normal(&self, x: f32, y: f32) -> V3 {
         let e = 0.05;
-        let hx = (self.height(x + e, y) - self.height(x - e, y)) / (2.0 * e);
-        let hy = (self.height(x, y + e) - self.height(x, y - e)) / (2.0 * e);
+        let h = self.height(x, y);
+        let hx = (self.height(x + e, y) - h) / e;
+        let hy = (self.height(x, y + e) - h) / e;
         V3::new(-hx, -hy, 1.0).normalize()
     }
 
     /// The first t in (0, t_max) where the ray meets the ground. Secant steps (exact for a
-    /// plane), capped so a step never jumps more than 1 m + half the distance travelled, and
-    /// a bracketed regula falsi once the ray is below the ground.
+    /// plane), capped so a step never jumps more than 1 m + half the distance travelled; once
+    /// the ray is below the ground, the first sign change on a 25 cm grid inside the last step
+    /// is refined by regula falsi. Features narrower than 25 cm may be stepped over at grazing
+    /// angles (both sensors then miss them alike).
     pub fn intersect(&self, o: &V3, d: &V3, t_max: f32) -> Option<f32> {
         let dn = d.norm();
         let mut t_end = t_max;
         if d.z < 0.0 {
             t_end = t_end.min((o.z - self.z_min) / -d.z);
-        } else if o.z > self.z_max {
+        } else if o.z > self.max_towards(o.x, d.x) {
             return None;
         }
         let f = |t: f32| {
@@ -192,13 +228,40 @@ impl Terrain {
             return None;
         }
         let mut rate = -d.z;
+        let rw = self.shape.road_half_width_m;
         for _ in 0..64 {
-            let cap = (1.0 + 0.5 * t0 * dn) / dn;
+            // Within the carriageway the ground is smooth (grade and bank only), so a secant
+            // step may run up to where the ray leaves it; elsewhere steps are capped.
+            let p = o + d * t0;
+            let along = self.along(p.x);
+            let yh = p.y - along.centre;
+            let dyh = d.y - along.centre_slope * d.x;
+            // Until it leaves: |ŷ| grows at most by |dŷ/dt|·t + κ·(d.x·t)²/2 (κ bounds |c''|).
+            let band = if yh.abs() < rw {
+                let margin = if dyh > 0.0 { rw - yh } else { yh + rw };
+                let k = self.curvature * d.x * d.x;
+                if k > 1e-9 { (-dyh.abs() + (dyh * dyh + 2.0 * k * margin).sqrt()) / k } else { margin / dyh.abs().max(1e-9) }
+            } else {
+                0.0
+            };
+            let cap = ((1.0 + 0.5 * t0 * dn) / dn).max(band);
             let step = if rate > 1e-6 { (f0 / rate).min(cap) } else { cap };
             let t1 = (t0 + step.max(1e-4 / dn)).min(t_end);
             let f1 = f(t1);
             if f1 <= 0.0 {
-                return Some(refine(&f, t0, f0, t1, f1));
+                // A long bracket may hold several crossings (a kerb then a ditch): take the
+                // first sign change on a 25 cm grid before refining.
+                let n = (((t1 - t0) * dn / 0.25).ceil() as usize).clamp(1, 24);
+                let (mut a, mut fa) = (t0, f0);
+                for k in 1..n {
+                    let t = t0 + (t1 - t0) * k as f32 / n as f32;
+                    let ft = f(t);
+                    if ft <= 0.0 {
+                        return Some(refine(&f, a, fa, t, ft));
+                    }
+                    (a, fa) = (t, ft);
+                }
+                return Some(refine(&f, a, fa, t1, f1));
             }
             if t1 >= t_end {
                 return None;
@@ -207,7 +270,7 @@ impl Terrain {
                 return Some(t1);
             }
             rate = (f0 - f1) / (t1 - t0);
-            if d.z >= 0.0 && o.z + d.z * t1 > self.z_max {
+            if d.z >= 0.0 && o.z + d.z * t1 > self.max_towards(o.x + d.x * t1, d.x) {
                 return None;
             }
             (t0, f0) = (t1, f1);
@@ -246,18 +309,27 @@ fn refine(f: &impl Fn(f32) -> f32, mut a: f32, mut fa: f32, mut b: f32, mut fb: 
 mod tests {
     use super::*;
 
-    fn hilly() -> Terrain {
+    /// A hilly road with either kerbs (and a sidewalk then a falling slope, like a suburb) or
+    /// ditches and embankments (like the countryside); no world puts a ditch right behind a kerb.
+    fn hilly(kerb: bool) -> Terrain {
         let shape = RoadShape {
             curve: [[8.0, 300.0, 0.3], [2.0, 90.0, 1.0]],
             profile: [[4.0, 250.0, 0.0], [0.5, 70.0, 2.0]],
             bank_mean: 0.02,
             bank_wave: [0.03, 150.0, 0.5],
             road_half_width_m: 5.0,
-            kerb_m: 0.15,
-            sides: [
-                Roadside { ditch_start_m: 1.0, ditch_width_m: 2.0, ditch_depth_m: 0.6, slope_start_m: 4.0, slope_width_m: 6.0, slope_rise_m: 3.0 },
-                Roadside { slope_start_m: 2.0, slope_width_m: 5.0, slope_rise_m: -2.5, ..Roadside::default() },
-            ],
+            kerb_m: if kerb { 0.15 } else { 0.0 },
+            sides: if kerb {
+                [
+                    Roadside { slope_start_m: 4.0, slope_width_m: 6.0, slope_rise_m: 2.0, ..Roadside::default() },
+                    Roadside { slope_start_m: 4.0, slope_width_m: 6.0, slope_rise_m: -1.5, ..Roadside::default() },
+                ]
+            } else {
+                [
+                    Roadside { ditch_start_m: 1.0, ditch_width_m: 2.0, ditch_depth_m: 0.6, slope_start_m: 4.0, slope_width_m: 6.0, slope_rise_m: 3.0 },
+                    Roadside { slope_start_m: 2.0, slope_width_m: 5.0, slope_rise_m: -2.5, ..Roadside::default() },
+                ]
+            },
             junctions: vec![(40.0, 5.0)],
         };
         Terrain::new(shape, -200.0, 200.0)
@@ -266,7 +338,12 @@ mod tests {
     /// The march finds the same surface a fine brute-force scan finds.
     #[test]
     fn march_matches_brute_force() {
-        let terrain = hilly();
+        for kerb in [false, true] {
+            march_matches_brute_force_on(&hilly(kerb));
+        }
+    }
+
+    fn march_matches_brute_force_on(terrain: &Terrain) {
         let mut checked = 0;
         for i in 0..400 {
             let a = i as f32 * 0.37;
