@@ -21,7 +21,7 @@ fn config(world: WorldKind, rig: RigChoice, seed: u64, frames: usize) -> Generat
         frames,
         spacing_m: 2.5,
         rig,
-        sensor: SensorOverrides { image_size: Some((w, h)), lidar_beams: None, lidar_columns: Some(1000) },
+        sensor: SensorOverrides { image_size: Some((w, h)), lidar_beams: None, lidar_columns: Some(1000), image_scale: None },
         world: Some(world),
         look: LookMode::Random,
         preset: StylePreset::Train,
@@ -187,7 +187,7 @@ fn every_world_is_deterministic() {
     let mut images = Vec::new();
     for world in worlds {
         let mut cfg = config(world, RigChoice::Random, 5, 2);
-        cfg.sensor = SensorOverrides { image_size: Some((240, 90)), lidar_beams: Some(16), lidar_columns: Some(360) };
+        cfg.sensor = SensorOverrides { image_size: Some((240, 90)), lidar_beams: Some(16), lidar_columns: Some(360), image_scale: None };
         let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
         generate(&cfg, a.path(), false, false).unwrap();
         generate(&cfg, b.path(), false, false).unwrap();

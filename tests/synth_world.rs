@@ -11,7 +11,7 @@ use nalgebra::Point3;
 fn small_config(seed: u64) -> GeneratorConfig {
     GeneratorConfig {
         spacing_m: 3.0,
-        sensor: SensorOverrides { image_size: Some((310, 94)), lidar_beams: Some(16), lidar_columns: Some(400) },
+        sensor: SensorOverrides { image_size: Some((310, 94)), lidar_beams: Some(16), lidar_columns: Some(400), image_scale: None },
         ..GeneratorConfig::classic(seed, 2, 3)
     }
 }
@@ -111,7 +111,7 @@ fn lidar_points_agree_with_the_rendered_depth() {
     let config = GeneratorConfig {
         sequences: 1,
         frames: 12,
-        sensor: SensorOverrides { image_size: Some((620, 188)), lidar_beams: None, lidar_columns: Some(1000) },
+        sensor: SensorOverrides { image_size: Some((620, 188)), lidar_beams: None, lidar_columns: Some(1000), image_scale: None },
         ..small_config(21)
     };
     let tolerance = 3.0 * config.rig_for(0).lidar.range_noise_m as f64 + 0.02;

@@ -52,6 +52,9 @@ pub struct WorldArgs {
     /// Image size WIDTHxHEIGHT (default: the rig's); intrinsics scale with the width.
     #[arg(long, value_parser = parse_size)]
     pub image_size: Option<(u32, u32)>,
+    /// Scale every rig's image size by this factor (intrinsics follow), e.g. 0.5.
+    #[arg(long)]
+    pub image_scale: Option<f64>,
     /// LiDAR beams, evenly spaced between the rig's top and bottom beams (default: the rig's).
     #[arg(long)]
     pub lidar_beams: Option<u32>,
@@ -87,6 +90,7 @@ impl WorldArgs {
             noise_sigma: None,
             no_shadows: false,
             image_size: None,
+            image_scale: None,
             lidar_beams: None,
             lidar_columns: None,
             spacing_m: 2.5,
@@ -101,7 +105,12 @@ impl WorldArgs {
             frames,
             spacing_m: self.spacing_m,
             rig: self.rig.clone(),
-            sensor: SensorOverrides { image_size: self.image_size, lidar_beams: self.lidar_beams, lidar_columns: self.lidar_columns },
+            sensor: SensorOverrides {
+                image_size: self.image_size,
+                lidar_beams: self.lidar_beams,
+                lidar_columns: self.lidar_columns,
+                image_scale: self.image_scale,
+            },
             world: self.world,
             look: self.look,
             preset: self.style,

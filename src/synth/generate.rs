@@ -40,6 +40,10 @@ pub struct SensorOverrides {
     /// Beam count, evenly spaced between the rig's top and bottom beams.
     pub lidar_beams: Option<u32>,
     pub lidar_columns: Option<u32>,
+    /// Scales the (rig's or given) image size, intrinsics following; e.g. 0.5 for training
+    /// sets, whose preprocessing halves every image of KITTI size or larger anyway.
+    #[serde(default)]
+    pub image_scale: Option<f64>,
 }
 
 /// Everything that determines the output bytes.
@@ -88,6 +92,10 @@ impl GeneratorConfig {
         if let Some((w, h)) = self.sensor.image_size {
             rig = rig.with_image_size(w, h);
         }
+        if let Some(scale) = self.sensor.image_scale {
+            let (w, h) = (((rig.width as f64) * scale).round() as u32, ((rig.height as f64) * scale).round() as u32);
+            rig = rig.with_image_size(w, h);
+        }
         if let Some(beams) = self.sensor.lidar_beams {
             rig = rig.with_beams(beams);
         }
@@ -100,6 +108,11 @@ impl GeneratorConfig {
     pub fn validate(&self) -> Result<()> {
         if self.frames == 0 || self.sequences == 0 {
             bail!("need at least one sequence and one frame");
+        }
+        if let Some(scale) = self.sensor.image_scale {
+            if !(scale > 0.0 && scale <= 4.0) {
+                bail!("image scale {scale} must be within (0, 4]");
+            }
         }
         if !(self.spacing_m > 0.0 && self.spacing_m <= 50.0) {
             bail!("frame spacing {} m must be within (0, 50]", self.spacing_m);

@@ -85,7 +85,7 @@ impl Textures {
         let h = hash(&[self.seed, id, class as u64]);
         let s = self.strength;
         let (u, v) = if hit.primitive == GROUND { (point.x, point.y) } else { (hit.uv[0], hit.uv[1]) };
-        let scale = 0.15 + 2.0 * unit(h ^ 1);
+        let scale = 0.3 + 2.0 * unit(h ^ 1);
         let pattern = match h % 10 {
             0..=3 => 0.0,
             4..=6 => fractal_noise(h, u, v, scale) - 0.5,

@@ -188,8 +188,9 @@ impl RoadPaint {
             Verge::Field => {
                 let angle = unit(hash(&[self.seed, 31])) * 3.0;
                 let along = x * angle.cos() + y * angle.sin();
-                let row = (along / 0.75).rem_euclid(1.0);
-                let crop = if row < 0.45 { 1.15 } else { 0.7 };
+                // Soft rows 1.5–3 m apart (hard 0.75 m rows alias into moiré at a distance).
+                let pitch = 1.5 + 1.5 * unit(hash(&[self.seed, 32]));
+                let crop = 0.92 + 0.18 * (std::f32::consts::TAU * along / pitch).sin();
                 let plot = unit(hash(&[self.seed, (x / 80.0).floor() as i64 as u64, (y.abs() / 60.0).floor() as u64]));
                 let color = mix(self.verge_color, [0.42, 0.33, 0.20], plot * 0.8);
                 Surface { albedo: scale(color, crop * (0.8 + 0.4 * n)), reflectivity: 0.3 }

@@ -62,15 +62,15 @@ pub fn populate(kit: &mut Kit, ego_lane: u32) {
                 let a2 = kit.rng.random_range(0.9..1.5);
                 kit.tree(x, side * (edge + paint.sidewalk_m * a1), a2);
             }
-            x += kit.rng.random_range(5.0..11.0) / kit.clutter.max(0.5);
+            x += kit.rng.random_range(4.0..8.0) / kit.clutter.max(0.5);
         }
         let mut x = x0;
         while x < x1 {
             let run = kit.rng.random_range(10.0..50.0);
-            if kit.free(x, x + run, 1.0) && kit.rng.random_bool(0.7) {
+            if kit.free(x, x + run, 1.0) && kit.rng.random_bool(0.9) {
                 let a1 = kit.rng.random_range(0.5..2.0);
-                let a2 = kit.rng.random_range(1.0..2.5);
-                let a3 = kit.rng.random_range(0.8..1.8);
+                let a2 = kit.rng.random_range(1.2..3.0);
+                let a3 = kit.rng.random_range(1.0..2.2);
                 kit.hedge(x, x + run, side * (green + a1), a2, a3);
             }
             x += run + kit.rng.random_range(0.0..8.0);
@@ -78,7 +78,7 @@ pub fn populate(kit: &mut Kit, ego_lane: u32) {
         let mut x = x0 + kit.rng.random_range(0.0..8.0);
         while x < x1 {
             if kit.free(x - 3.0, x + 3.0, 1.0) {
-                let y = side * (green + kit.rng.random_range(2.5..14.0));
+                let y = side * (green + kit.rng.random_range(2.0..11.0));
                 if kit.rng.random_bool(0.6) {
                     let a1 = kit.rng.random_range(1.0..1.8);
                     kit.tree(x, y, a1);
@@ -87,7 +87,7 @@ pub fn populate(kit: &mut Kit, ego_lane: u32) {
                     kit.bush(x, y, a1);
                 }
             }
-            x += kit.rng.random_range(3.0..9.0) / kit.clutter.max(0.5);
+            x += kit.rng.random_range(2.0..6.0) / kit.clutter.max(0.5);
         }
         // Buildings far behind the green band.
         let mut x = x0;

@@ -58,6 +58,19 @@ pub fn populate(kit: &mut Kit, shape: &RoadShape, ego_lane: u32) {
             let y = side * (beyond_ditch + kit.rng.random_range(0.0..2.0));
             kit.fence(x0, x1, y);
         }
+        // A hedgerow along the field edge on some roads.
+        if kit.rng.random_bool(0.45) {
+            let y = side * (beyond_ditch + kit.rng.random_range(2.5..6.0));
+            let (h, d) = (kit.rng.random_range(1.5..3.5), kit.rng.random_range(1.2..2.5));
+            let mut x = x0;
+            while x < x1 {
+                let run = kit.rng.random_range(20.0..80.0);
+                if kit.free(x, x + run, 2.0) {
+                    kit.hedge(x, (x + run).min(x1), y, h, d);
+                }
+                x += run + kit.rng.random_range(3.0..25.0);
+            }
+        }
         // Sparse trees and clumps of bushes, in rows along field edges or scattered.
         let mut x = x0 + kit.rng.random_range(0.0..30.0);
         while x < x1 {

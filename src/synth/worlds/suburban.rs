@@ -64,9 +64,9 @@ pub fn populate(kit: &mut Kit, ego_lane: u32) {
                 let depth = kit.rng.random_range(7.0..12.0);
                 kit.house(x + plot * 0.5, front + setback, side, width, depth);
                 let driveway = paint.driveways.iter().any(|d| d.2 == side && d.0 > x - 2.0 && d.0 < x + plot + 2.0);
-                match if driveway { 2 } else { kit.rng.random_range(0..3) } {
+                match if driveway { 2 } else { kit.rng.random_range(0..4) % 3 } {
                     0 => {
-                        let (h, d) = (kit.rng.random_range(0.8..1.8), kit.rng.random_range(0.6..1.1));
+                        let (h, d) = (kit.rng.random_range(1.0..2.2), kit.rng.random_range(0.7..1.4));
                         kit.hedge(x + 0.5, x + plot - 0.5, side * (front + 0.6), h, d)
                     }
                     1 => kit.fence(x + 0.5, x + plot - 0.5, side * (front + 0.3)),
@@ -99,6 +99,17 @@ pub fn populate(kit: &mut Kit, ego_lane: u32) {
             let yaw = std::f32::consts::FRAC_PI_2 * if kit.rng.random_bool(0.5) { 1.0 } else { -1.0 };
             let kind = if kit.rng.random_bool(0.2) { Vehicle::Van } else { Vehicle::Car };
             kit.vehicle(dx, y, yaw, kind);
+        }
+    }
+    // Street trees on the grass between the kerb and the sidewalk's far edge.
+    for side in [1.0f32, -1.0] {
+        let mut x = x0 + kit.rng.random_range(0.0..10.0);
+        while x < x1 {
+            if kit.free(x - 2.0, x + 2.0, 1.0) && kit.rng.random_bool((0.7 * kit.clutter as f64).min(1.0)) {
+                let size = kit.rng.random_range(0.8..1.4);
+                kit.tree(x, side * (front + 0.8), size);
+            }
+            x += kit.rng.random_range(8.0..18.0);
         }
     }
     kit.parked(0.4);
