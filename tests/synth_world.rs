@@ -4,21 +4,15 @@
 use std::path::Path;
 
 use cmr_agent::kitti::{discover_sequences, read_velodyne, Sequence};
-use cmr_agent::synth::{generate, GeneratorConfig, LidarConfig, SequencePlan, StyleOverrides, StylePreset};
+use cmr_agent::synth::{generate, GeneratorConfig, SensorOverrides, SequencePlan};
 use nalgebra::Point3;
 
+/// Today's generator (kitti rig, classic street and look) at a small size.
 fn small_config(seed: u64) -> GeneratorConfig {
     GeneratorConfig {
-        seed,
-        sequences: 2,
-        first_sequence: 0,
-        frames: 3,
-        width: 310,
-        height: 94,
         spacing_m: 3.0,
-        lidar: LidarConfig { beams: 16, columns: 400, ..LidarConfig::default() },
-        preset: StylePreset::Train,
-        overrides: StyleOverrides::default(),
+        sensor: SensorOverrides { image_size: Some((310, 94)), lidar_beams: Some(16), lidar_columns: Some(400), image_scale: None },
+        ..GeneratorConfig::classic(seed, 2, 3)
     }
 }
 
@@ -86,7 +80,7 @@ fn written_sequences_read_back_through_the_kitti_module() {
             assert!((a.matrix() - b.matrix()).abs().max() < 1e-9);
         }
         // Points: the file holds exactly what the LiDAR produced.
-        let output = plan.frame(&config, 1).unwrap();
+        let output = plan.frame(1).unwrap();
         assert_eq!(frame.read_points().unwrap(), output.points);
         assert_eq!(frame.read_image().unwrap(), output.rendered.image);
         // The ground is 1.73 m below the LiDAR: the lowest points sit near z = -1.73.
@@ -117,12 +111,10 @@ fn lidar_points_agree_with_the_rendered_depth() {
     let config = GeneratorConfig {
         sequences: 1,
         frames: 12,
-        width: 620,
-        height: 188,
-        lidar: LidarConfig { columns: 1000, ..LidarConfig::default() },
+        sensor: SensorOverrides { image_size: Some((620, 188)), lidar_beams: None, lidar_columns: Some(1000), image_scale: None },
         ..small_config(21)
     };
-    let tolerance = 3.0 * config.lidar.range_noise_m as f64 + 0.02;
+    let tolerance = 3.0 * config.rig_for(0).lidar.range_noise_m as f64 + 0.02;
     let dir = tempfile::tempdir().unwrap();
     generate(&config, dir.path(), false, false).unwrap();
     let seq = &discover_sequences(dir.path()).unwrap()[0];
@@ -130,7 +122,7 @@ fn lidar_points_agree_with_the_rendered_depth() {
     let (mut matched, mut occluded, mut in_front, mut total) = (0usize, 0usize, 0usize, 0usize);
     for index in [0usize, 7, 11] {
         let frame = seq.frame(index).unwrap();
-        let rendered = plan.frame(&config, index).unwrap().rendered;
+        let rendered = plan.frame(index).unwrap().rendered;
         let (w, h) = frame.image_size().unwrap();
         for p in read_velodyne(&frame.velodyne_path).unwrap() {
             let c = frame.camera_from_lidar.transform(&Point3::new(p.x as f64, p.y as f64, p.z as f64));

@@ -1,15 +1,17 @@
-//! `cmr-agent synth bench`: where a frame's time goes (camera render, LiDAR sweep, PNG encode),
-//! measured on one street without writing anything. Prints figures; asserts nothing.
+//! `cmr-agent synth bench`: where a frame's time goes (camera render with its effects, LiDAR
+//! sweep, PNG encode), measured on one sequence of the chosen world and rig without writing
+//! anything. Prints figures; asserts nothing.
 
 use std::time::Instant;
 
 use anyhow::Result;
 
-use super::cli::WorldArgs;
+use super::args::WorldArgs;
+use super::camera_fx::FrameFx;
 use super::generate::{encode_png, SequencePlan};
 use super::lidar::scan;
 use super::noise::hash;
-use super::render::{render, CameraView};
+use super::render::{render, render_with_effects, CameraView};
 
 #[derive(Debug, clap::Args)]
 pub struct BenchArgs {
@@ -27,7 +29,8 @@ pub fn run(args: &BenchArgs) -> Result<()> {
     let plan = SequencePlan::new(&config, 0)?;
     let plan_ms = started.elapsed().as_secs_f64() * 1e3;
     let camera_from_lidar = plan.calib.color_camera_from_lidar()?;
-    let (mut render_ms, mut lidar_ms, mut png_ms, mut rays) = (0.0, 0.0, 0.0, 0usize);
+    let (w, h) = (plan.rig.width, plan.rig.height);
+    let (mut render_ms, mut lidar_ms, mut png_ms, mut rays, mut points_total) = (0.0, 0.0, 0.0, 0usize, 0usize);
     let mut cpu_start = None;
     for i in 0..=args.frames {
         if i == 1 {
@@ -36,30 +39,41 @@ pub fn run(args: &BenchArgs) -> Result<()> {
         let world_from_lidar = plan.trajectory.world_from_lidar(i);
         let view = CameraView {
             intrinsics: plan.calib.color_intrinsics()?,
-            width: config.width,
-            height: config.height,
+            width: w,
+            height: h,
             world_from_camera: world_from_lidar.compose(&camera_from_lidar.inverse()),
         };
         let t = Instant::now();
-        let rendered = render(&plan.scene, &plan.lighting, &view, hash(&[i as u64]));
+        let rendered = if plan.look.is_some() {
+            render_with_effects(&plan.scene, &plan.lighting, &view, hash(&[i as u64]), &FrameFx::draw(hash(&[i as u64, 2]), w as f32 / 1241.0))?
+        } else {
+            render(&plan.scene, &plan.lighting, &view, hash(&[i as u64]))
+        };
         let r = t.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();
-        let points = scan(&plan.scene, &config.lidar, &world_from_lidar, hash(&[i as u64, 1]));
+        let points = scan(&plan.scene, &plan.rig.lidar, &world_from_lidar, hash(&[i as u64, 1]));
         let l = t.elapsed().as_secs_f64() * 1e3;
         let t = Instant::now();
         let png = encode_png(&rendered.image)?;
         let p = t.elapsed().as_secs_f64() * 1e3;
         if i > 0 {
             (render_ms, lidar_ms, png_ms) = (render_ms + r, lidar_ms + l, png_ms + p);
-            rays += (config.width * config.height) as usize + (config.lidar.beams * config.lidar.columns) as usize;
-            let _ = (points.len(), png.len());
+            rays += (w * h) as usize + (plan.rig.lidar.beams * plan.rig.lidar.columns) as usize;
+            points_total += points.len();
+            let _ = png.len();
         }
     }
     let cpu = cpu_start.zip(process_cpu_seconds()).map(|(a, b)| b - a);
     let n = args.frames as f64;
     let total = (render_ms + lidar_ms + png_ms) / n;
-    println!("street: {} shapes, built in {plan_ms:.1} ms", plan.scene.len());
-    println!("per frame ({}x{} image, {}x{} LiDAR, {} threads):", config.width, config.height, config.lidar.beams, config.lidar.columns, rayon::current_num_threads());
+    println!("world {}, rig {}: {} shapes, built in {plan_ms:.1} ms", plan.world.name(), plan.rig.name, plan.scene.len());
+    println!(
+        "per frame ({w}x{h} image, {}x{} LiDAR, {:.0} points, {} threads):",
+        plan.rig.lidar.beams,
+        plan.rig.lidar.columns,
+        points_total as f64 / n,
+        rayon::current_num_threads()
+    );
     println!("  camera render  {:8.1} ms", render_ms / n);
     println!("  LiDAR sweep    {:8.1} ms", lidar_ms / n);
     println!("  PNG encode     {:8.1} ms", png_ms / n);

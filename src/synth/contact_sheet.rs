@@ -1,6 +1,7 @@
-//! A contact sheet: generated frames with their LiDAR points projected through the written
-//! calibration (camera_from_lidar of image_2, P2's intrinsics), coloured by depth. If the two
-//! sensors disagree, edges of buildings, poles and cars visibly miss their points.
+//! A contact sheet: one frame of every world family (rows) seen by a few rigs (columns), each
+//! with its LiDAR points projected through the written calibration (camera_from_lidar of
+//! image_2, P2's intrinsics) and coloured by depth. If the two sensors disagree, edges of
+//! buildings, poles and cars visibly miss their points.
 
 use std::path::PathBuf;
 
@@ -8,69 +9,78 @@ use anyhow::Result;
 use image::{imageops, Rgb, RgbImage};
 use nalgebra::Point3;
 
-use super::cli::WorldArgs;
+use super::args::WorldArgs;
 use super::generate::{encode_png, SequencePlan};
-use super::style::StylePreset;
+use super::rigs::parse_rig;
+use super::worlds::{WorldKind, DRAWN};
 use crate::atomic_file::write_atomic;
 
 #[derive(Debug, clap::Args)]
 pub struct ContactSheetArgs {
     #[arg(long, default_value = "docs/synth-contact-sheet.png")]
     pub out: PathBuf,
-    /// Sequences per style (each gives two rows: two frames, image | image + LiDAR).
-    #[arg(long, default_value_t = 1)]
-    pub per_style: usize,
-    /// Tile scale relative to the rendered image.
-    #[arg(long, default_value_t = 0.5)]
-    pub tile_scale: f32,
+    /// Rigs, one column each (comma-separated names).
+    #[arg(long, default_value = "kitti,nuscenes,wide", value_delimiter = ',')]
+    pub rigs: Vec<String>,
+    /// Tile width in pixels (every rig's frame is scaled to it).
+    #[arg(long, default_value_t = 400)]
+    pub tile_width: u32,
+    /// Frame of each sequence to show.
+    #[arg(long, default_value_t = 6)]
+    pub frame: usize,
+    /// Add a row for the classic world.
+    #[arg(long)]
+    pub with_classic: bool,
     #[command(flatten)]
     pub world: WorldArgs,
 }
 
 pub fn run(args: &ContactSheetArgs) -> Result<()> {
-    let mut tiles = Vec::new();
-    for preset in [StylePreset::Train, StylePreset::Test] {
-        let mut world = args.world.clone();
-        world.style = preset;
-        let config = world.config(args.per_style, 0, 8);
-        config.validate()?;
-        for s in 0..args.per_style {
-            let plan = SequencePlan::new(&config, s)?;
-            for frame in [2usize, 7] {
-                // Each row: the camera image, then the same image with the LiDAR drawn on it.
-                let (plain, overlay) = tile(&plan, &config, frame, args.tile_scale)?;
-                tiles.push(plain);
-                tiles.push(overlay);
-            }
+    let worlds: Vec<WorldKind> = if args.with_classic { std::iter::once(WorldKind::Classic).chain(DRAWN).collect() } else { DRAWN.to_vec() };
+    let gap = 4u32;
+    let mut rows: Vec<Vec<RgbImage>> = Vec::new();
+    for (r, &world) in worlds.iter().enumerate() {
+        let mut row = Vec::new();
+        for (c, rig) in args.rigs.iter().enumerate() {
+            let rig = parse_rig(rig).map_err(anyhow::Error::msg)?;
+            let seed = args.world.seed + (r * 31 + c) as u64;
+            let config = WorldArgs { world: Some(world), rig, seed, ..args.world.clone() }.config(1, 0, args.frame + 1);
+            config.validate()?;
+            let plan = SequencePlan::new(&config, 0)?;
+            row.push(tile(&plan, args.frame, args.tile_width)?);
         }
+        rows.push(row);
     }
-    let (tw, th) = tiles[0].dimensions();
-    let columns = 2u32;
-    let rows = (tiles.len() as u32).div_ceil(columns);
-    let gap = 4;
-    let mut sheet = RgbImage::from_pixel(columns * tw + (columns - 1) * gap, rows * th + (rows - 1) * gap, Rgb([255, 255, 255]));
-    for (i, t) in tiles.iter().enumerate() {
-        let (c, r) = (i as u32 % columns, i as u32 / columns);
-        imageops::replace(&mut sheet, t, (c * (tw + gap)) as i64, (r * (th + gap)) as i64);
+    let columns = args.rigs.len() as u32;
+    let heights: Vec<u32> = rows.iter().map(|row| row.iter().map(|t| t.height()).max().unwrap_or(0)).collect();
+    let width = columns * args.tile_width + (columns - 1) * gap;
+    let height = heights.iter().sum::<u32>() + (heights.len() as u32 - 1) * gap;
+    let mut sheet = RgbImage::from_pixel(width, height, Rgb([255, 255, 255]));
+    let mut y = 0;
+    for (row, h) in rows.iter().zip(&heights) {
+        for (c, t) in row.iter().enumerate() {
+            imageops::replace(&mut sheet, t, (c as u32 * (args.tile_width + gap)) as i64, y as i64);
+        }
+        y += h + gap;
     }
     if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir)?;
     }
     write_atomic(&args.out, &encode_png(&sheet)?)?;
-    tracing::info!(tiles = tiles.len(), "wrote {}", args.out.display());
+    tracing::info!(rows = rows.len(), columns, "wrote {}", args.out.display());
     Ok(())
 }
 
-/// One frame, scaled: as rendered, and with every LiDAR point inside the image drawn as a
+/// One frame scaled to `tile_width`, with every LiDAR point inside the image drawn as a
 /// depth-coloured dot.
-fn tile(plan: &SequencePlan, config: &super::GeneratorConfig, frame: usize, scale: f32) -> Result<(RgbImage, RgbImage)> {
-    let output = plan.frame(config, frame)?;
+fn tile(plan: &SequencePlan, frame: usize, tile_width: u32) -> Result<RgbImage> {
+    let output = plan.frame(frame)?;
     let camera_from_lidar = plan.calib.color_camera_from_lidar()?;
     let k = plan.calib.color_intrinsics()?;
     let (w, h) = output.rendered.image.dimensions();
-    let (tw, th) = (((w as f32) * scale).round() as u32, ((h as f32) * scale).round() as u32);
-    let plain = imageops::resize(&output.rendered.image, tw, th, imageops::FilterType::Triangle);
-    let mut img = plain.clone();
+    let scale = tile_width as f64 / w as f64;
+    let th = ((h as f64) * scale).round() as u32;
+    let mut img = imageops::resize(&output.rendered.image, tile_width, th, imageops::FilterType::Triangle);
     // Far points first so near ones stay on top.
     let mut projected: Vec<(f64, f64, f64)> = output
         .points
@@ -86,13 +96,13 @@ fn tile(plan: &SequencePlan, config: &super::GeneratorConfig, frame: usize, scal
         .collect();
     projected.sort_by(|a, b| b.2.total_cmp(&a.2));
     for (u, v, z) in projected {
-        let x = ((u + 0.5) * scale as f64 - 0.5).round();
-        let y = ((v + 0.5) * scale as f64 - 0.5).round();
-        if x >= 0.0 && y >= 0.0 && (x as u32) < tw && (y as u32) < th {
+        let x = ((u + 0.5) * scale - 0.5).round();
+        let y = ((v + 0.5) * scale - 0.5).round();
+        if x >= 0.0 && y >= 0.0 && (x as u32) < tile_width && (y as u32) < th {
             img.put_pixel(x as u32, y as u32, depth_color(z));
         }
     }
-    Ok((plain, img))
+    Ok(img)
 }
 
 /// Near = red, through yellow and green, to far = blue (0..40 m).

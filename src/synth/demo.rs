@@ -11,8 +11,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::json;
 
-use super::cli::WorldArgs;
-use super::generate::{SequencePlan, GENERATOR_VERSION};
+use super::args::{parse_size, WorldArgs};
+use super::generate::{SequencePlan, CLASSIC_GENERATOR_VERSION};
 use super::style::StylePreset;
 use crate::geometry::pose::PoseMatrix;
 use crate::geometry::PoseError;
@@ -36,16 +36,17 @@ pub struct DemoArgs {
     /// Seed of the map-frame motion Q.
     #[arg(long, default_value_t = 7)]
     pub motion_seed: u64,
-    #[arg(long, default_value = "1241x376", value_parser = super::cli::parse_size)]
+    #[arg(long, default_value = "1241x376", value_parser = parse_size)]
     pub image_size: (u32, u32),
 }
 
 pub fn run(args: &DemoArgs) -> Result<()> {
-    let world = WorldArgs { image_size: args.image_size, ..WorldArgs::preset(StylePreset::Test, args.seed) };
+    // Today's street, rig and look: the demo's bytes are those of generator version 1.
+    let world = WorldArgs { image_size: Some(args.image_size), ..WorldArgs::classic(StylePreset::Test, args.seed) };
     let config = world.config(1, 0, args.frame + 1);
     config.validate()?;
     let plan = SequencePlan::new(&config, 0)?;
-    let output = plan.frame(&config, args.frame)?;
+    let output = plan.frame(args.frame)?;
     let camera_from_lidar = plan.calib.color_camera_from_lidar()?;
     let intrinsics = plan.calib.color_intrinsics()?;
 
@@ -66,12 +67,12 @@ pub fn run(args: &DemoArgs) -> Result<()> {
     let initial_error = PoseError::between(&camera_from_lidar, &truth);
 
     let source = json!({
-        "generator": GENERATOR_VERSION,
+        "generator": CLASSIC_GENERATOR_VERSION,
         "seed": config.seed,
         "style": plan.style,
         "sequence": plan.index,
         "frame": args.frame,
-        "image_size": [config.width, config.height],
+        "image_size": [plan.rig.width, plan.rig.height],
         "points": map_points.len(),
     });
     std::fs::create_dir_all(&args.maps_dir)?;

@@ -11,18 +11,40 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::lidar::{scan, LidarConfig};
+use super::camera_fx::FrameFx;
+use super::lidar::scan;
+use super::look::{Look, LookMode};
 use super::noise::hash;
-use super::render::{render, CameraView, Lighting, Rendered};
-use super::rig::{calibration, Trajectory};
-use super::scene::{build_street, Scene};
+use super::render::{render, render_with_effects, CameraView, Lighting, Rendered};
+use super::rig::Rig;
+use super::rigs::{random_rig, RigChoice};
+use super::scene::{Ground, Scene};
 use super::style::{Style, StyleOverrides, StylePreset};
+use super::trajectory::Trajectory;
+use super::worlds::{self, WorldKind};
 use crate::geometry::Pose;
 use crate::atomic_file::write_atomic;
 use crate::kitti::{write_poses, write_velodyne, Calib, LidarPoint};
 
 /// Bumped whenever the same flags would produce different bytes.
-pub const GENERATOR_VERSION: &str = "cmr-agent-synth/1";
+pub const GENERATOR_VERSION: &str = "cmr-agent-synth/2";
+/// The version whose bytes `--world classic --look classic --rig kitti` still reproduces
+/// (recorded by the shipped demo, which is made that way).
+pub const CLASSIC_GENERATOR_VERSION: &str = "cmr-agent-synth/1";
+
+/// Sensor settings given on the command line on top of the rig.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct SensorOverrides {
+    /// Image size; the rig's intrinsics scale with it.
+    pub image_size: Option<(u32, u32)>,
+    /// Beam count, evenly spaced between the rig's top and bottom beams.
+    pub lidar_beams: Option<u32>,
+    pub lidar_columns: Option<u32>,
+    /// Scales the (rig's or given) image size, intrinsics following; e.g. 0.5 for training
+    /// sets, whose preprocessing halves every image of KITTI size or larger anyway.
+    #[serde(default)]
+    pub image_scale: Option<f64>,
+}
 
 /// Everything that determines the output bytes.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -32,27 +54,70 @@ pub struct GeneratorConfig {
     /// Index of the first sequence (directory names continue from here).
     pub first_sequence: usize,
     pub frames: usize,
-    pub width: u32,
-    pub height: u32,
-    /// Distance driven between frames.
+    /// Distance driven between frames, metres.
     pub spacing_m: f64,
-    pub lidar: LidarConfig,
+    pub rig: RigChoice,
+    pub sensor: SensorOverrides,
+    /// `None`: each sequence draws its family from `worlds::DRAWN`.
+    pub world: Option<WorldKind>,
+    pub look: LookMode,
     pub preset: StylePreset,
     pub overrides: StyleOverrides,
 }
 
 impl GeneratorConfig {
+    /// Today's generator: the kitti rig, the classic street and look, train style.
+    pub fn classic(seed: u64, sequences: usize, frames: usize) -> Self {
+        GeneratorConfig {
+            seed,
+            sequences,
+            first_sequence: 0,
+            frames,
+            spacing_m: 2.5,
+            rig: RigChoice::default(),
+            sensor: SensorOverrides::default(),
+            world: Some(WorldKind::Classic),
+            look: LookMode::Classic,
+            preset: StylePreset::Train,
+            overrides: StyleOverrides::default(),
+        }
+    }
+
+    /// The rig of a sequence with sequence seed `seed`, overrides applied.
+    pub fn rig_for(&self, seed: u64) -> Rig {
+        let mut rig = match &self.rig {
+            RigChoice::Named(rig) => rig.clone(),
+            RigChoice::Random => random_rig(&mut ChaCha8Rng::seed_from_u64(hash(&[seed, 0x816]))),
+        };
+        if let Some((w, h)) = self.sensor.image_size {
+            rig = rig.with_image_size(w, h);
+        }
+        if let Some(scale) = self.sensor.image_scale {
+            let (w, h) = (((rig.width as f64) * scale).round() as u32, ((rig.height as f64) * scale).round() as u32);
+            rig = rig.with_image_size(w, h);
+        }
+        if let Some(beams) = self.sensor.lidar_beams {
+            rig = rig.with_beams(beams);
+        }
+        if let Some(columns) = self.sensor.lidar_columns {
+            rig.lidar.columns = columns;
+        }
+        rig
+    }
+
     pub fn validate(&self) -> Result<()> {
         if self.frames == 0 || self.sequences == 0 {
             bail!("need at least one sequence and one frame");
         }
-        if self.width < 16 || self.height < 16 || self.width > 8192 || self.height > 8192 {
-            bail!("image size {}x{} out of range (16..=8192 per side)", self.width, self.height);
+        if let Some(scale) = self.sensor.image_scale {
+            if !(scale > 0.0 && scale <= 4.0) {
+                bail!("image scale {scale} must be within (0, 4]");
+            }
         }
         if !(self.spacing_m > 0.0 && self.spacing_m <= 50.0) {
             bail!("frame spacing {} m must be within (0, 50]", self.spacing_m);
         }
-        self.lidar.validate().map_err(anyhow::Error::msg)?;
+        self.rig_for(0).validate().map_err(anyhow::Error::msg)?;
         // Drawn values are always in range; this catches out-of-range overrides up front.
         Style::draw(self.preset, &self.overrides, &mut ChaCha8Rng::seed_from_u64(0)).validate().map_err(anyhow::Error::msg)
     }
@@ -62,8 +127,12 @@ impl GeneratorConfig {
 pub struct SequencePlan {
     pub index: usize,
     pub name: String,
+    pub world: WorldKind,
+    pub rig: Rig,
     pub scene: Scene,
     pub style: Style,
+    /// `None` with `--look classic`.
+    pub look: Option<Look>,
     pub lighting: Lighting,
     pub trajectory: Trajectory,
     /// The calibration exactly as readers will parse it back from calib.txt.
@@ -76,6 +145,8 @@ pub struct FrameOutput {
     pub rendered: Rendered,
     pub points: Vec<LidarPoint>,
     pub world_from_lidar: Pose,
+    /// The camera effects used (`--look random`).
+    pub effects: Option<FrameFx>,
 }
 
 /// Scene margin beyond the driven stretch: the LiDAR's range plus room for what the camera sees.
@@ -87,50 +158,54 @@ impl SequencePlan {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let style = Style::draw(config.preset, &config.overrides, &mut rng);
         style.validate().map_err(anyhow::Error::msg)?;
+        let world = config.world.unwrap_or(worlds::DRAWN[(hash(&[seed, 0x3011D]) % worlds::DRAWN.len() as u64) as usize]);
+        let rig = config.rig_for(seed);
+        rig.validate().map_err(anyhow::Error::msg)?;
         let length = config.spacing_m * config.frames.saturating_sub(1) as f64;
-        let scene = build_street(&mut rng, (0.0, length as f32), SCENE_MARGIN_M, &style);
-        let road = scene.street.road_half_width as f64;
-        let driving_edge = if scene.street.parking { road - 2.2 } else { road };
-        let lane_y = -driving_edge * 0.5;
+        let built = worlds::build(world, &mut rng, (0.0, length as f32), SCENE_MARGIN_M, &style);
+        let mut scene = built.scene;
         let trajectory = Trajectory {
             start_x: 0.0,
             spacing_m: config.spacing_m,
-            lane_y,
-            weave_amplitude_m: (driving_edge * 0.5 - 1.1).clamp(0.0, 0.9) * rng.random_range(0.3..1.0),
+            lane_y: built.lane_y,
+            weave_amplitude_m: built.weave_limit_m * rng.random_range(0.3..1.0),
             weave_wavelength_m: rng.random_range(60.0..140.0),
             weave_phase: rng.random_range(0.0..std::f64::consts::TAU),
+            lidar_height_m: rig.lidar_height_m,
+            terrain: scene.terrain.clone(),
         };
-        let written = calibration(config.width, config.height);
-        let calib = Calib::parse(&written.to_text(), "generated calib.txt")?;
-        Ok(SequencePlan {
-            index,
-            name: format!("{index:02}"),
-            lighting: Lighting::from_style(&style),
-            scene,
-            style,
-            trajectory,
-            calib,
-            seed,
-        })
+        let look = match config.look {
+            LookMode::Classic => None,
+            LookMode::Random => Some(Look::draw(&mut ChaCha8Rng::seed_from_u64(hash(&[seed, 0x100C])), &style, config.overrides.time_of_day_h.is_some())),
+        };
+        let lighting = look.as_ref().map_or_else(|| Lighting::from_style(&style), |l| l.lighting(&style));
+        scene.textures = look.as_ref().map(|l| l.textures.clone());
+        let calib = Calib::parse(&rig.calibration().to_text(), "generated calib.txt")?;
+        Ok(SequencePlan { index, name: format!("{index:02}"), world, rig, lighting, look, scene, style, trajectory, calib, seed })
     }
 
     /// Renders and scans frame `i`; deterministic in (seed, sequence, frame).
-    pub fn frame(&self, config: &GeneratorConfig, i: usize) -> Result<FrameOutput> {
+    pub fn frame(&self, i: usize) -> Result<FrameOutput> {
         let world_from_lidar = self.trajectory.world_from_lidar(i);
         let camera_from_lidar = self.calib.color_camera_from_lidar()?;
         let view = CameraView {
             intrinsics: self.calib.color_intrinsics()?,
-            width: config.width,
-            height: config.height,
+            width: self.rig.width,
+            height: self.rig.height,
             world_from_camera: world_from_lidar.compose(&camera_from_lidar.inverse()),
         };
         let frame_seed = hash(&[self.seed, i as u64]);
-        let rendered = render(&self.scene, &self.lighting, &view, frame_seed ^ 0xCA);
-        let points = scan(&self.scene, &config.lidar, &world_from_lidar, frame_seed ^ 0x11);
-        Ok(FrameOutput { rendered, points, world_from_lidar })
+        let (rendered, effects) = if self.look.is_some() {
+            let fx = FrameFx::draw(frame_seed ^ 0xF0, self.rig.width as f32 / 1241.0);
+            (render_with_effects(&self.scene, &self.lighting, &view, frame_seed ^ 0xCA, &fx)?, Some(fx))
+        } else {
+            (render(&self.scene, &self.lighting, &view, frame_seed ^ 0xCA), None)
+        };
+        let points = scan(&self.scene, &self.rig.lidar, &world_from_lidar, frame_seed ^ 0x11);
+        Ok(FrameOutput { rendered, points, world_from_lidar, effects })
     }
 
-    /// KITTI's ground truth: world_from_cam0 of every frame, relative to cam0 at frame 0.
+/// KITTI's ground truth: world_from_cam0 of every frame, relative to cam0 at frame 0.
     pub fn kitti_poses(&self, frames: usize) -> Vec<Pose> {
         let cam0_from_lidar = self.calib.velo_to_cam0;
         let world_from_cam0 = |i: usize| self.trajectory.world_from_lidar(i).compose(&cam0_from_lidar.inverse());
@@ -149,16 +224,30 @@ struct SequenceRecord<'a> {
     frames: usize,
     image_size: [u32; 2],
     spacing_m: f64,
-    lidar: &'a LidarConfig,
+    world: WorldKind,
+    rig: &'a Rig,
+    look: &'a Option<Look>,
     style: &'a Style,
     overrides: &'a StyleOverrides,
-    scene: SceneRecord,
+    scene: SceneRecord<'a>,
     trajectory: &'a Trajectory,
 }
 
 #[derive(Serialize)]
-struct SceneRecord {
+struct SceneRecord<'a> {
     shapes: usize,
+    /// The classic street's layout.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    street: Option<StreetRecord>,
+    /// Any other world's road paint and shape.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    road: Option<&'a super::paint::RoadPaint>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    road_shape: Option<&'a super::terrain::RoadShape>,
+}
+
+#[derive(Serialize)]
+struct StreetRecord {
     road_half_width_m: f32,
     sidewalk_width_m: f32,
     parking_lanes: bool,
@@ -203,7 +292,7 @@ pub fn generate(config: &GeneratorConfig, out: &Path, overwrite: bool, progress:
         .par_iter()
         .map(|&(s, f)| -> Result<usize> {
             let plan = &plans[s];
-            let output = plan.frame(config, f)?;
+            let output = plan.frame(f)?;
             let dir = sequence_dir(out, plan);
             write_velodyne(&dir.join("velodyne").join(format!("{f:06}.bin")), &output.points)?;
             write_atomic(&dir.join("image_2").join(format!("{f:06}.png")), &encode_png(&output.rendered.image)?)?;
@@ -221,17 +310,29 @@ pub fn generate(config: &GeneratorConfig, out: &Path, overwrite: bool, progress:
             sequence: plan.index,
             sequence_seed: plan.seed,
             frames: config.frames,
-            image_size: [config.width, config.height],
+            image_size: [plan.rig.width, plan.rig.height],
             spacing_m: config.spacing_m,
-            lidar: &config.lidar,
+            world: plan.world,
+            rig: &plan.rig,
+            look: &plan.look,
             style: &plan.style,
             overrides: &config.overrides,
             scene: SceneRecord {
                 shapes: plan.scene.len(),
-                road_half_width_m: plan.scene.street.road_half_width,
-                sidewalk_width_m: plan.scene.street.sidewalk_width,
-                parking_lanes: plan.scene.street.parking,
-                side_streets: plan.scene.street.side_streets.len(),
+                street: match &plan.scene.ground {
+                    Ground::Street(street) => Some(StreetRecord {
+                        road_half_width_m: street.road_half_width,
+                        sidewalk_width_m: street.sidewalk_width,
+                        parking_lanes: street.parking,
+                        side_streets: street.side_streets.len(),
+                    }),
+                    Ground::Road(_) => None,
+                },
+                road: match &plan.scene.ground {
+                    Ground::Road(paint) => Some(paint),
+                    Ground::Street(_) => None,
+                },
+                road_shape: plan.scene.terrain.as_ref().map(|t| &t.shape),
             },
             trajectory: &plan.trajectory,
         };

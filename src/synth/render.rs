@@ -5,6 +5,7 @@
 use image::RgbImage;
 use rayon::prelude::*;
 
+use super::camera_fx::{develop, FrameFx};
 use super::noise::{gaussian, hash};
 use super::scene::Scene;
 use super::shapes::V3;
@@ -76,42 +77,58 @@ impl Rendered {
     }
 }
 
-/// Renders one image. Rows run in parallel; noise is hashed from (seed, pixel), so the result
-/// does not depend on scheduling.
+/// Renders one image with today's camera (exposure, tone map, sRGB, Gaussian noise). Rows run
+/// in parallel; noise is hashed from (seed, pixel), so the result does not depend on scheduling.
 pub fn render(scene: &Scene, lighting: &Lighting, view: &CameraView, seed: u64) -> Rendered {
+    let (w, h) = (view.width as usize, view.height as usize);
+    let (radiance, depth) = trace(scene, lighting, view);
+    let mut pixels = vec![0u8; w * h * 3];
+    pixels.par_chunks_mut(w * 3).zip(radiance.par_chunks(w)).enumerate().for_each(|(row, (rgb, light))| {
+        for col in 0..w {
+            let radiance = light[col];
+            let pixel = (row * w + col) as u64;
+            for c in 0..3 {
+                let exposed = radiance[c] * lighting.exposure;
+                let mapped = exposed / (1.0 + 0.15 * exposed);
+                let srgb = linear_to_srgb(mapped.clamp(0.0, 1.0)) * 255.0;
+                let noisy = srgb + lighting.noise_sigma * gaussian(hash(&[seed, pixel, c as u64]));
+                rgb[col * 3 + c] = noisy.round().clamp(0.0, 255.0) as u8;
+            }
+        }
+    });
+    Rendered { image: RgbImage::from_raw(view.width, view.height, pixels).expect("buffer size"), depth }
+}
+
+/// Renders one image through a camera with this frame's effects (`camera_fx`).
+pub fn render_with_effects(scene: &Scene, lighting: &Lighting, view: &CameraView, seed: u64, fx: &FrameFx) -> anyhow::Result<Rendered> {
+    let (radiance, depth) = trace(scene, lighting, view);
+    let image = develop(radiance, view.width as usize, view.height as usize, lighting.exposure, fx, seed)?;
+    Ok(Rendered { image, depth })
+}
+
+/// Linear radiance and camera-frame depth of every pixel (row-major).
+pub fn trace(scene: &Scene, lighting: &Lighting, view: &CameraView) -> (Vec<[f32; 3]>, Vec<f32>) {
     let (w, h) = (view.width as usize, view.height as usize);
     let r = view.world_from_camera.rotation().cast::<f32>();
     let origin: V3 = view.world_from_camera.translation().cast::<f32>();
-    let mut pixels = vec![0u8; w * h * 3];
+    let mut radiance = vec![[0f32; 3]; w * h];
     let mut depth = vec![f32::INFINITY; w * h];
-    pixels
-        .par_chunks_mut(w * 3)
-        .zip(depth.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(row, (rgb, depth_row))| {
-            for col in 0..w {
-                // z = 1 in the camera frame, so the hit parameter is the depth.
-                let d_cam = view.intrinsics.ray_direction(col as f64, row as f64).cast::<f32>();
-                let dir = r * d_cam;
-                let radiance = match scene.intersect(&origin, &dir, 1.0e4) {
-                    Some(hit) => {
-                        depth_row[col] = hit.t;
-                        let p = origin + dir * hit.t;
-                        shade(scene, lighting, &hit, &p, &dir)
-                    }
-                    None => lighting.sky(&dir),
-                };
-                let pixel = (row * w + col) as u64;
-                for c in 0..3 {
-                    let exposed = radiance[c] * lighting.exposure;
-                    let mapped = exposed / (1.0 + 0.15 * exposed);
-                    let srgb = linear_to_srgb(mapped.clamp(0.0, 1.0)) * 255.0;
-                    let noisy = srgb + lighting.noise_sigma * gaussian(hash(&[seed, pixel, c as u64]));
-                    rgb[col * 3 + c] = noisy.round().clamp(0.0, 255.0) as u8;
+    radiance.par_chunks_mut(w).zip(depth.par_chunks_mut(w)).enumerate().for_each(|(row, (light, depth_row))| {
+        for col in 0..w {
+            // z = 1 in the camera frame, so the hit parameter is the depth.
+            let d_cam = view.intrinsics.ray_direction(col as f64, row as f64).cast::<f32>();
+            let dir = r * d_cam;
+            light[col] = match scene.intersect(&origin, &dir, 1.0e4) {
+                Some(hit) => {
+                    depth_row[col] = hit.t;
+                    let p = origin + dir * hit.t;
+                    shade(scene, lighting, &hit, &p, &dir)
                 }
-            }
-        });
-    Rendered { image: RgbImage::from_raw(view.width, view.height, pixels).expect("buffer size"), depth }
+                None => lighting.sky(&dir),
+            };
+        }
+    });
+    (radiance, depth)
 }
 
 fn shade(scene: &Scene, lighting: &Lighting, hit: &super::scene::Hit, p: &V3, dir: &V3) -> [f32; 3] {

@@ -1,107 +1,184 @@
-//! The sensor rig (a KITTI-like calibration) and the vehicle's path along the street.
+//! A sensor rig: the camera (image size, intrinsics, where it sits and how it is tilted relative
+//! to the LiDAR), the LiDAR (mounting height, beams, sampling, noise), and the KITTI calibration
+//! file that describes it, so every reader of `calib.txt` works unchanged.
+//!
+//! Frames: LiDAR x forward, y left, z up; cameras OpenCV (x right, y down, z forward).
 
-use nalgebra::{Matrix3, Vector3};
+use nalgebra::{Matrix3, Rotation3, Vector3};
+use serde::{Deserialize, Serialize};
 
+use super::lidar::LidarConfig;
 use crate::geometry::{Intrinsics, Pose};
 use crate::kitti::Calib;
 
-/// LiDAR height above the ground, as on KITTI's car.
-pub const LIDAR_HEIGHT_M: f64 = 1.73;
-
-/// KITTI's full image size and image_2 intrinsics (sequence 00).
+/// KITTI's full image size (sequence 00's image_2).
 pub const KITTI_WIDTH: u32 = 1241;
 pub const KITTI_HEIGHT: u32 = 376;
-const KITTI_FOCAL: f64 = 718.856;
-const KITTI_CX: f64 = 607.1928;
-const KITTI_CY: f64 = 185.2157;
 
-/// cam0's centre in the LiDAR frame: 27 cm forward, 8 cm below.
-const CAM0_IN_LIDAR: [f64; 3] = [0.27, 0.0, -0.08];
-/// image_2's offset from cam0 in cam0's (rectified) frame, as `P2`'s 4th column encodes it:
-/// 6 cm to the left (p_cam2 = p_cam0 + t2, so t2.x > 0) and a KITTI-sized small y term. The z
-/// term is 0 so that reading P2 as a full projection matrix (K [I | t2]) and the project's
-/// convention t2 = (P2[0,3]/fx, P2[1,3]/fy, P2[2,3]) give exactly the same camera.
-const CAM2_OFFSET: [f64; 3] = [0.06, -0.00016, 0.0];
-
-/// Intrinsics for an image of `width` × `height`: KITTI's, scaled with the image width (the
-/// principal point keeps its relative position; pixels stay square).
-pub fn intrinsics_for(width: u32, height: u32) -> Intrinsics {
-    let sx = width as f64 / KITTI_WIDTH as f64;
-    let sy = height as f64 / KITTI_HEIGHT as f64;
-    Intrinsics {
-        fx: KITTI_FOCAL * sx,
-        fy: KITTI_FOCAL * sx,
-        cx: (KITTI_CX + 0.5) * sx - 0.5,
-        cy: (KITTI_CY + 0.5) * sy - 0.5,
-    }
+/// One rig. Lengths in metres, angles in degrees, intrinsics in pixels at `width` × `height`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Rig {
+    pub name: String,
+    pub width: u32,
+    pub height: u32,
+    pub fx: f64,
+    pub fy: f64,
+    /// Principal point; pixel centres are at integer coordinates.
+    pub cx: f64,
+    pub cy: f64,
+    /// cam0's centre in the LiDAR frame.
+    pub camera_in_lidar_m: [f64; 3],
+    /// Camera tilt relative to a level camera looking along the LiDAR's x axis: pitch about the
+    /// camera's x axis (positive = looking down), roll about its z axis (positive = image turns
+    /// clockwise), yaw about its y axis (positive = looking right).
+    pub camera_pitch_deg: f64,
+    pub camera_roll_deg: f64,
+    pub camera_yaw_deg: f64,
+    /// image_2's offset from cam0 in cam0's frame (p_cam2 = p_cam0 + t2), written as P2's 4th
+    /// column `K t2`.
+    pub color_offset_m: [f64; 3],
+    /// P1's and P3's offsets from cam0 (stereo partners, written for completeness).
+    pub partner_offsets_m: [[f64; 3]; 2],
+    /// LiDAR origin above the road surface under the vehicle.
+    pub lidar_height_m: f64,
+    pub lidar: LidarConfig,
 }
 
-/// velodyne → cam0: an exact axis permutation (cam z = lidar x, cam x = −lidar y,
-/// cam y = −lidar z) and cam0 slightly forward of and below the LiDAR.
-pub fn velo_to_cam0() -> Pose {
-    let r = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
-    let c = Vector3::from(CAM0_IN_LIDAR);
-    Pose::from_rt(r, -(r * c))
-}
-
-/// The calibration file for images of `width` × `height`: P0..P3 as KITTI writes them (P1/P3
-/// the stereo partners at −0.54 m and +0.48 m), Tr = `velo_to_cam0`.
-pub fn calibration(width: u32, height: u32) -> Calib {
-    let k = intrinsics_for(width, height);
-    let projection = |t: [f64; 3]| -> [f64; 12] {
-        // P = K [I | t]: the 4th column is K t.
-        [k.fx, 0.0, k.cx, k.fx * t[0] + k.cx * t[2], 0.0, k.fy, k.cy, k.fy * t[1] + k.cy * t[2], 0.0, 0.0, 1.0, t[2]]
-    };
-    Calib {
-        projections: [
-            Some(projection([0.0, 0.0, 0.0])),
-            Some(projection([-0.537, 0.0, 0.0])),
-            Some(projection(CAM2_OFFSET)),
-            Some(projection([-0.4727, 0.0033, 0.0])),
-        ],
-        velo_to_cam0: velo_to_cam0(),
-        r0_rect: None,
-    }
-}
-
-/// The vehicle's path: along the street's x axis in the right-hand lane, weaving gently
-/// (a slow lateral sine) so the heading changes by a few degrees.
-#[derive(Debug, Clone, serde::Serialize, serde::Deserialize)]
-pub struct Trajectory {
-    pub start_x: f64,
-    pub spacing_m: f64,
-    pub lane_y: f64,
-    pub weave_amplitude_m: f64,
-    pub weave_wavelength_m: f64,
-    pub weave_phase: f64,
-}
-
-impl Trajectory {
-    pub fn length_m(&self, frames: usize) -> f64 {
-        self.spacing_m * frames.saturating_sub(1) as f64
+impl Rig {
+    /// image_2's intrinsics.
+    pub fn intrinsics(&self) -> Intrinsics {
+        Intrinsics { fx: self.fx, fy: self.fy, cx: self.cx, cy: self.cy }
     }
 
-    /// world_from_lidar at frame `i`: position on the path at LiDAR height, heading along it.
-    pub fn world_from_lidar(&self, i: usize) -> Pose {
-        let x = self.start_x + self.spacing_m * i as f64;
-        let k = std::f64::consts::TAU / self.weave_wavelength_m;
-        let y = self.lane_y + self.weave_amplitude_m * (k * x + self.weave_phase).sin();
-        let slope = self.weave_amplitude_m * k * (k * x + self.weave_phase).cos();
-        let heading = slope.atan();
-        Pose::ground_motion(heading, x, y).compose(&Pose::from_rt(Matrix3::identity(), Vector3::new(0.0, 0.0, LIDAR_HEIGHT_M)))
+    /// The same rig with another image size: focal lengths scale with the width (pixels stay
+    /// as square as they were), the principal point keeps its relative position.
+    pub fn with_image_size(mut self, width: u32, height: u32) -> Rig {
+        if (width, height) == (self.width, self.height) {
+            return self;
+        }
+        let sx = width as f64 / self.width as f64;
+        let sy = height as f64 / self.height as f64;
+        self.fx *= sx;
+        self.fy *= sx;
+        self.cx = (self.cx + 0.5) * sx - 0.5;
+        self.cy = (self.cy + 0.5) * sy - 0.5;
+        (self.width, self.height) = (width, height);
+        self
+    }
+
+    /// The same rig with `beams` evenly spaced between its top and bottom beams.
+    pub fn with_beams(mut self, beams: u32) -> Rig {
+        if beams != self.lidar.beams || self.lidar.elevations_deg.is_some() {
+            self.lidar.beams = beams;
+            self.lidar.elevations_deg = None;
+        }
+        self
+    }
+
+    pub fn validate(&self) -> Result<(), String> {
+        if self.width < 16 || self.height < 16 || self.width > 8192 || self.height > 8192 {
+            return Err(format!("image size {}x{} out of range (16..=8192 per side)", self.width, self.height));
+        }
+        self.intrinsics().validate()?;
+        if !(0.3..=5.0).contains(&self.lidar_height_m) {
+            return Err(format!("LiDAR height {} m out of range (0.3..=5)", self.lidar_height_m));
+        }
+        if [self.camera_pitch_deg, self.camera_roll_deg, self.camera_yaw_deg].iter().any(|a| a.abs() > 30.0) {
+            return Err("camera tilt angles must be within ±30°".into());
+        }
+        self.lidar.validate()
+    }
+
+    /// velodyne → cam0: the axis permutation (cam z = lidar x, cam x = −lidar y, cam y = −lidar
+    /// z), then the camera's tilt, with cam0 at `camera_in_lidar_m`.
+    pub fn velo_to_cam0(&self) -> Pose {
+        let permutation = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
+        let (p, r, y) = (self.camera_pitch_deg, self.camera_roll_deg, self.camera_yaw_deg);
+        // A level camera's rotation is exactly the permutation (no rounding in Tr).
+        let rotation = if p == 0.0 && r == 0.0 && y == 0.0 {
+            permutation
+        } else {
+            let tilt = Rotation3::from_axis_angle(&Vector3::z_axis(), r.to_radians())
+                * Rotation3::from_axis_angle(&Vector3::x_axis(), p.to_radians())
+                * Rotation3::from_axis_angle(&Vector3::y_axis(), y.to_radians());
+            tilt.matrix() * permutation
+        };
+        let c = Vector3::from(self.camera_in_lidar_m);
+        Pose::from_rt(rotation, -(rotation * c))
+    }
+
+    /// The calibration file: P0..P3 = K [I | t] with each camera's offset t from cam0, and Tr.
+    pub fn calibration(&self) -> Calib {
+        let k = self.intrinsics();
+        let projection = |t: [f64; 3]| -> [f64; 12] {
+            // P = K [I | t]: the 4th column is K t.
+            [k.fx, 0.0, k.cx, k.fx * t[0] + k.cx * t[2], 0.0, k.fy, k.cy, k.fy * t[1] + k.cy * t[2], 0.0, 0.0, 1.0, t[2]]
+        };
+        Calib {
+            projections: [
+                Some(projection([0.0, 0.0, 0.0])),
+                Some(projection(self.partner_offsets_m[0])),
+                Some(projection(self.color_offset_m)),
+                Some(projection(self.partner_offsets_m[1])),
+            ],
+            velo_to_cam0: self.velo_to_cam0(),
+            r0_rect: None,
+        }
+    }
+
+    /// One line for `--list-rigs`.
+    pub fn describe(&self) -> String {
+        let e = self.lidar.elevations();
+        let spacing: Vec<f32> = e.windows(2).map(|w| w[0] - w[1]).collect();
+        let (lo, hi) = spacing.iter().fold((f32::INFINITY, 0f32), |(lo, hi), s| (lo.min(*s), hi.max(*s)));
+        let c = self.camera_in_lidar_m;
+        format!(
+            "{:<9} camera {}x{} fx {:.1} fy {:.1} cx {:.1} cy {:.1} (hfov {:.0}°), {:.2} m above ground, {:+.2}/{:+.2}/{:+.2} m from the LiDAR, \
+             pitch {:+.1}° roll {:+.1}° yaw {:+.1}°\n          LiDAR {:.2} m above ground, {} beams {:+.1}°..{:+.1}° (spacing {:.2}°..{:.2}°), \
+             {} columns ({:.3}°), range {}–{} m, noise σ {:.3} m, dropout {:.0} %",
+            self.name,
+            self.width,
+            self.height,
+            self.fx,
+            self.fy,
+            self.cx,
+            self.cy,
+            2.0 * (self.width as f64 / 2.0 / self.fx).atan().to_degrees(),
+            self.lidar_height_m + c[2],
+            c[0],
+            c[1],
+            c[2],
+            self.camera_pitch_deg,
+            self.camera_roll_deg,
+            self.camera_yaw_deg,
+            self.lidar_height_m,
+            self.lidar.beams,
+            e.first().unwrap_or(&0.0),
+            e.last().unwrap_or(&0.0),
+            if lo.is_finite() { lo } else { 0.0 },
+            hi,
+            self.lidar.columns,
+            360.0 / self.lidar.columns as f64,
+            self.lidar.min_range_m,
+            self.lidar.max_range_m,
+            self.lidar.range_noise_m,
+            self.lidar.dropout * 100.0,
+        )
     }
 }
 
 #[cfg(test)]
 mod tests {
+    use super::super::rigs::{named, RIG_NAMES};
     use super::*;
     use nalgebra::Point3;
 
     #[test]
-    fn full_size_matches_kitti_and_cam2_is_left_of_cam0() {
-        let k = intrinsics_for(1241, 376);
+    fn kitti_matches_kitti_and_cam2_is_left_of_cam0() {
+        let rig = named("kitti").unwrap();
+        let k = rig.intrinsics();
         assert!((k.fx - 718.856).abs() < 1e-9 && (k.cx - 607.1928).abs() < 1e-9 && (k.cy - 185.2157).abs() < 1e-9);
-        let calib = calibration(1241, 376);
+        let calib = rig.calibration();
         assert!((calib.color_intrinsics().unwrap().fx - 718.856).abs() < 1e-12);
         let cam2 = calib.color_camera_from_lidar().unwrap();
         // image_2's centre in the LiDAR frame: forward 0.27 m, ~8 cm below, 6 cm to the left (+y).
@@ -111,23 +188,38 @@ mod tests {
         let p = cam2.transform(&Point3::new(30.0, 0.06, -0.08));
         let (u, _) = k.project(&p).unwrap();
         assert!((u - k.cx).abs() < 0.1);
+        // Half size: intrinsics follow the width.
+        let half = rig.with_image_size(620, 188).intrinsics();
+        assert!((half.fx - 718.856 * 620.0 / 1241.0).abs() < 1e-9 && (half.cy - ((185.2157 + 0.5) * 0.5 - 0.5)).abs() < 1e-9);
     }
 
     #[test]
-    fn full_p2_projection_and_the_convention_agree() {
-        let calib = calibration(1241, 376);
-        let p2 = calib.projections[2].unwrap();
-        let cam2 = calib.color_camera_from_lidar().unwrap();
-        let k = calib.color_intrinsics().unwrap();
-        for lidar_point in [Point3::new(4.0, 1.0, -1.5), Point3::new(30.0, -6.0, 2.0), Point3::new(70.0, 20.0, -1.7)] {
-            let c0 = calib.velo_to_cam0.transform(&lidar_point);
-            let h = [
-                p2[0] * c0.x + p2[1] * c0.y + p2[2] * c0.z + p2[3],
-                p2[4] * c0.x + p2[5] * c0.y + p2[6] * c0.z + p2[7],
-                p2[8] * c0.x + p2[9] * c0.y + p2[10] * c0.z + p2[11],
-            ];
-            let (u, v) = k.project(&cam2.transform(&lidar_point)).unwrap();
-            assert!((u - h[0] / h[2]).abs() < 1e-9 && (v - h[1] / h[2]).abs() < 1e-9);
+    fn full_p2_projection_and_the_convention_agree_for_every_rig() {
+        for name in RIG_NAMES {
+            let calib = named(name).unwrap().calibration();
+            let p2 = calib.projections[2].unwrap();
+            let cam2 = calib.color_camera_from_lidar().unwrap();
+            let k = calib.color_intrinsics().unwrap();
+            for lidar_point in [Point3::new(4.0, 1.0, -1.5), Point3::new(30.0, -6.0, 2.0), Point3::new(70.0, 20.0, -1.7)] {
+                let c0 = calib.velo_to_cam0.transform(&lidar_point);
+                let h = [
+                    p2[0] * c0.x + p2[1] * c0.y + p2[2] * c0.z + p2[3],
+                    p2[4] * c0.x + p2[5] * c0.y + p2[6] * c0.z + p2[7],
+                    p2[8] * c0.x + p2[9] * c0.y + p2[10] * c0.z + p2[11],
+                ];
+                let (u, v) = k.project(&cam2.transform(&lidar_point)).unwrap();
+                assert!((u - h[0] / h[2]).abs() < 1e-9 && (v - h[1] / h[2]).abs() < 1e-9, "{name}");
+            }
         }
+    }
+
+    #[test]
+    fn a_camera_pitched_down_sees_the_horizon_above_the_image_centre() {
+        let mut rig = named("kitti").unwrap();
+        rig.camera_pitch_deg = 3.0;
+        let cam = rig.calibration().color_camera_from_lidar().unwrap();
+        let (_, v) = rig.intrinsics().project(&cam.transform(&Point3::new(1000.0, 0.0, 0.0))).unwrap();
+        let expected = rig.cy - rig.fy * 3f64.to_radians().tan();
+        assert!((v - expected).abs() < 0.5, "{v} vs {expected}");
     }
 }
