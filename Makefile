@@ -3,7 +3,7 @@ PORT ?= 8080
 CARGO ?= cargo
 PYTHON := .venv/bin/python
 
-.PHONY: serve test build runtime python bench-server openapi check-schema
+.PHONY: serve test build runtime python bench openapi check-schema
 
 serve: build runtime
 	./target/release/cmr-agent serve --port $(PORT)
@@ -26,9 +26,11 @@ runtime:
 python:
 	bash scripts/setup-python.sh
 
-# Load benchmark of the server on loopback (starts its own server on a free port).
-bench-server: build runtime
-	python3 scripts/bench-server.py --spawn
+# Load benchmark of the server on loopback (starts its own servers on free ports; oha from
+# crates.io into .tools/bin): sequential p50/p99, c16 req/s, CPU and FLOPs per request, overload.
+bench: build runtime
+	bash scripts/install-oha.sh
+	python3 scripts/bench.py --storm --out bench.json
 
 # Regenerates the committed OpenAPI document (a test fails when it is stale).
 openapi: build

@@ -34,6 +34,11 @@ pub struct ServeArgs {
     /// Requests waiting for a worker before new ones get 429.
     #[arg(long, env = "CMR_QUEUE_CAPACITY", default_value_t = 64)]
     pub queue_capacity: usize,
+    /// How long a localize refused with 429 (queue full) waits before the answer, ms: a client
+    /// that retries at once cannot turn overload into a flood of refusals that steals the CPU
+    /// from admitted work.
+    #[arg(long, env = "CMR_SHED_DELAY_MS", default_value_t = 100)]
+    pub shed_delay_ms: u64,
     /// Per-request deadline for a localization, milliseconds.
     #[arg(long, env = "CMR_REQUEST_TIMEOUT_MS", default_value_t = 10_000)]
     pub request_timeout_ms: u64,

@@ -260,7 +260,14 @@ fn serde_urlencoded_query<T: serde::de::DeserializeOwned>(query: &str) -> Result
 }
 
 async fn localize_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, headers: &HeaderMap, body: Body) -> Result<Response, ApiError> {
-    let admission = st.localizer.admit()?;
+    let admission = match st.localizer.admit() {
+        Ok(admission) => admission,
+        Err(e @ crate::serving::LocalizeError::QueueFull) => {
+            tokio::time::sleep(std::time::Duration::from_millis(st.config.shed_delay_ms)).await;
+            return Err(e.into());
+        }
+        Err(e) => return Err(e.into()),
+    };
     let body = read_body(body, st.config.max_body_bytes).await?;
     let (request, payload) = read_request(query, headers, body)?;
     let done = st.localizer.localize(admission, id, &request, payload).await?;

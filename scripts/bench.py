@@ -1,0 +1,205 @@
+#!/usr/bin/env python3
+"""Benchmark of the localization server on loopback (`make bench`); prints figures, writes a JSON
+record; not a test (no assertions on speed).
+
+Starts `BINARY serve` on a free port with a copy of the demo map and measures, with the demo
+request (`examples/localize-demo.json`, the default search):
+  1. sequential: p50 / p99 client latency of one localize at a time (oha -c 1), the server's
+     per-phase medians (response `timings_ms`), and the server's CPU time per request;
+  2. concurrency 16 for `--seconds` (oha -c 16): requests/s, p50 / p99, statuses, CPU per request,
+     policy rows per request (from /metrics) and mean batch;
+  3. registration of a 40,960-point map (PUT, x3);
+  4. FLOPs per request from the manifest (`graphs.*.flops`: image encoder + frustum head + rows x
+     agent) and the share of the FLOP floor reached at c16 (`--peak-gflops`, the machine's fp32
+     matmul rate on all cores);
+  5. with `--storm`: a second server with `--queue-capacity 4` under 48 closed-loop clients:
+     admitted (200) requests/s against its capacity measured in the same run at 4 clients.
+
+    python3 scripts/bench.py [--binary PATH] [--serve-args "..."] [--seconds 30] [--storm] [--out FILE]
+oha (a Rust HTTP load generator) comes from scripts/install-oha.sh (into .tools/bin).
+"""
+
+import argparse
+import http.client
+import json
+import os
+import random
+import shutil
+import signal
+import statistics
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+
+OHA = os.path.join(os.path.dirname(__file__), "..", ".tools", "bin", "oha")
+STAGES = ["queue", "decode", "image_encoder", "frustum_head", "agent_steps", "agent_state_build", "total"]
+TICK = os.sysconf("SC_CLK_TCK")
+
+
+class Server:
+    """A spawned `serve` on a free loopback port with its own copy of the demo map."""
+
+    def __init__(self, binary, extra):
+        self.maps = tempfile.mkdtemp(prefix="cmr-bench-")
+        for f in ("demo.bin", "demo.json"):
+            shutil.copy(os.path.join("maps", f), self.maps)
+        self.port = 20000 + random.randrange(20000)
+        cmd = [binary, "serve", "--host", "127.0.0.1", "--port", str(self.port), "--maps", self.maps] + extra
+        self.proc = subprocess.Popen(cmd, stderr=subprocess.DEVNULL)
+        self.url = f"http://127.0.0.1:{self.port}"
+        deadline = time.time() + 180
+        while time.time() < deadline:
+            try:
+                if self.request("GET", "/ready")[0] == 200:
+                    return
+            except OSError:
+                pass
+            time.sleep(0.2)
+        self.stop()
+        sys.exit("server did not become ready")
+
+    def request(self, method, path, body=None, ctype="application/json"):
+        c = http.client.HTTPConnection("127.0.0.1", self.port, timeout=120)
+        c.request(method, path, body=body, headers={"content-type": ctype})
+        r = c.getresponse()
+        return r.status, r.read()
+
+    def cpu_s(self):
+        with open(f"/proc/{self.proc.pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / TICK
+
+    def metric(self, name):
+        text = self.request("GET", "/metrics")[1].decode()
+        total = 0.0
+        for line in text.splitlines():
+            head = line.split(" ")[0]
+            if head == name or head.startswith(name + "{"):
+                total += float(line.rsplit(" ", 1)[1])
+        return total
+
+    def stop(self):
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            self.proc.wait(timeout=60)
+        shutil.rmtree(self.maps, ignore_errors=True)
+
+
+def oha(url, request, *args):
+    out = subprocess.run([OHA, "--no-tui", "--output-format", "json", "-m", "POST", "-T", "application/json",
+                          "-D", request, *args, url], capture_output=True, text=True, check=True).stdout
+    d = json.loads(out)
+    lat = d["latencyPercentiles"]
+    ms = lambda v: None if v is None else v * 1000
+    return {"requests_per_s": d["summary"]["requestsPerSec"], "p50_ms": ms(lat["p50"]), "p99_ms": ms(lat["p99"]),
+            "statuses": d["statusCodeDistribution"], "errors": d["errorDistribution"], "seconds": d["summary"]["total"]}
+
+
+def load_phase(server, request, connections, seconds):
+    path = server.url + "/v1/maps/demo/localize"
+    cpu0, rows0, calls0 = server.cpu_s(), server.metric("cmr_batch_size_sum"), server.metric("cmr_batch_size_count")
+    r = oha(path, request, "-c", str(connections), "-z", f"{seconds}s")
+    ok = r["statuses"].get("200", 0)
+    rows, calls = server.metric("cmr_batch_size_sum") - rows0, server.metric("cmr_batch_size_count") - calls0
+    r["ok_per_s"] = ok / r["seconds"]
+    r["cpu_ms_per_request"] = (server.cpu_s() - cpu0) * 1000 / max(ok, 1)
+    r["policy_rows_per_request"] = rows / max(ok, 1)
+    r["mean_batch_rows"] = rows / max(calls, 1)
+    return r
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--binary", default="./target/release/cmr-agent")
+    ap.add_argument("--serve-args", default="", help="extra flags for the server")
+    ap.add_argument("--request", default="examples/localize-demo.json")
+    ap.add_argument("--seconds", type=int, default=30, help="length of the c16 phase")
+    ap.add_argument("--sequential", type=int, default=40)
+    ap.add_argument("--peak-gflops", type=float, default=183.0,
+                    help="fp32 matmul GFLOP/s of this machine on all cores (183: 2-core dev machine, issue 15)")
+    ap.add_argument("--storm", action="store_true", help="also measure admitted throughput under overload")
+    ap.add_argument("--out", default="bench.json")
+    args = ap.parse_args()
+    if not os.path.exists(OHA):
+        sys.exit("oha not found: run scripts/install-oha.sh")
+    record = {"binary": args.binary, "serve_args": args.serve_args, "request": args.request,
+              "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "load_average_before": os.getloadavg()}
+    manifest = json.load(open("models/manifest.json"))
+    flops = {k: v.get("flops") for k, v in manifest["graphs"].items()}
+
+    server = Server(args.binary, args.serve_args.split())
+    try:
+        body = open(args.request, "rb").read()
+        for _ in range(3):
+            server.request("POST", "/v1/maps/demo/localize", body)
+        stages = {s: [] for s in STAGES}
+        cpu0 = server.cpu_s()
+        for _ in range(args.sequential):
+            status, data = server.request("POST", "/v1/maps/demo/localize", body)
+            assert status == 200, data[:200]
+            t = json.loads(data)["timings_ms"]
+            for s in STAGES:
+                stages[s].append(t[s])
+        seq_cpu = (server.cpu_s() - cpu0) * 1000 / args.sequential
+        seq = oha(server.url + "/v1/maps/demo/localize", args.request, "-c", "1", "-n", str(args.sequential))
+        seq["server_phase_median_ms"] = {s: statistics.median(v) for s, v in stages.items()}
+        seq["cpu_ms_per_request"] = seq_cpu
+        record["sequential"] = seq
+        print(f"sequential x{args.sequential}: p50 {seq['p50_ms']:.1f} ms, p99 {seq['p99_ms']:.1f} ms; "
+              f"server CPU {seq_cpu:.1f} ms per request")
+        print("  server phases, median ms: " + "  ".join(f"{s} {v:.1f}" for s, v in seq["server_phase_median_ms"].items()))
+
+        c16 = load_phase(server, args.request, 16, args.seconds)
+        record["c16"] = c16
+        print(f"c16, {args.seconds} s: {c16['ok_per_s']:.2f} localizations/s, p50 {c16['p50_ms']:.0f} ms, "
+              f"p99 {c16['p99_ms']:.0f} ms, statuses {c16['statuses']}; CPU {c16['cpu_ms_per_request']:.1f} ms "
+              f"per request; {c16['policy_rows_per_request']:.1f} policy rows per request, mean batch "
+              f"{c16['mean_batch_rows']:.1f}")
+
+        rng = random.Random(0)
+        cloud = b"".join(struct.pack("<4f", rng.uniform(-40, 40), rng.uniform(-40, 40), rng.uniform(-2, 4), 0.0)
+                         for _ in range(40960))
+        walls = []
+        for _ in range(3):
+            t = time.perf_counter()
+            status, _ = server.request("PUT", "/v1/maps/bench-register?format=kitti_bin", cloud, "application/octet-stream")
+            walls.append((time.perf_counter() - t) * 1000)
+            assert status in (200, 201), status
+        record["register_40960_points_ms"] = statistics.median(walls)
+        print(f"register a 40,960-point map: median {record['register_40960_points_ms']:.1f} ms (x3)")
+
+        if all(flops.values()):
+            per_request = flops["image_encoder"] + flops["frustum_head"] + c16["policy_rows_per_request"] * flops["agent"]
+            ceiling = args.peak_gflops * 1e9 / per_request
+            record["flops"] = {"per_request_gflop": per_request / 1e9, "ceiling_requests_per_s": ceiling,
+                               "share_of_floor": c16["ok_per_s"] / ceiling, "peak_gflops": args.peak_gflops}
+            print(f"FLOPs: {per_request / 1e9:.2f} GFLOP per request ({c16['policy_rows_per_request']:.1f} rows); "
+                  f"at {args.peak_gflops:.0f} GFLOP/s the ceiling is {ceiling:.1f} requests/s; c16 reaches "
+                  f"{100 * c16['ok_per_s'] / ceiling:.0f} % of it")
+    finally:
+        server.stop()
+
+    if args.storm:
+        storm_server = Server(args.binary, args.serve_args.split() + ["--queue-capacity", "4"])
+        try:
+            capacity = load_phase(storm_server, args.request, 4, 20)
+            storm = load_phase(storm_server, args.request, 48, 20)
+            record["storm"] = {"capacity_4_clients": capacity, "storm_48_clients": storm,
+                               "admitted_share": storm["ok_per_s"] / max(capacity["ok_per_s"], 1e-9)}
+            print(f"storm (queue 4): capacity {capacity['ok_per_s']:.2f}/s at 4 clients; 48 clients: "
+                  f"{storm['ok_per_s']:.2f}/s admitted ({100 * record['storm']['admitted_share']:.0f} %), "
+                  f"statuses {storm['statuses']}")
+        finally:
+            storm_server.stop()
+
+    record["load_average_after"] = os.getloadavg()
+    with open(args.out, "w") as f:
+        json.dump(record, f, indent=2)
+    print(f"record: {args.out} (load average before {record['load_average_before'][0]:.2f}, "
+          f"after {record['load_average_after'][0]:.2f})")
+
+
+if __name__ == "__main__":
+    main()
