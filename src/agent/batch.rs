@@ -7,8 +7,10 @@
 //! the coordinate bound) is caught before its state is built, and policy outputs are checked row
 //! by row after the call. A failing policy call as a whole fails the requests that were in it.
 
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
+
+use rayon::prelude::*;
 
 use crate::geometry::{ActionSet, Intrinsics, Pose};
 use crate::maps::PreparedMap;
@@ -56,18 +58,19 @@ pub struct Batch<T> {
     running: Vec<Running<T>>,
     layout: StateLayout,
     actions: ActionSet,
-    scratch: ScatterScratch,
+    /// Scatter buffers, one per thread building states at once.
+    scratch: Mutex<Vec<ScatterScratch>>,
     state_2d: Vec<f32>,
     state_3d: Vec<f32>,
 }
 
-impl<T> Batch<T> {
+impl<T: Send> Batch<T> {
     pub fn new(manifest: &Manifest) -> Self {
         Self {
             running: Vec::new(),
             layout: StateLayout::from_manifest(manifest),
             actions: manifest.action_set(),
-            scratch: ScatterScratch::default(),
+            scratch: Mutex::new(Vec::new()),
             state_2d: Vec::new(),
             state_3d: Vec::new(),
         }
@@ -121,13 +124,7 @@ impl<T> Batch<T> {
         }
         self.state_2d.resize(rows.len() * l2, 0.0);
         self.state_3d.resize(rows.len() * l3, 0.0);
-        for (slot, &(i, h)) in rows.iter().enumerate() {
-            let t = Instant::now();
-            let r = &mut self.running[i];
-            let s3 = &mut self.state_3d[slot * l3..(slot + 1) * l3];
-            r.search.episodes[h].write_state(&r.map, &self.layout, &mut self.scratch, &mut self.state_2d[slot * l2..(slot + 1) * l2], s3);
-            r.timings.state_build_ms += ms(t);
-        }
+        self.build_states(&rows);
         let output = match backend.agent_step(&self.state_2d, &self.state_3d, rows.len()) {
             Ok(output) => output,
             Err(e) => {
@@ -152,10 +149,48 @@ impl<T> Batch<T> {
             }
             r.search.episodes[h].advance(&r.map, &self.actions, logits, output.value[slot]);
         }
+        let scratch = self.scratch.get_mut().expect("scratch pool");
+        if scratch.is_empty() {
+            scratch.push(ScatterScratch::default());
+        }
         for r in self.running.iter_mut().filter(|r| r.failed.is_none()) {
-            r.search.after_step(&r.map, &self.layout, &mut self.scratch);
+            r.search.after_step(&r.map, &self.layout, &mut scratch[0]);
         }
         rows.len()
+    }
+
+    /// Builds the observation of every row into the state buffers, rows in parallel (each with a
+    /// scratch buffer from the pool): rows are independent, so the result does not depend on the
+    /// threads. `rows` lists (request, hypothesis) in slot order.
+    fn build_states(&mut self, rows: &[(usize, usize)]) {
+        let (l2, l3) = (self.layout.state_2d_len(), self.layout.state_3d_len());
+        let mut slots_2d = self.state_2d[..rows.len() * l2].chunks_mut(l2);
+        let mut slots_3d = self.state_3d[..rows.len() * l3].chunks_mut(l3);
+        let mut jobs = Vec::with_capacity(rows.len());
+        for (i, r) in self.running.iter_mut().enumerate() {
+            let Running { map, search, .. } = r;
+            let wanted: Vec<usize> = rows.iter().filter(|(j, _)| *j == i).map(|(_, h)| *h).collect();
+            for (h, episode) in search.episodes.iter_mut().enumerate() {
+                if wanted.contains(&h) {
+                    let (s2, s3) = (slots_2d.next().expect("one slot per row"), slots_3d.next().expect("one slot per row"));
+                    jobs.push((i, &**map, episode, s2, s3));
+                }
+            }
+        }
+        let (layout, pool) = (&self.layout, &self.scratch);
+        let spent: Vec<(usize, f64)> = jobs
+            .into_par_iter()
+            .map(|(i, map, episode, s2, s3)| {
+                let t = Instant::now();
+                let mut scratch = pool.lock().expect("scratch pool").pop().unwrap_or_default();
+                episode.write_state(map, layout, &mut scratch, s2, s3);
+                pool.lock().expect("scratch pool").push(scratch);
+                (i, ms(t))
+            })
+            .collect();
+        for (i, t) in spent {
+            self.running[i].timings.state_build_ms += t;
+        }
     }
 
     /// Fails every request still in the batch with `error` (used when a step panicked).
@@ -194,7 +229,11 @@ impl<T> Batch<T> {
                 Some(e) => Err(e),
                 None => {
                     r.timings.agent_steps_ms = ms(r.steps_started);
-                    Ok(r.search.finish(&r.map, &self.layout, &mut self.scratch, r.timings))
+                    let scratch = self.scratch.get_mut().expect("scratch pool");
+                    if scratch.is_empty() {
+                        scratch.push(ScatterScratch::default());
+                    }
+                    Ok(r.search.finish(&r.map, &self.layout, &mut scratch[0], r.timings))
                 }
             };
             out.push((r.tag, result));
