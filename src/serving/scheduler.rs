@@ -109,6 +109,17 @@ pub struct BatchStats {
 pub struct Scheduler {
     queue: Arc<Queue>,
     workers: Mutex<Vec<JoinHandle<()>>>,
+    /// One message per worker that has exited (sent on drop, so a panic counts too).
+    exited: Mutex<std::sync::mpsc::Receiver<()>>,
+}
+
+/// Tells the scheduler a worker thread has ended, however it ended.
+struct ExitSignal(std::sync::mpsc::Sender<()>);
+
+impl Drop for ExitSignal {
+    fn drop(&mut self) {
+        let _ = self.0.send(());
+    }
 }
 
 impl Scheduler {
@@ -127,13 +138,18 @@ impl Scheduler {
             largest_batch: AtomicUsize::new(0),
         });
         let mut workers = Vec::new();
+        let (exit_tx, exited) = std::sync::mpsc::channel();
         for index in 0..config.workers.max(1) {
             let mut backend = factory()?;
             backend.warm_up()?;
             let worker = Worker { batch: Batch::new(backend.manifest()), backend, queue: queue.clone(), max_batch: config.max_batch.max(1) };
-            workers.push(std::thread::Builder::new().name(format!("agent-worker-{index}")).spawn(move || worker.run())?);
+            let signal = ExitSignal(exit_tx.clone());
+            workers.push(std::thread::Builder::new().name(format!("agent-worker-{index}")).spawn(move || {
+                let _signal = signal;
+                worker.run()
+            })?);
         }
-        Ok(Self { queue, workers: Mutex::new(workers) })
+        Ok(Self { queue, workers: Mutex::new(workers), exited: Mutex::new(exited) })
     }
 
     /// Reserves a place for one request, or refuses at once when the queue is full or closed.
@@ -190,18 +206,19 @@ impl Scheduler {
         self.queue.ready.notify_all();
     }
 
-    /// Closes and waits for the workers, at most `timeout`. Returns whether they all exited.
+    /// Closes and waits for the workers' exit signals, at most `timeout`. Returns whether they
+    /// all exited.
     pub fn shutdown(&self, timeout: Duration) -> bool {
         self.close();
         let deadline = Instant::now() + timeout;
         let handles: Vec<JoinHandle<()>> = std::mem::take(&mut *self.workers.lock().expect("workers lock"));
-        for h in handles {
-            while !h.is_finished() && Instant::now() < deadline {
-                std::thread::sleep(Duration::from_millis(5));
-            }
-            if !h.is_finished() {
+        let exited = self.exited.lock().expect("exit channel");
+        for _ in 0..handles.len() {
+            if exited.recv_timeout(deadline.saturating_duration_since(Instant::now())).is_err() {
                 return false;
             }
+        }
+        for h in handles {
             let _ = h.join();
         }
         true
