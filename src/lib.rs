@@ -10,6 +10,7 @@
 //! - `serving`: the localize path (admission, validation, decode, deadline) and the batching
 //!   scheduler, shared by the HTTP server and the CLI;
 //! - `api`: the HTTP transport: routes, errors, configuration, lifecycle;
+//! - `render`: pictures of a pose (map points projected onto the image), for the API and `eval`;
 //! - `eval`: the paper's metrics and tables over a KITTI-layout data set;
 //! - `atomic_file`: the one crash-safe file writer everything uses.
 
@@ -21,5 +22,6 @@ pub mod geometry;
 pub mod kitti;
 pub mod maps;
 pub mod model;
+pub mod render;
 pub mod serving;
 pub mod synth;

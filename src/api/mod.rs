@@ -7,6 +7,7 @@ pub mod error;
 pub mod extract;
 pub mod offline;
 pub mod openapi;
+pub mod overlay;
 pub mod routes;
 pub mod types;
 
@@ -117,6 +118,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         )
         .route("/v1/maps/{id}/metadata", put(routes::put_metadata).layer(DefaultBodyLimit::max(1024 * 1024)))
         .route("/v1/maps/{id}/localize", post(routes::localize).layer(DefaultBodyLimit::max(body_limit)))
+        .route("/v1/maps/{id}/overlay", post(overlay::overlay).layer(DefaultBodyLimit::max(body_limit)))
         .fallback(routes::not_found)
         .layer(axum::middleware::from_fn_with_state(
             Duration::from_millis(state.config.body_timeout_ms),

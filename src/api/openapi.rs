@@ -15,9 +15,9 @@ use crate::maps::MapMetadata;
     paths(
         routes::health, routes::ready, routes::metrics, routes::info,
         routes::list_maps, routes::get_map, routes::put_map, routes::put_metadata, routes::delete_map,
-        routes::localize,
+        routes::localize, super::overlay::overlay,
     ),
-    components(schemas(ErrorBody, crate::serving::LocalizeRequest, crate::serving::Matrix4x4, LocalizeResponse, MapList, MapSummary, MapMetadata, RegisterResponse, Info)),
+    components(schemas(ErrorBody, crate::serving::LocalizeRequest, crate::serving::Matrix4x4, LocalizeResponse, super::overlay::OverlayRequest, MapList, MapSummary, MapMetadata, RegisterResponse, Info)),
     modifiers(&BearerAuth),
 )]
 pub struct ApiDoc;

@@ -254,7 +254,7 @@ fn read_request(query: Option<&str>, headers: &HeaderMap, body: Bytes) -> Result
 }
 
 /// Query strings through the same deserializer axum's `Query` uses.
-fn serde_urlencoded_query<T: serde::de::DeserializeOwned>(query: &str) -> Result<T, ApiError> {
+pub(super) fn serde_urlencoded_query<T: serde::de::DeserializeOwned>(query: &str) -> Result<T, ApiError> {
     let uri: axum::http::Uri = format!("/?{query}").parse().map_err(|_| ApiError::BadRequest("malformed query string".into()))?;
     Query::<T>::try_from_uri(&uri).map(|q| q.0).map_err(|e| ApiError::Invalid(format!("query: {}", e.body_text())))
 }
@@ -283,7 +283,7 @@ async fn localize_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, heade
 }
 
 /// Reads a whole body of at most `limit` bytes (413 beyond), within the body deadline (408).
-async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
+pub(super) async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
     axum::body::to_bytes(body, limit).await.map_err(|e| {
         if super::body_deadline::is_body_deadline(&e) {
             ApiError::BodyTimeout(format!("request body too slow: {e}"))
@@ -307,7 +307,7 @@ fn has_source<E: std::error::Error + 'static>(error: &(dyn std::error::Error + '
 }
 
 /// JSON syntax errors are 400; well-formed JSON with wrong fields or types is 422.
-fn parse_json<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> {
+pub(super) fn parse_json<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> {
     serde_json::from_slice(body).map_err(|e| match e.classify() {
         serde_json::error::Category::Data => ApiError::Invalid(format!("invalid request: {e}")),
         _ => ApiError::MalformedJson(e.to_string()),

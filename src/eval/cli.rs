@@ -16,7 +16,7 @@ pub struct Args {
     /// Frozen test cases: read if the file exists, else drawn from --seed and written there.
     #[arg(long)]
     pub perturbations: PathBuf,
-    /// Output directory for eval.json, cases.json, tables.md and the Fig. 5 PNGs.
+    /// Output directory for eval.json, cases.json, tables.md, the Fig. 5 PNGs and worst/.
     #[arg(long)]
     pub out: PathBuf,
     /// Model directory (manifest.json + four ONNX graphs). Without it only the expert and
@@ -66,6 +66,10 @@ pub struct Args {
     /// point's nearest cell, Lowe ratio 0.9, best 4000) or `mutual` (mutual nearest neighbours).
     #[arg(long, value_enum, default_value = "ratio")]
     pub matching: MatchStrategy,
+    /// Write overlays (prior, final, truth) of the K worst cases by final RTE into
+    /// `<out>/worst/` (the agent's with --models, else the expert's); 0: none.
+    #[arg(long, default_value_t = 5)]
+    pub worst: usize,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -95,9 +99,10 @@ pub fn main(args: Args) -> Result<()> {
         matching: args.matching,
         progress: !args.quiet,
         command: std::env::args().collect::<Vec<_>>().join(" "),
+        worst: args.worst,
     };
     let report = run(&config)?;
     print!("{}", report.markdown());
-    eprintln!("wrote {}/{{eval.json,cases.json,tables.md,fig5_rotation.png,fig5_translation.png}}", config.out.display());
+    eprintln!("wrote {}/{{eval.json,cases.json,tables.md,fig5_rotation.png,fig5_translation.png,worst/}}", config.out.display());
     Ok(())
 }

@@ -10,6 +10,9 @@ use crate::geometry::{ActionSet, Intrinsics, Pose};
 
 use super::perturbations::Perturbation;
 
+/// The greedy expert's method name.
+pub const EXPERT: &str = "expert (oracle)";
+
 /// One evaluated frame under its frozen perturbation, as every method sees it.
 pub struct EvalCase {
     pub perturbation: Perturbation,
@@ -78,7 +81,7 @@ pub struct Expert {
 
 impl Method for Expert {
     fn names(&self) -> Vec<String> {
-        vec!["expert (oracle)".into()]
+        vec![EXPERT.into()]
     }
 
     fn run(&mut self, case: &EvalCase) -> Result<Vec<MethodRun>> {

@@ -2,18 +2,12 @@
 //! drawn with plotters into a memory buffer and encoded with the `image` crate.
 
 use std::path::Path;
-use std::sync::Once;
 
 use anyhow::{Result, anyhow};
 use plotters::prelude::*;
 
 use crate::atomic_file::write_atomic;
 use super::report::EvalReport;
-
-/// DejaVu Sans (Bitstream Vera licence, see assets/fonts/DejaVuSans.LICENSE): plotters'
-/// bitmap backend has no system-font access without extra native libraries.
-static FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
-static REGISTER: Once = Once::new();
 
 const PALETTE: [RGBColor; 6] = [
     RGBColor(214, 39, 40),
@@ -24,18 +18,9 @@ const PALETTE: [RGBColor; 6] = [
     RGBColor(255, 127, 14),
 ];
 
-fn register_font() {
-    REGISTER.call_once(|| {
-        // A bundled, known-good TTF: failure here is a build defect, reported by the tests.
-        if plotters::style::register_font("sans-serif", FontStyle::Normal, FONT).is_err() {
-            tracing::error!("bundled font failed to load; plot text will be missing");
-        }
-    });
-}
-
 /// One line per method: (name, y values in 0..1 at `xs`).
 pub fn success_plot(path: &Path, title: &str, x_label: &str, xs: &[f64], series: &[(String, Vec<f64>)]) -> Result<()> {
-    register_font();
+    crate::render::register_font();
     let (w, h) = (960u32, 520u32);
     let mut buffer = vec![0u8; (w * h * 3) as usize];
     let x_max = xs.last().copied().unwrap_or(1.0);

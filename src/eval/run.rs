@@ -8,7 +8,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 
 use crate::agent::SearchConfig;
 use crate::agent::SearchTuning;
-use crate::geometry::{ActionFrame, ActionSet, PoseError};
+use crate::geometry::{ActionFrame, ActionSet, Pose, PoseError};
 use crate::model::{BackendOptions, ModelSet};
 
 use super::data::Dataset;
@@ -54,6 +54,8 @@ pub struct EvalConfig {
     pub progress: bool,
     /// The command line, recorded in the outputs.
     pub command: String,
+    /// Overlays of this many worst cases (by final RTE) into `<out>/worst/`; 0: none.
+    pub worst: usize,
 }
 
 impl EvalConfig {
@@ -63,20 +65,30 @@ impl EvalConfig {
     }
 }
 
-/// Runs every method on every case; one record per (case, method).
+/// Where each record came from: its case's index in the perturbation file and the method's final
+/// pose (for the worst-case pictures; not written to `cases.json`).
+#[derive(Debug, Clone, Copy)]
+pub struct RecordOrigin {
+    pub case: usize,
+    pub final_pose: Option<Pose>,
+}
+
+/// Runs every method on every case; one record per (case, method), and each record's origin.
 pub fn evaluate(
     cases: impl Iterator<Item = Result<EvalCase>>,
     methods: &mut [Box<dyn Method>],
     progress: &ProgressBar,
-) -> Result<Vec<CaseRecord>> {
+) -> Result<(Vec<CaseRecord>, Vec<RecordOrigin>)> {
     let mut records = Vec::new();
-    for case in cases {
+    let mut origins = Vec::new();
+    for (index, case) in cases.enumerate() {
         let case = case?;
         for method in methods.iter_mut() {
             let runs = method
                 .run(&case)
                 .with_context(|| format!("{:?} on sequence {} frame {}", method.names(), case.perturbation.sequence, case.perturbation.frame))?;
             for run in runs {
+                origins.push(RecordOrigin { case: index, final_pose: run.poses.last().copied() });
                 records.push(CaseRecord {
                     sequence: case.perturbation.sequence.clone(),
                     frame: case.perturbation.frame,
@@ -91,7 +103,7 @@ pub fn evaluate(
         progress.inc(1);
     }
     progress.finish_and_clear();
-    Ok(records)
+    Ok((records, origins))
 }
 
 /// Peak resident set size of this process (Linux `VmHWM`).
@@ -143,7 +155,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
     let progress = if config.progress { ProgressBar::new(file.cases.len() as u64) } else { ProgressBar::hidden() };
     progress.set_style(ProgressStyle::with_template("{elapsed_precise} [{bar:40}] {pos}/{len} cases, eta {eta}").unwrap_or_else(|_| ProgressStyle::default_bar()));
     let cases = file.cases.iter().map(|p| dataset.case(p, num_points));
-    let records = evaluate(cases, &mut methods, &progress)?;
+    let (records, origins) = evaluate(cases, &mut methods, &progress)?;
 
     let map_prepare_ms = learned_index.and_then(|_| {
         let times: Vec<f64> = records
@@ -179,7 +191,83 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
         resources: Resources { peak_rss_bytes: peak_rss_bytes(), graph_parameters, map_prepare_ms },
     };
     write_outputs(&report, &records, &config.out)?;
+    if config.worst > 0 {
+        // The agent when a model ran, else the expert: the method whose failures matter.
+        let primary = if learned_index.is_some() { AGENT } else { super::methods::EXPERT };
+        let worst = worst_cases(&records, &origins, primary, config.worst);
+        write_worst(&dataset, &file, &worst, num_points, &config.out.join("worst"))?;
+    }
     Ok(report)
+}
+
+/// One of the worst cases of a method, by its final RTE.
+#[derive(Debug, Clone)]
+pub struct WorstCase {
+    pub rank: usize,
+    pub case: usize,
+    pub method: String,
+    pub final_pose: Pose,
+    pub error: PoseError,
+}
+
+/// The `k` records of `method` with the largest final RTE (worst first; ties by case order).
+pub fn worst_cases(records: &[CaseRecord], origins: &[RecordOrigin], method: &str, k: usize) -> Vec<WorstCase> {
+    let mut of_method: Vec<(usize, &CaseRecord, Pose)> = records
+        .iter()
+        .zip(origins)
+        .filter(|(r, _)| r.method == method)
+        .filter_map(|(r, o)| Some((o.case, r, o.final_pose?)))
+        .filter(|(_, r, _)| !r.errors.is_empty())
+        .collect();
+    let rte = |r: &CaseRecord| r.errors.last().map_or(0.0, |e| if e.rte_m.is_finite() { e.rte_m } else { f64::INFINITY });
+    of_method.sort_by(|a, b| rte(b.1).total_cmp(&rte(a.1)).then(a.0.cmp(&b.0)));
+    of_method
+        .into_iter()
+        .take(k)
+        .enumerate()
+        .map(|(i, (case, r, pose))| WorstCase { rank: i + 1, case, method: method.to_string(), final_pose: pose, error: *r.errors.last().expect("non-empty") })
+        .collect()
+}
+
+/// Writes one overlay per worst case into `dir` (prior, final and truth panels, the case's N
+/// sampled map points on its full image), and `index.json` naming them. Replaces earlier ones.
+pub fn write_worst(dataset: &Dataset, file: &PerturbationFile, worst: &[WorstCase], num_points: usize, dir: &Path) -> Result<()> {
+    if dir.is_dir() {
+        for entry in std::fs::read_dir(dir)?.flatten() {
+            let name = entry.file_name().to_string_lossy().to_string();
+            if name.ends_with(".png") || name == "index.json" {
+                std::fs::remove_file(entry.path())?;
+            }
+        }
+    }
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let mut index = Vec::new();
+    for w in worst {
+        let p = &file.cases[w.case];
+        let case = dataset.case(p, num_points)?;
+        let prior_error = PoseError::between(&case.initial, &case.truth);
+        let label = |name: &str, e: &PoseError| format!("{name}: RTE {:.2} m, RRE {:.2}°", e.rte_m, e.rre_geodesic_deg);
+        let overlay = crate::render::Overlay {
+            image: &case.image,
+            intrinsics: case.intrinsics,
+            points: &case.map_points,
+            panels: vec![
+                crate::render::PosePanel::new(format!("seq {} frame {} case {}  {}", p.sequence, p.frame, w.case, label("prior", &prior_error)), case.initial),
+                crate::render::PosePanel::new(label(&format!("final ({})", w.method), &w.error), w.final_pose),
+                crate::render::PosePanel::new("truth", case.truth),
+            ],
+            strip: Vec::new(),
+        };
+        let name = format!("{:02}_seq{}_frame{:06}_case{}.png", w.rank, p.sequence, p.frame, w.case);
+        write_atomic(&dir.join(&name), &overlay.png()?)?;
+        index.push(serde_json::json!({
+            "rank": w.rank, "file": name, "case": w.case, "sequence": p.sequence, "frame": p.frame, "method": w.method,
+            "final_rte_m": w.error.rte_m, "final_rre_geodesic_deg": w.error.rre_geodesic_deg,
+            "prior_rte_m": prior_error.rte_m, "prior_rre_geodesic_deg": prior_error.rre_geodesic_deg,
+        }));
+    }
+    write_atomic(&dir.join("index.json"), serde_json::to_string_pretty(&index)?.as_bytes())?;
+    Ok(())
 }
 
 pub fn write_outputs(report: &EvalReport, records: &[CaseRecord], out: &Path) -> Result<()> {
@@ -244,6 +332,7 @@ pub(crate) mod tests {
             matching: MatchStrategy::Ratio,
             progress: false,
             command: "test".into(),
+            worst: 2,
         }
     }
 
@@ -283,6 +372,15 @@ pub(crate) mod tests {
         };
         assert_eq!(errors(&first), errors(&second));
         assert_eq!(again.methods[1].summary, report.methods[1].summary);
+        // The expert's two worst cases (no model ran), worst first, as pictures.
+        let index: Vec<serde_json::Value> = serde_json::from_str(&std::fs::read_to_string(out.join("worst/index.json")).unwrap()).unwrap();
+        assert_eq!(index.len(), 2);
+        assert!(index[0]["final_rte_m"].as_f64().unwrap() >= index[1]["final_rte_m"].as_f64().unwrap());
+        for w in &index {
+            let img = image::open(out.join("worst").join(w["file"].as_str().unwrap())).unwrap();
+            assert_eq!(img.width(), 1241);
+            assert!(img.height() > 3 * 376, "three panels");
+        }
         let tables = std::fs::read_to_string(out.join("tables.md")).unwrap();
         assert!(tables.contains("## Table 1") && tables.contains("## Table 4: expert (oracle)") && tables.contains("## Table 2"));
     }

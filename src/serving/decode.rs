@@ -28,8 +28,8 @@ pub enum ImagePayload {
     Raw(bytes::Bytes),
 }
 
-/// Decodes, resizes and crops one request image to the manifest's input; returns the tensor and
-/// the crop's intrinsics. Errors: 400 `bad_request` (base64), 400 `corrupt_image` (cut or broken
+/// Decodes, resizes and crops one request image to the manifest's input; returns the tensor,
+/// the crop's intrinsics and the decoded image (for pictures; callers that do not draw drop it). Errors: 400 `bad_request` (base64), 400 `corrupt_image` (cut or broken
 /// bytes), 413 (over the budget), 415 (not JPEG/PNG), 422 (zero size, extreme aspect ratio, bad
 /// intrinsics).
 pub fn prepare_request_image(
@@ -37,7 +37,15 @@ pub fn prepare_request_image(
     intrinsics: &Intrinsics,
     manifest: &Manifest,
     limits: ImageLimits,
-) -> Result<(Vec<f32>, Intrinsics), LocalizeError> {
+) -> Result<(Vec<f32>, Intrinsics, RgbImage), LocalizeError> {
+    let image = decode_payload(payload, manifest, limits)?;
+    let (tensor, crop_k) = crate::agent::prepare_image(&image, intrinsics, manifest).map_err(|e| LocalizeError::Invalid(format!("{e:#}")))?;
+    Ok((tensor, crop_k, image))
+}
+
+/// Decodes one request image (base64 or raw bytes) within `limits`, without preparing it for the
+/// model: the explicit-pose overlay's path, with the same checks and errors as localize's.
+pub fn decode_payload(payload: ImagePayload, manifest: &Manifest, limits: ImageLimits) -> Result<RgbImage, LocalizeError> {
     let bytes = match payload {
         ImagePayload::Base64(text) => base64::engine::general_purpose::STANDARD
             .decode(text.trim().as_bytes())
@@ -45,8 +53,7 @@ pub fn prepare_request_image(
             .into(),
         ImagePayload::Raw(bytes) => bytes,
     };
-    let image = decode_image(&bytes, manifest, limits)?;
-    crate::agent::prepare_image(&image, intrinsics, manifest).map_err(|e| LocalizeError::Invalid(format!("{e:#}")))
+    decode_image(&bytes, manifest, limits)
 }
 
 /// Decodes JPEG or PNG bytes (the format is read from the bytes, not from any header) within

@@ -6,6 +6,8 @@
 //!    ([`ValidLocalizeRequest`]), take a decode permit (bounded concurrent decodes), decode within
 //!    the pixel budget, prepare the map (cached embeddings), submit to the scheduler in the
 //!    reserved slot, and wait for the answer until the deadline.
+//!    [`Localizer::localize_for_picture`] is the same path keeping the decoded image for the
+//!    overlay; [`Localizer::picture_input`] stops before the agent (an explicit pose is drawn).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -17,7 +19,12 @@ use crate::agent::{Localization, Start, ms};
 use crate::maps::{Maps, validate_id};
 use crate::model::Manifest;
 
-use super::decode::{ImageLimits, ImagePayload, prepare_request_image};
+use image::RgbImage;
+
+use crate::geometry::Intrinsics;
+use crate::maps::PreparedMap;
+
+use super::decode::{ImageLimits, ImagePayload, decode_payload, prepare_request_image};
 use super::error::LocalizeError;
 use super::lifecycle::{InFlight, Lifecycle};
 use super::request::{LocalizeRequest, RequestDefaults, ValidLocalizeRequest};
@@ -55,6 +62,15 @@ pub struct Localized {
     pub total_ms: f64,
 }
 
+/// What a picture of a request is drawn from: the decoded image at its own resolution, the
+/// request's intrinsics (for that resolution, not the model's crop) and the region's prepared
+/// map (its N sampled points).
+pub struct PictureInput {
+    pub image: RgbImage,
+    pub intrinsics: Intrinsics,
+    pub map: Arc<PreparedMap>,
+}
+
 pub struct Localizer {
     pub maps: Arc<Maps>,
     pub scheduler: Arc<Scheduler>,
@@ -90,7 +106,51 @@ impl Localizer {
     /// image comes as `image` (base64 from the JSON body, or raw bytes).
     pub async fn localize(&self, admission: Admission, map_id: &str, request: &LocalizeRequest, image: ImagePayload) -> Result<Localized, LocalizeError> {
         let span = tracing::info_span!("localize", map = map_id);
-        self.localize_in_span(admission, map_id, request, image, span.clone()).instrument(span).await
+        let (done, _) = self.localize_in_span(admission, map_id, request, image, false, span.clone()).instrument(span).await?;
+        Ok(done)
+    }
+
+    /// [`Localizer::localize`], keeping what a picture of the answer needs: the decoded image
+    /// at its own resolution, its intrinsics and the region's prepared points.
+    pub async fn localize_for_picture(
+        &self,
+        admission: Admission,
+        map_id: &str,
+        request: &LocalizeRequest,
+        image: ImagePayload,
+    ) -> Result<(Localized, PictureInput), LocalizeError> {
+        let span = tracing::info_span!("localize", map = map_id, picture = true);
+        let (done, picture) = self.localize_in_span(admission, map_id, request, image, true, span.clone()).instrument(span).await?;
+        let picture = picture.ok_or_else(|| LocalizeError::Internal("the decoded image was not kept".into()))?;
+        Ok((done, picture))
+    }
+
+    /// A picture's input without running the agent (an explicit pose is drawn): the same map
+    /// lookup, validation (`request`'s intrinsics and every other field, as localize checks
+    /// them), decode permit, pixel budget and deadline as [`Localizer::localize`].
+    pub async fn picture_input(&self, admission: Admission, map_id: &str, request: &LocalizeRequest, image: ImagePayload) -> Result<PictureInput, LocalizeError> {
+        let deadline = admission.started + self.config.request_timeout;
+        let work = async {
+            validate_id(map_id)?;
+            let maps = self.maps.clone();
+            let id = map_id.to_string();
+            let entry = blocking(move || maps.store.get(&id).map_err(LocalizeError::from)).await?;
+            let valid = ValidLocalizeRequest::new(request, &self.config.defaults, entry)?;
+            let permit = self.decodes.clone().acquire_owned().await.map_err(|_| LocalizeError::Draining)?;
+            let (manifest, limits) = (self.manifest.clone(), self.config.image);
+            let decoded = blocking(move || {
+                let _permit = permit;
+                decode_payload(image, &manifest, limits)
+            })
+            .await?;
+            let maps = self.maps.clone();
+            let entry = valid.map.clone();
+            let map = blocking(move || maps.prepared_for(&entry).map_err(LocalizeError::from)).await?;
+            Ok(PictureInput { image: decoded, intrinsics: valid.intrinsics, map })
+        };
+        let result = tokio::time::timeout_at(deadline.into(), work).await.map_err(|_| LocalizeError::DeadlineExceeded)?;
+        drop(admission);
+        result
     }
 
     async fn localize_in_span(
@@ -99,8 +159,9 @@ impl Localizer {
         map_id: &str,
         request: &LocalizeRequest,
         image: ImagePayload,
+        keep_image: bool,
         span: tracing::Span,
-    ) -> Result<Localized, LocalizeError> {
+    ) -> Result<(Localized, Option<PictureInput>), LocalizeError> {
         let deadline = admission.started + self.config.request_timeout;
         validate_id(map_id)?;
         let maps = self.maps.clone();
@@ -111,11 +172,13 @@ impl Localizer {
         let permit = self.decodes.clone().acquire_owned().await.map_err(|_| LocalizeError::Draining)?;
         let t = Instant::now();
         let (manifest, limits, intrinsics) = (self.manifest.clone(), self.config.image, valid.intrinsics);
-        let (tensor, crop_k) = blocking(move || {
+        let (tensor, crop_k, decoded) = blocking(move || {
             let _permit = permit;
             prepare_request_image(image, &intrinsics, &manifest, limits)
         })
         .await?;
+        // Held through the agent's run only when a picture will be drawn.
+        let decoded = keep_image.then_some(decoded);
         let decode_ms = ms(t);
         metrics::histogram!("cmr_phase_seconds", "phase" => "decode").record(decode_ms / 1000.0);
 
@@ -124,6 +187,7 @@ impl Localizer {
         let map = blocking(move || maps.prepared_for(&entry).map_err(LocalizeError::from)).await?;
 
         let (reply, answer) = oneshot::channel();
+        let picture = decoded.map(|image| PictureInput { image, intrinsics, map: map.clone() });
         let start = Start { map, image_tensor: tensor, intrinsics: crop_k, prior: valid.prior, search: valid.search };
         self.scheduler.submit(Job { start, deadline, span, reply }, admission.slot)?;
         let wait = deadline.saturating_duration_since(Instant::now()) + Duration::from_millis(500);
@@ -132,7 +196,8 @@ impl Localizer {
             Ok(Err(_)) => return Err(LocalizeError::Internal("the worker dropped the request".into())),
             Err(_) => return Err(LocalizeError::DeadlineExceeded),
         };
-        Ok(Localized { localization: finished.localization, queue_ms: finished.queue_ms, decode_ms, total_ms: ms(admission.started) })
+        let done = Localized { localization: finished.localization, queue_ms: finished.queue_ms, decode_ms, total_ms: ms(admission.started) };
+        Ok((done, picture))
     }
 }
 

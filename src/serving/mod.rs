@@ -17,7 +17,7 @@ pub mod scheduler;
 pub use decode::{ImageLimits, ImagePayload};
 pub use error::LocalizeError;
 pub use lifecycle::Lifecycle;
-pub use localizer::{Admission, Localized, Localizer, LocalizerConfig};
+pub use localizer::{Admission, Localized, Localizer, LocalizerConfig, PictureInput};
 pub use crate::geometry::pose::Matrix4x4;
 pub use request::{IntrinsicsBody, LocalizeRequest, RequestDefaults, ValidLocalizeRequest};
 pub use scheduler::{Scheduler, SchedulerConfig};

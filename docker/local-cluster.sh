@@ -4,7 +4,7 @@
 # requests land, that a region uploaded through one replica is served by the others, and what
 # happens when a replica dies.
 #
-#   bash deploy/local-cluster.sh [replicas=3]     (needs nginx: apt-get install nginx-light)
+#   bash docker/local-cluster.sh [replicas=3]     (needs nginx: apt-get install nginx-light)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 replicas=${1:-3}
@@ -36,7 +36,7 @@ for i in $(seq 0 $((replicas - 1))); do
     pids+=($!)
     upstreams+="    server 127.0.0.1:$port max_fails=1 fail_timeout=10s;"$'\n'
 done
-sed -e "s|@LISTEN@|127.0.0.1:$proxy_port|" deploy/nginx.conf.template |
+sed -e "s|@LISTEN@|127.0.0.1:$proxy_port|" docker/nginx.conf.template |
     awk -v ups="$upstreams" '{ if ($0 == "@UPSTREAMS@") printf "%s", ups; else print }' > "$work/nginx-site.conf"
 cat > "$work/nginx.conf" <<CONF
 pid $work/nginx.pid;
