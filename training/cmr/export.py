@@ -165,6 +165,8 @@ def load_models(checkpoint: Path | None) -> tuple[dict[str, torch.nn.Module], di
     meta: dict = {}
     if checkpoint is not None:
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        # The encoders' normalisation is part of the architecture (older checkpoints: batch).
+        models = build_all(state.get("meta", {}).get("config", {}).get("norm", "batch"))
         for name, module in models.items():
             if name in state["models"]:
                 module.load_state_dict(state["models"][name])

@@ -29,8 +29,23 @@ def l2_normalise(x: torch.Tensor, dim: int) -> torch.Tensor:
     return x / torch.sqrt((x * x).sum(dim=dim, keepdim=True) + 1e-12)
 
 
-def conv_bn(cin: int, cout: int, k: int = 3, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, k, stride, k // 2, bias=False), nn.BatchNorm2d(cout),
+NORMS = ("batch", "group")
+GROUPS = 8
+
+
+def norm_layer(kind: str, channels: int) -> nn.Module:
+    """"batch": BatchNorm (every model up to v3). "group": GroupNorm with 8 groups, whose statistics
+    are per sample: the same in training and in the exported graph, and not tied to the batch of 2
+    stage 1 trains with (nor to the mostly-empty BEV grid, whose batch statistics are mostly zeros)."""
+    if kind == "batch":
+        return nn.BatchNorm2d(channels)
+    if kind == "group":
+        return nn.GroupNorm(GROUPS, channels)
+    raise ValueError(f"unknown norm {kind!r}; expected one of {NORMS}")
+
+
+def conv_bn(cin: int, cout: int, k: int = 3, stride: int = 1, norm: str = "batch") -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, k, stride, k // 2, bias=False), norm_layer(norm, cout),
                          nn.ReLU(inplace=True))
 
 
@@ -51,12 +66,13 @@ class PointEncoder(nn.Module):
     gather back. The cloud arrives randomly yawed and shifted, so local context must come from the
     neighbourhood rather than from absolute coordinates; centring on the mean removes the shift."""
 
-    def __init__(self, grid: PillarGrid = PillarGrid(), width: int = 32):
+    def __init__(self, grid: PillarGrid = PillarGrid(), width: int = 32, norm: str = "batch"):
         super().__init__()
         self.grid = grid
         self.local = nn.Sequential(point_mlp(4, width), point_mlp(width, width))
-        self.bev = nn.Sequential(conv_bn(width, 48, stride=2), conv_bn(48, 48), conv_bn(48, 48))
-        self.bev_out = conv_bn(48 + width, 48, k=1)
+        self.bev = nn.Sequential(conv_bn(width, 48, stride=2, norm=norm), conv_bn(48, 48, norm=norm),
+                                 conv_bn(48, 48, norm=norm))
+        self.bev_out = conv_bn(48 + width, 48, k=1, norm=norm)
         self.head = nn.Sequential(point_mlp(width + 48, 64), nn.Linear(64, FEATURE_DIM))
 
     def cell_index(self, centred: torch.Tensor) -> torch.Tensor:
@@ -90,10 +106,11 @@ class PointEncoder(nn.Module):
 class ImageEncoder(nn.Module):
     """Stride-4 feature map with a stride-8 context branch, in the point features' space."""
 
-    def __init__(self):
+    def __init__(self, norm: str = "batch"):
         super().__init__()
-        self.stem = nn.Sequential(conv_bn(3, 24, stride=2), conv_bn(24, 48, stride=2), conv_bn(48, 64))
-        self.context = nn.Sequential(conv_bn(64, 64, stride=2), conv_bn(64, 64))
+        self.stem = nn.Sequential(conv_bn(3, 24, stride=2, norm=norm), conv_bn(24, 48, stride=2, norm=norm),
+                                  conv_bn(48, 64, norm=norm))
+        self.context = nn.Sequential(conv_bn(64, 64, stride=2, norm=norm), conv_bn(64, 64, norm=norm))
         self.out = nn.Conv2d(128, FEATURE_DIM, 1)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
@@ -236,8 +253,9 @@ class Agent(nn.Module):
         return self.decide(self.correlate(state_2d), state_3d)
 
 
-def build_all() -> dict[str, nn.Module]:
-    return dict(point_encoder=PointEncoder(), image_encoder=ImageEncoder(), frustum_head=FrustumHead(),
+def build_all(norm: str = "batch") -> dict[str, nn.Module]:
+    """`norm`: the encoders' normalisation (`NORMS`); a checkpoint records it in its config."""
+    return dict(point_encoder=PointEncoder(norm=norm), image_encoder=ImageEncoder(norm=norm), frustum_head=FrustumHead(),
                 agent=Agent())
 
 

@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 
 from . import geometry as g
+from .augment import AugmentOptions
 from .data import find_sequences, list_frames, make_sample, split_frames
 from .episodes import embed, embed_many, gae, rollout
 from .export import atomic_write_bytes
@@ -53,6 +54,14 @@ class Config:
     embed_points: int = 16384  # N while training the encoders (speed); features are density-robust
     embed_batch: int = 2
     embed_lr: float = 1e-3
+    # Stage-1 schedule: "constant" (every model up to v3) or "cosine" (linear warm-up over
+    # `embed_warmup` steps, then cosine from embed_lr to embed_lr_min at embed_steps).
+    embed_schedule: str = "constant"
+    embed_warmup: int = 0
+    embed_lr_min: float = 1e-5
+    embed_grad_clip: float = 0.0  # max gradient norm in stage 1 (0: no clipping)
+    # The encoders' normalisation (models.NORMS): "batch" (up to v3) or "group" (per-sample statistics).
+    norm: str = "batch"
     circle_points: int = 512
     circle_radius_cells: float = 1.0
     circle_scale: float = 10.0
@@ -82,7 +91,23 @@ class Config:
     # best.pt and export use the average: nearby checkpoints of the live weights differ by several
     # RR points, and the average smooths that update noise away.
     agent_ema: float = 0.0
+    # Augmentation for transfer (augment.AugmentOptions; the defaults are today's behaviour)
+    photometric: str = "basic"  # "heavy": exposure, contrast, white balance, gamma, hue, saturation,
+    #                             greyscale, channel shuffle, blur, noise, JPEG
+    scale_max: float = 1.0  # random zoom in [1, scale_max] before the random crop, intrinsics following
+    lidar_aug: bool = False  # beam dropout, density, range noise, an occluded azimuth sector
+    beams_min: int = 16
+    beams_max: int = 32
+    beam_dropout_p: float = 0.5
+    density_min: float = 0.3
+    range_noise_m: float = 0.03
+    occlusion_p: float = 0.3
+    occlusion_max_deg: float = 60.0
+    # Start from another run's checkpoint (its weights only; optimisers and counters start fresh):
+    # fine-tuning. Ignored when <out>/last.pt exists (resume wins).
+    init_from: str = ""
     # bookkeeping
+    embed_eval_every: int = 0  # stage 1: match accuracy + frustum P/R on the validation frames every k steps (0: off)
     log_every: int = 10
     checkpoint_every: int = 50
     eval_every: int = 200
@@ -111,7 +136,12 @@ class Run:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
         torch.manual_seed(cfg.seed)
-        self.models = {k: m.to(self.device) for k, m in build_all().items()}
+        self.models = {k: m.to(self.device) for k, m in build_all(cfg.norm).items()}
+        self.augment = AugmentOptions(photometric=cfg.photometric, scale_max=cfg.scale_max, lidar=cfg.lidar_aug,
+                                      beams_min=cfg.beams_min, beams_max=cfg.beams_max,
+                                      beam_dropout_p=cfg.beam_dropout_p, density_min=cfg.density_min,
+                                      range_noise_m=cfg.range_noise_m, occlusion_p=cfg.occlusion_p,
+                                      occlusion_max_deg=cfg.occlusion_max_deg)
         embed_params = [p for k in ("point_encoder", "image_encoder", "frustum_head") for p in self.models[k].parameters()]
         self.opt_embed = torch.optim.Adam(embed_params, lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))
@@ -127,6 +157,8 @@ class Run:
             self.train_frames, val = split_frames(frames, cfg.holdout_every)
         step = max(1, len(val) // max(cfg.eval_frames, 1))
         self.val_frames = val[::step][: cfg.eval_frames]
+        if cfg.init_from and not (self.dir / "last.pt").exists():
+            self._init_from(Path(cfg.init_from))
         self._load(self.dir / "last.pt")
 
     # -- persistence -------------------------------------------------------------------------
@@ -163,6 +195,20 @@ class Run:
             self.agent_ema.load_state_dict(state.get("agent_ema", state["models"]["agent"]))
         print(f"resumed from {path}: embed step {self.embed_step}, agent iteration {self.agent_iter}", flush=True)
 
+    def _init_from(self, path: Path) -> None:
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        norm = state.get("meta", {}).get("config", {}).get("norm", "batch")
+        if norm != self.cfg.norm:
+            raise SystemExit(f"{path} was trained with norm={norm}; pass --set norm={norm}")
+        for k, m in self.models.items():
+            m.load_state_dict(state["models"][k])
+        if "agent_ema" in state:
+            self.models["agent"].load_state_dict(state["agent_ema"])
+        if self.agent_ema is not None:
+            self.agent_ema.load_state_dict(self.models["agent"].state_dict())
+        print(f"initialised from {path} (embed step {state['embed_step']}, agent iteration {state['agent_iter']})",
+              flush=True)
+
     def log(self, record: dict) -> None:
         with open(self.dir / "log.jsonl", "a") as f:
             f.write(json.dumps(record) + "\n")
@@ -171,7 +217,21 @@ class Run:
     def samples(self, stage: int, step: int, count: int, num_points: int):
         rng = np.random.default_rng([self.cfg.seed, stage, step])
         picks = rng.integers(0, len(self.train_frames), count)
-        return [make_sample(self.train_frames[i], rng, train=True, num_points=num_points) for i in picks]
+        return [make_sample(self.train_frames[i], rng, train=True, num_points=num_points, augment=self.augment)
+                for i in picks]
+
+    def embed_lr(self, step: int) -> float:
+        """Stage 1's learning rate at `step` (0-based)."""
+        cfg = self.cfg
+        if cfg.embed_schedule == "constant":
+            return cfg.embed_lr
+        if cfg.embed_schedule != "cosine":
+            raise SystemExit(f"unknown embed_schedule {cfg.embed_schedule!r}; expected constant or cosine")
+        if step < cfg.embed_warmup:
+            return cfg.embed_lr * (step + 1) / cfg.embed_warmup
+        span = max(cfg.embed_steps - cfg.embed_warmup, 1)
+        frac = min(1.0, (step - cfg.embed_warmup) / span)
+        return cfg.embed_lr_min + 0.5 * (cfg.embed_lr - cfg.embed_lr_min) * (1 + math.cos(math.pi * frac))
 
     # -- stage 1 -----------------------------------------------------------------------------
     def embed_losses(self, samples) -> tuple[torch.Tensor, dict]:
@@ -216,18 +276,38 @@ class Run:
             t0 = time.time()
             samples = self.samples(1, self.embed_step, cfg.embed_batch, cfg.embed_points)
             loss, stats = self.embed_losses(samples)
+            lr = self.embed_lr(self.embed_step)
+            for group in self.opt_embed.param_groups:
+                group["lr"] = lr
             self.opt_embed.zero_grad()
             loss.backward()
+            if cfg.embed_grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_([p for grp in self.opt_embed.param_groups for p in grp["params"]],
+                                               cfg.embed_grad_clip)
             self.opt_embed.step()
             self.embed_step += 1
             if self.embed_step % cfg.log_every == 0 or self.embed_step == 1:
-                rec = dict(stage="embed", step=self.embed_step, loss=loss.item(), **stats,
+                rec = dict(stage="embed", step=self.embed_step, loss=loss.item(), lr=lr, **stats,
                            samples_per_s=cfg.embed_batch / (time.time() - t0), time=time.time())
                 self.log(rec)
                 print(json.dumps(rec), flush=True)
             if self.embed_step % cfg.checkpoint_every == 0:
                 self.save("last.pt")
+            if cfg.embed_eval_every and (self.embed_step % cfg.embed_eval_every == 0 or self.embed_step == cfg.embed_steps):
+                self.validate_embeddings()
+                for k in ("point_encoder", "image_encoder", "frustum_head"):
+                    self.models[k].train()
         self.save("last.pt")
+
+    def validate_embeddings(self) -> dict:
+        from .evaluate import evaluate_embeddings
+        if not self.val_frames:
+            return {}
+        result = evaluate_embeddings(self.models, self.val_frames, num_points=self.cfg.embed_points, device=self.device)
+        rec = dict(stage="embed_val", step=self.embed_step, time=time.time(), **result)
+        self.log(rec)
+        print(json.dumps(rec), flush=True)
+        return rec
 
     # -- stage 2 -----------------------------------------------------------------------------
     def agent_update(self, eps, traj, ppo_weight: float) -> dict:
