@@ -188,8 +188,10 @@ def main(argv=None) -> None:
         frames = frames[::step][: args.frames]
         if motions is not None:
             motions = motions[::step][: args.frames]
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    models = {k: m.to(device) for k, m in models.items()}
     result = evaluate(models, frames, seed=args.seed, motions=motions, hypotheses=args.hypotheses,
-                      action_frame=action_frame_of(meta))
+                      action_frame=action_frame_of(meta), device=device)
     text = json.dumps(result, indent=2)
     if args.out:
         from .export import atomic_write_bytes

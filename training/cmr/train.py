@@ -107,6 +107,11 @@ class Config:
     # fine-tuning. Ignored when <out>/last.pt exists (resume wins).
     init_from: str = ""
     # bookkeeping
+    # Wall-time budgets per stage (0: none). With a budget the stage ends when it is spent and its
+    # cosine runs over max(step share, time share); meant for one-shot runs (scripts/train-gpu.sh).
+    embed_seconds: float = 0.0
+    agent_seconds: float = 0.0
+    loader_workers: int = 0  # processes that build training samples ahead of the step (0: in the loop)
     embed_eval_every: int = 0  # stage 1: match accuracy + frustum P/R on the validation frames every k steps (0: off)
     log_every: int = 10
     checkpoint_every: int = 50
@@ -124,6 +129,24 @@ class Config:
             kind = type(getattr(base, key))
             values[key] = kind(raw) if kind is not bool else raw.lower() in ("1", "true", "yes")
         return dataclasses.replace(base, **values)
+
+
+_LOADER: dict = {}
+
+
+def build_samples(frames, seed: int, stage: int, step: int, count: int, num_points: int, augment) -> list:
+    rng = np.random.default_rng([seed, stage, step])
+    picks = rng.integers(0, len(frames), count)
+    return [make_sample(frames[i], rng, train=True, num_points=num_points, augment=augment) for i in picks]
+
+
+def _init_loader(frames, augment) -> None:
+    torch.set_num_threads(1)
+    _LOADER.update(frames=frames, augment=augment)
+
+
+def _loader_batch(seed: int, stage: int, step: int, count: int, num_points: int) -> list:
+    return build_samples(_LOADER["frames"], seed, stage, step, count, num_points, _LOADER["augment"])
 
 
 class Run:
@@ -148,6 +171,7 @@ class Run:
         self.agent_ema = copy.deepcopy(self.models["agent"]).eval() if cfg.agent_ema > 0 else None
         self.embed_step = 0
         self.agent_iter = 0
+        self._pool, self._pending = None, {}
         self.best = None  # (rr, -rte) of the best validation so far
         frames = list_frames([s for root in cfg.data.split(",") if root for s in find_sequences(Path(root))])
         if cfg.val_data:
@@ -215,13 +239,36 @@ class Run:
 
     # -- data --------------------------------------------------------------------------------
     def samples(self, stage: int, step: int, count: int, num_points: int):
-        rng = np.random.default_rng([self.cfg.seed, stage, step])
-        picks = rng.integers(0, len(self.train_frames), count)
-        return [make_sample(self.train_frames[i], rng, train=True, num_points=num_points, augment=self.augment)
-                for i in picks]
+        """The batch of (stage, step): the same whether built here or by a loader worker."""
+        if self.cfg.loader_workers <= 0:
+            return build_samples(self.train_frames, self.cfg.seed, stage, step, count, num_points, self.augment)
+        if self._pool is None:
+            import concurrent.futures as cf
+            import multiprocessing as mp
+            self._pool = cf.ProcessPoolExecutor(self.cfg.loader_workers, mp.get_context("fork"),
+                                                initializer=_init_loader, initargs=(self.train_frames, self.augment))
+        key = (stage, step, count, num_points)
+        if key not in self._pending:
+            self._pending[key] = self._pool.submit(_loader_batch, self.cfg.seed, *key)
+        for ahead in range(1, self.cfg.loader_workers * 2 + 1 if stage in (1, 2) else 1):  # next steps, same stage
+            nxt = (stage, step + ahead, count, num_points)
+            if nxt not in self._pending:
+                self._pending[nxt] = self._pool.submit(_loader_batch, self.cfg.seed, *nxt)
+        out = self._pending.pop(key).result()
+        for stale in [k for k in self._pending if k[0] != stage or k[1] < step]:
+            self._pending.pop(stale).cancel()
+        return out
 
-    def embed_lr(self, step: int) -> float:
-        """Stage 1's learning rate at `step` (0-based)."""
+    def stage_progress(self, step: int, steps: int, started: float, seconds: float) -> float:
+        """Share of a stage done: by steps, or by wall time when the stage has a time budget."""
+        frac = step / max(steps, 1)
+        if seconds > 0:
+            frac = max(frac, (time.time() - started) / seconds)
+        return min(1.0, frac)
+
+    def embed_lr(self, step: int, progress: float | None = None) -> float:
+        """Stage 1's learning rate at `step` (0-based); `progress` in [0, 1] overrides the step's
+        share of the cosine (time-budgeted runs)."""
         cfg = self.cfg
         if cfg.embed_schedule == "constant":
             return cfg.embed_lr
@@ -230,7 +277,7 @@ class Run:
         if step < cfg.embed_warmup:
             return cfg.embed_lr * (step + 1) / cfg.embed_warmup
         span = max(cfg.embed_steps - cfg.embed_warmup, 1)
-        frac = min(1.0, (step - cfg.embed_warmup) / span)
+        frac = min(1.0, (step - cfg.embed_warmup) / span) if progress is None else progress
         return cfg.embed_lr_min + 0.5 * (cfg.embed_lr - cfg.embed_lr_min) * (1 + math.cos(math.pi * frac))
 
     # -- stage 1 -----------------------------------------------------------------------------
@@ -272,11 +319,21 @@ class Run:
         cfg = self.cfg
         for k in ("point_encoder", "image_encoder", "frustum_head"):
             self.models[k].train()
+        started = time.time()
         while self.embed_step < cfg.embed_steps and time.time() < deadline:
+            if cfg.embed_seconds > 0 and time.time() - started >= cfg.embed_seconds:
+                # Time budget spent: stage 1 ends here (config.json records the steps done).
+                self.cfg = cfg = dataclasses.replace(cfg, embed_steps=self.embed_step)
+                atomic_write_bytes(self.dir / "config.json", (json.dumps(dataclasses.asdict(cfg), indent=2) + "\n").encode())
+                print(f"stage 1 time budget spent after {self.embed_step} steps", flush=True)
+                break
             t0 = time.time()
             samples = self.samples(1, self.embed_step, cfg.embed_batch, cfg.embed_points)
             loss, stats = self.embed_losses(samples)
-            lr = self.embed_lr(self.embed_step)
+            progress = None
+            if cfg.embed_seconds > 0:
+                progress = self.stage_progress(self.embed_step, cfg.embed_steps, started, cfg.embed_seconds)
+            lr = self.embed_lr(self.embed_step, progress)
             for group in self.opt_embed.param_groups:
                 group["lr"] = lr
             self.opt_embed.zero_grad()
@@ -367,7 +424,11 @@ class Run:
         # The pool is rebuilt deterministically on resume (seeded by iteration), then rolls.
         pool = embed_many(self.models, self.samples(4, self.agent_iter, cfg.pool_size, cfg.num_points), self.device,
                           action_frame=cfg.action_frame)
+        started = time.time()
         while self.agent_iter < cfg.agent_iters and time.time() < deadline:
+            if cfg.agent_seconds > 0 and time.time() - started >= cfg.agent_seconds:
+                print(f"stage 2 time budget spent after {self.agent_iter} iterations", flush=True)
+                break
             t0 = time.time()
             it = self.agent_iter
             fresh = [(it * cfg.pool_refresh + j) % cfg.pool_size for j in range(cfg.pool_refresh)]
@@ -376,7 +437,8 @@ class Run:
             rows = sorted(set(fresh) | set(np.random.default_rng([cfg.seed, 5, it]).choice(
                 cfg.pool_size, cfg.agent_envs - len(fresh), replace=False).tolist()))
             eps = pool.subset(rows)
-            lr = cfg.agent_lr_min + 0.5 * (cfg.agent_lr - cfg.agent_lr_min) * (1 + math.cos(math.pi * min(1.0, it / cfg.agent_iters)))
+            frac = self.stage_progress(it, cfg.agent_iters, started, cfg.agent_seconds)
+            lr = cfg.agent_lr_min + 0.5 * (cfg.agent_lr - cfg.agent_lr_min) * (1 + math.cos(math.pi * frac))
             for group in self.opt_agent.param_groups:
                 group["lr"] = lr
             mix = cfg.expert_mix_start * max(0.0, 1.0 - it / max(cfg.expert_mix_iters, 1))
