@@ -519,6 +519,7 @@ def main(argv=None) -> None:
     atomic_write_bytes(run.dir / "config.json", (json.dumps(dataclasses.asdict(cfg), indent=2) + "\n").encode())
     deadline = time.time() + args.hours * 3600
     run.train_embed(deadline)
+    cfg = run.cfg  # a stage-1 time budget lowers embed_steps to the steps done
     if run.embed_step >= cfg.embed_steps:
         run.train_agent(deadline)
         if cfg.eval_every and run.agent_iter % cfg.eval_every:
