@@ -45,7 +45,7 @@ if [ "$TINY" = 1 ]; then
     threads=2 loader_workers=1 eval_frames=2 embed_eval_every=3 log_every=1 checkpoint_every=50"
   EVAL_FRAMES=2
 else
-  SEQS=3; FRAMES=40; VAL_FRAMES=8; BLOCKS=$JOBS; VAL_RIGS="kitti nuscenes wide vlp16 os128 random"
+  SEQS=3; FRAMES=30; VAL_FRAMES=8; BLOCKS=$JOBS; VAL_RIGS="kitti nuscenes wide vlp16 os128 random"
   EMBED_S=${EMBED_S:-170}; AGENT_S=${AGENT_S:-170}
   TRAIN_SET="embed_steps=20000 embed_points=16384 embed_batch=8 embed_warmup=100 agent_iters=1500
     agent_envs=16 pool_size=64 pool_refresh=4 bc_only_iters=500 expert_mix_iters=300 update_epochs=1
