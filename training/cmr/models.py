@@ -104,16 +104,37 @@ class PointEncoder(nn.Module):
 
 
 class ImageEncoder(nn.Module):
-    """Stride-4 feature map with a stride-8 context branch, in the point features' space."""
+    """Stride-4 feature map with a stride-8 context branch, in the point features' space.
 
-    def __init__(self, norm: str = "batch"):
+    `edges`: the first layer also sees the gradient magnitude of the image's luma (Sobel, fixed
+    weights, computed inside the graph), a cue that changes less across cameras and looks than
+    colour does. The graph's input stays the [1, 3, 160, 512] normalised RGB of the contract."""
+
+    def __init__(self, norm: str = "batch", edges: bool = False):
         super().__init__()
-        self.stem = nn.Sequential(conv_bn(3, 24, stride=2, norm=norm), conv_bn(24, 48, stride=2, norm=norm),
+        self.edges = edges
+        if edges:
+            sobel = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 4.0
+            self.register_buffer("sobel", torch.stack([sobel, sobel.t()]).unsqueeze(1), persistent=False)
+            # Luma of the de-normalised RGB as one linear map of the normalised input.
+            mean, std = torch.tensor([0.485, 0.456, 0.406]), torch.tensor([0.229, 0.224, 0.225])
+            luma = torch.tensor([0.299, 0.587, 0.114])
+            self.register_buffer("luma_w", (luma * std).view(1, 3, 1, 1), persistent=False)
+            self.register_buffer("luma_b", (luma * mean).sum().view(1, 1, 1, 1), persistent=False)
+        self.stem = nn.Sequential(conv_bn(4 if edges else 3, 24, stride=2, norm=norm), conv_bn(24, 48, stride=2, norm=norm),
                                   conv_bn(48, 64, norm=norm))
         self.context = nn.Sequential(conv_bn(64, 64, stride=2, norm=norm), conv_bn(64, 64, norm=norm))
         self.out = nn.Conv2d(128, FEATURE_DIM, 1)
 
+    def edge_map(self, image: torch.Tensor) -> torch.Tensor:
+        """[B, 1, H, W]: Sobel gradient magnitude of the luma in [0, 1] units, times 4."""
+        luma = (image * self.luma_w).sum(1, keepdim=True) + self.luma_b
+        grad = F.conv2d(F.pad(luma, (1, 1, 1, 1), mode="replicate"), self.sobel)
+        return 4.0 * torch.sqrt((grad * grad).sum(1, keepdim=True) + 1e-6)
+
     def forward(self, image: torch.Tensor) -> torch.Tensor:
+        if self.edges:
+            image = torch.cat([image, self.edge_map(image)], 1)
         x = self.stem(image)
         ctx = F.interpolate(self.context(x), scale_factor=2.0, mode="nearest")
         return l2_normalise(self.out(torch.cat([x, ctx], dim=1)), dim=1)
@@ -253,10 +274,16 @@ class Agent(nn.Module):
         return self.decide(self.correlate(state_2d), state_3d)
 
 
-def build_all(norm: str = "batch") -> dict[str, nn.Module]:
-    """`norm`: the encoders' normalisation (`NORMS`); a checkpoint records it in its config."""
-    return dict(point_encoder=PointEncoder(norm=norm), image_encoder=ImageEncoder(norm=norm), frustum_head=FrustumHead(),
-                agent=Agent())
+def build_all(norm: str = "batch", image_edges: bool = False) -> dict[str, nn.Module]:
+    """`norm`: the encoders' normalisation (`NORMS`); `image_edges`: `ImageEncoder(edges=...)`. A
+    checkpoint records both in its config (`arch_of`)."""
+    return dict(point_encoder=PointEncoder(norm=norm), image_encoder=ImageEncoder(norm=norm, edges=image_edges),
+                frustum_head=FrustumHead(), agent=Agent())
+
+
+def arch_of(config: dict) -> dict:
+    """`build_all`'s arguments from a checkpoint's config (older checkpoints: the v3 architecture)."""
+    return dict(norm=config.get("norm", "batch"), image_edges=bool(config.get("image_edges", False)))
 
 
 def parameter_counts(models: dict[str, nn.Module]) -> dict[str, int]:

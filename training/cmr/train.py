@@ -34,7 +34,7 @@ from .data import find_sequences, list_frames, make_sample, split_frames
 from .episodes import embed, embed_many, gae, rollout
 from .export import atomic_write_bytes
 from .losses import circle_loss, weighted_bce
-from .models import STRIDE, build_all
+from .models import STRIDE, arch_of, build_all
 
 
 @dataclass
@@ -62,6 +62,9 @@ class Config:
     embed_grad_clip: float = 0.0  # max gradient norm in stage 1 (0: no clipping)
     # The encoders' normalisation (models.NORMS): "batch" (up to v3) or "group" (per-sample statistics).
     norm: str = "batch"
+    # Optional, off: the image encoder also sees its input's luma gradient magnitude, computed in
+    # the graph (the ONNX input stays [1, 3, 160, 512] RGB).
+    image_edges: bool = False
     circle_points: int = 512
     circle_radius_cells: float = 1.0
     circle_scale: float = 10.0
@@ -159,7 +162,7 @@ class Run:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
         torch.manual_seed(cfg.seed)
-        self.models = {k: m.to(self.device) for k, m in build_all(cfg.norm).items()}
+        self.models = {k: m.to(self.device) for k, m in build_all(cfg.norm, cfg.image_edges).items()}
         self.augment = AugmentOptions(photometric=cfg.photometric, scale_max=cfg.scale_max, lidar=cfg.lidar_aug,
                                       beams_min=cfg.beams_min, beams_max=cfg.beams_max,
                                       beam_dropout_p=cfg.beam_dropout_p, density_min=cfg.density_min,
@@ -221,9 +224,11 @@ class Run:
 
     def _init_from(self, path: Path) -> None:
         state = torch.load(path, map_location=self.device, weights_only=False)
-        norm = state.get("meta", {}).get("config", {}).get("norm", "batch")
-        if norm != self.cfg.norm:
-            raise SystemExit(f"{path} was trained with norm={norm}; pass --set norm={norm}")
+        arch = arch_of(state.get("meta", {}).get("config", {}))
+        mine = dict(norm=self.cfg.norm, image_edges=self.cfg.image_edges)
+        if arch != mine:
+            wanted = " ".join(f"{k}={v}" for k, v in arch.items())
+            raise SystemExit(f"{path} was trained with {wanted}; pass --set {wanted}")
         for k, m in self.models.items():
             m.load_state_dict(state["models"][k])
         if "agent_ema" in state:

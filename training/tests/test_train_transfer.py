@@ -87,3 +87,24 @@ def test_stage_one_time_budget_ends_the_stage(tmp_path, tiny_dataset):
     log = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
     assert [r["stage"] for r in log].count("agent") == 1
     assert json.loads((tmp_path / "config.json").read_text())["embed_steps"] < 1000
+
+
+def test_edge_channel_lives_inside_the_graph(tmp_path):
+    torch.manual_seed(1)
+    models = build_all("group", image_edges=True)
+    enc = models["image_encoder"].eval()
+    # A vertical step in the normalised image: gradient only along the step.
+    img = torch.zeros(1, 3, 160, 512)
+    img[..., 256:] = 1.0
+    edges = enc.edge_map(img)[0, 0]
+    assert edges[:, 250].max() < 0.01 and edges[:, 255:257].min() > 0.1
+    doc = export_models({"image_encoder": enc}, tmp_path, dict(data="test"))
+    assert doc["graphs"]["image_encoder"]["inputs"] == {"image": [1, 3, 160, 512]}
+    sess = ort.InferenceSession(str(tmp_path / "image_encoder.onnx"), providers=["CPUExecutionProvider"])
+    x = example_inputs("image_encoder", seed=3)[0]
+    with torch.no_grad():
+        want = enc(x).numpy()
+    assert np.abs(sess.run(None, {"image": x.numpy()})[0] - want).max() < 1e-4
+    # The edge input and GroupNorm stay well inside the 25 % FLOP budget of issue 13.
+    base = export_models({"image_encoder": build_all()["image_encoder"].eval()}, tmp_path / "b", dict(data="test"))
+    assert doc["graphs"]["image_encoder"]["flops"] < 1.25 * base["graphs"]["image_encoder"]["flops"]
