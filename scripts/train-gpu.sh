@@ -17,6 +17,7 @@
 #   JOBS           parallel data-generation processes (default: nproc)
 #   WORK           scratch for the generated data (default: a fresh /tmp directory; not in OUT)
 #   EMBED_S, AGENT_S  wall-time budgets of the two stages in seconds (default 170 each)
+#   EXTRA_SET      more `key=value` Config overrides, applied last (e.g. "image_edges=true embed_batch=16")
 set -euo pipefail
 
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -87,7 +88,7 @@ cd "$ROOT/training"
 "$PYTHON" -m cmr.train --data "$TRAIN_DATA" --val-data "$WORK/val-flat" --out "$RUN" --set \
   action_frame=map_z norm=group embed_schedule=cosine embed_lr=2e-3 embed_lr_min=2e-5 embed_grad_clip=5 \
   photometric=heavy scale_max=1.5 lidar_aug=true eval_every=0 \
-  embed_seconds="$EMBED_S" agent_seconds="$AGENT_S" $TRAIN_SET > "$OUT/logs/train.log" 2>&1
+  embed_seconds="$EMBED_S" agent_seconds="$AGENT_S" $TRAIN_SET ${EXTRA_SET:-} > "$OUT/logs/train.log" 2>&1
 cp "$RUN/log.jsonl" "$RUN/config.json" "$OUT/"
 mkdir -p "$OUT/checkpoint" && cp "$RUN/last.pt" "$OUT/checkpoint/last.pt"
 stamp "training done: $(grep -c '"stage": "embed"' "$RUN/log.jsonl") stage-1 and $(grep -c '"stage": "agent"' "$RUN/log.jsonl") stage-2 log records"
