@@ -264,6 +264,12 @@ class Run:
             self._pending.pop(stale).cancel()
         return out
 
+    def close(self) -> None:
+        """Stops the loader workers (prefetched batches are dropped)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool, self._pending = None, {}
+
     def stage_progress(self, step: int, steps: int, started: float, seconds: float) -> float:
         """Share of a stage done: by steps, or by wall time when the stage has a time budget."""
         frac = step / max(steps, 1)
@@ -529,6 +535,7 @@ def main(argv=None) -> None:
         run.train_agent(deadline)
         if cfg.eval_every and run.agent_iter % cfg.eval_every:
             run.validate()
+    run.close()
 
 
 if __name__ == "__main__":
