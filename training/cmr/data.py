@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from . import augment as aug
 from . import geometry as g
 
 OUT_W, OUT_H = 512, 160
@@ -154,20 +155,33 @@ def colour_jitter(rgb: np.ndarray, rng: np.random.Generator, strength: float = 0
 
 
 def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points: int = 40960,
-                max_shift_m: float = 10.0, motion: np.ndarray | None = None) -> Sample:
+                max_shift_m: float = 10.0, motion: np.ndarray | None = None,
+                augment: aug.AugmentOptions = aug.DEFAULT) -> Sample:
     """`motion`: a given Q (a frozen test case) instead of a random one. The random draw still
-    happens, so the rest of the sample does not depend on whether a motion was given."""
+    happens, so the rest of the sample does not depend on whether a motion was given.
+    `augment` (training only): the default draws exactly what it always drew (random crop, basic
+    colour jitter); other options add draws after those (see `augment.py`)."""
     resized, xyz, (w, h) = _decoded(frame.image_path, frame.scan_path)
     rh, rw = resized.shape[:2]
+    zoom = aug.draw_zoom(rng, augment) if train and augment.scale_max > 1.0 else 1.0
+    if zoom != 1.0:
+        zw, zh = g.resized_size(w, h, NOMINAL_SCALE, OUT_W, OUT_H, zoom)
+        # Resizing the cached image again composes exactly with the first resize (pixel-centre
+        # convention), so the plan's intrinsics (original -> zoomed size) hold.
+        resized = np.asarray(Image.fromarray(resized).resize((zw, zh), Image.BILINEAR))
+        rh, rw = zh, zw
     crop = (int(rng.integers(0, rw - OUT_W + 1)), int(rng.integers(0, rh - OUT_H + 1))) if train else None
-    plan = g.preprocess_plan(w, h, NOMINAL_SCALE, OUT_W, OUT_H, crop)
+    plan = g.preprocess_plan(w, h, NOMINAL_SCALE, OUT_W, OUT_H, crop, zoom)
+    assert (plan["resized_width"], plan["resized_height"]) == (rw, rh)
     x0, y0 = plan["crop_x"], plan["crop_y"]
     rgb = resized[y0:y0 + OUT_H, x0:x0 + OUT_W].astype(np.float32) / 255.0
     if train:
-        rgb = colour_jitter(rgb, rng)
+        rgb = aug.heavy_photometric(rgb, rng) if augment.photometric == "heavy" else colour_jitter(rgb, rng)
     image = ((rgb - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1).astype(np.float32)
     k = g.adjust_intrinsics(plan, frame.calib.intrinsics, w, h)
 
+    if train and augment.lidar:
+        xyz = aug.lidar_augment(xyz, rng, augment)
     scan = sample_points(xyz, num_points, rng).astype(np.float64)
     q = g.ground_motion(rng.uniform(-math.pi, math.pi), *rng.uniform(-max_shift_m, max_shift_m, 2))
     if motion is not None:

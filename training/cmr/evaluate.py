@@ -77,6 +77,27 @@ def match_accuracy(episodes, samples, max_points: int = 512) -> float:
 
 
 @torch.no_grad()
+def evaluate_embeddings(models: dict, frames, seed: int = 1234, num_points: int = 40960, chunk: int = 4,
+                        device: torch.device | str = "cpu") -> dict:
+    """Stage 1 alone (no rollouts): match accuracy and the frustum head's precision / recall on
+    `frames`, with the same samples `evaluate` draws for them."""
+    device = torch.device(device)
+    for m in models.values():
+        m.eval()
+    confusion = np.zeros(3, dtype=np.int64)
+    match_hits = []
+    for start in range(0, len(frames), chunk):
+        samples = [make_sample(f, np.random.default_rng([seed, start + j]), train=False, num_points=num_points)
+                   for j, f in enumerate(frames[start:start + chunk])]
+        eps = embed(models, samples, device)
+        logits = models["frustum_head"](eps.point_features, eps.image_features).cpu().numpy()
+        confusion += frustum_confusion(logits, samples)
+        match_hits.append((match_accuracy(eps, samples), len(samples)))
+    return dict(frames=len(frames), frustum=precision_recall(confusion),
+                match_accuracy=float(sum(a * n for a, n in match_hits) / max(sum(n for _, n in match_hits), 1)))
+
+
+@torch.no_grad()
 def evaluate(models: dict, frames, seed: int = 1234, iterations: int = 10, num_points: int = 40960,
              chunk: int = 4, device: torch.device | str = "cpu", motions: list | None = None,
              hypotheses: int = 1, action_frame: str = g.CAMERA_Y) -> dict:
@@ -167,8 +188,10 @@ def main(argv=None) -> None:
         frames = frames[::step][: args.frames]
         if motions is not None:
             motions = motions[::step][: args.frames]
+    device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    models = {k: m.to(device) for k, m in models.items()}
     result = evaluate(models, frames, seed=args.seed, motions=motions, hypotheses=args.hypotheses,
-                      action_frame=action_frame_of(meta))
+                      action_frame=action_frame_of(meta), device=device)
     text = json.dumps(result, indent=2)
     if args.out:
         from .export import atomic_write_bytes

@@ -26,7 +26,7 @@ import torch
 from . import geometry as g
 from .flops import count as count_flops
 from .models import (FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, IMAGE_HEIGHT, IMAGE_WIDTH, NUM_DOFS, NUM_STEPS,
-                     STRIDE, build_all, parameter_counts)
+                     STRIDE, arch_of, build_all, parameter_counts)
 
 MANIFEST_FORMAT = "cmr-agent-manifest/1"
 OPSET = 18
@@ -165,6 +165,8 @@ def load_models(checkpoint: Path | None) -> tuple[dict[str, torch.nn.Module], di
     meta: dict = {}
     if checkpoint is not None:
         state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        # The encoders' normalisation and edge input are part of the architecture (older: v3's).
+        models = build_all(**arch_of(state.get("meta", {}).get("config", {})))
         for name, module in models.items():
             if name in state["models"]:
                 module.load_state_dict(state["models"][name])

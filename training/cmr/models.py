@@ -29,8 +29,23 @@ def l2_normalise(x: torch.Tensor, dim: int) -> torch.Tensor:
     return x / torch.sqrt((x * x).sum(dim=dim, keepdim=True) + 1e-12)
 
 
-def conv_bn(cin: int, cout: int, k: int = 3, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(cin, cout, k, stride, k // 2, bias=False), nn.BatchNorm2d(cout),
+NORMS = ("batch", "group")
+GROUPS = 8
+
+
+def norm_layer(kind: str, channels: int) -> nn.Module:
+    """"batch": BatchNorm (every model up to v3). "group": GroupNorm with 8 groups, whose statistics
+    are per sample: the same in training and in the exported graph, and not tied to the batch of 2
+    stage 1 trains with (nor to the mostly-empty BEV grid, whose batch statistics are mostly zeros)."""
+    if kind == "batch":
+        return nn.BatchNorm2d(channels)
+    if kind == "group":
+        return nn.GroupNorm(GROUPS, channels)
+    raise ValueError(f"unknown norm {kind!r}; expected one of {NORMS}")
+
+
+def conv_bn(cin: int, cout: int, k: int = 3, stride: int = 1, norm: str = "batch") -> nn.Sequential:
+    return nn.Sequential(nn.Conv2d(cin, cout, k, stride, k // 2, bias=False), norm_layer(norm, cout),
                          nn.ReLU(inplace=True))
 
 
@@ -51,12 +66,13 @@ class PointEncoder(nn.Module):
     gather back. The cloud arrives randomly yawed and shifted, so local context must come from the
     neighbourhood rather than from absolute coordinates; centring on the mean removes the shift."""
 
-    def __init__(self, grid: PillarGrid = PillarGrid(), width: int = 32):
+    def __init__(self, grid: PillarGrid = PillarGrid(), width: int = 32, norm: str = "batch"):
         super().__init__()
         self.grid = grid
         self.local = nn.Sequential(point_mlp(4, width), point_mlp(width, width))
-        self.bev = nn.Sequential(conv_bn(width, 48, stride=2), conv_bn(48, 48), conv_bn(48, 48))
-        self.bev_out = conv_bn(48 + width, 48, k=1)
+        self.bev = nn.Sequential(conv_bn(width, 48, stride=2, norm=norm), conv_bn(48, 48, norm=norm),
+                                 conv_bn(48, 48, norm=norm))
+        self.bev_out = conv_bn(48 + width, 48, k=1, norm=norm)
         self.head = nn.Sequential(point_mlp(width + 48, 64), nn.Linear(64, FEATURE_DIM))
 
     def cell_index(self, centred: torch.Tensor) -> torch.Tensor:
@@ -88,15 +104,37 @@ class PointEncoder(nn.Module):
 
 
 class ImageEncoder(nn.Module):
-    """Stride-4 feature map with a stride-8 context branch, in the point features' space."""
+    """Stride-4 feature map with a stride-8 context branch, in the point features' space.
 
-    def __init__(self):
+    `edges`: the first layer also sees the gradient magnitude of the image's luma (Sobel, fixed
+    weights, computed inside the graph), a cue that changes less across cameras and looks than
+    colour does. The graph's input stays the [1, 3, 160, 512] normalised RGB of the contract."""
+
+    def __init__(self, norm: str = "batch", edges: bool = False):
         super().__init__()
-        self.stem = nn.Sequential(conv_bn(3, 24, stride=2), conv_bn(24, 48, stride=2), conv_bn(48, 64))
-        self.context = nn.Sequential(conv_bn(64, 64, stride=2), conv_bn(64, 64))
+        self.edges = edges
+        if edges:
+            sobel = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 4.0
+            self.register_buffer("sobel", torch.stack([sobel, sobel.t()]).unsqueeze(1), persistent=False)
+            # Luma of the de-normalised RGB as one linear map of the normalised input.
+            mean, std = torch.tensor([0.485, 0.456, 0.406]), torch.tensor([0.229, 0.224, 0.225])
+            luma = torch.tensor([0.299, 0.587, 0.114])
+            self.register_buffer("luma_w", (luma * std).view(1, 3, 1, 1), persistent=False)
+            self.register_buffer("luma_b", (luma * mean).sum().view(1, 1, 1, 1), persistent=False)
+        self.stem = nn.Sequential(conv_bn(4 if edges else 3, 24, stride=2, norm=norm), conv_bn(24, 48, stride=2, norm=norm),
+                                  conv_bn(48, 64, norm=norm))
+        self.context = nn.Sequential(conv_bn(64, 64, stride=2, norm=norm), conv_bn(64, 64, norm=norm))
         self.out = nn.Conv2d(128, FEATURE_DIM, 1)
 
+    def edge_map(self, image: torch.Tensor) -> torch.Tensor:
+        """[B, 1, H, W]: Sobel gradient magnitude of the luma in [0, 1] units, times 4."""
+        luma = (image * self.luma_w).sum(1, keepdim=True) + self.luma_b
+        grad = F.conv2d(F.pad(luma, (1, 1, 1, 1), mode="replicate"), self.sobel)
+        return 4.0 * torch.sqrt((grad * grad).sum(1, keepdim=True) + 1e-6)
+
     def forward(self, image: torch.Tensor) -> torch.Tensor:
+        if self.edges:
+            image = torch.cat([image, self.edge_map(image)], 1)
         x = self.stem(image)
         ctx = F.interpolate(self.context(x), scale_factor=2.0, mode="nearest")
         return l2_normalise(self.out(torch.cat([x, ctx], dim=1)), dim=1)
@@ -236,9 +274,16 @@ class Agent(nn.Module):
         return self.decide(self.correlate(state_2d), state_3d)
 
 
-def build_all() -> dict[str, nn.Module]:
-    return dict(point_encoder=PointEncoder(), image_encoder=ImageEncoder(), frustum_head=FrustumHead(),
-                agent=Agent())
+def build_all(norm: str = "batch", image_edges: bool = False) -> dict[str, nn.Module]:
+    """`norm`: the encoders' normalisation (`NORMS`); `image_edges`: `ImageEncoder(edges=...)`. A
+    checkpoint records both in its config (`arch_of`)."""
+    return dict(point_encoder=PointEncoder(norm=norm), image_encoder=ImageEncoder(norm=norm, edges=image_edges),
+                frustum_head=FrustumHead(), agent=Agent())
+
+
+def arch_of(config: dict) -> dict:
+    """`build_all`'s arguments from a checkpoint's config (older checkpoints: the v3 architecture)."""
+    return dict(norm=config.get("norm", "batch"), image_edges=bool(config.get("image_edges", False)))
 
 
 def parameter_counts(models: dict[str, nn.Module]) -> dict[str, int]:

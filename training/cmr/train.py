@@ -29,11 +29,12 @@ import torch
 import torch.nn.functional as F
 
 from . import geometry as g
+from .augment import AugmentOptions
 from .data import find_sequences, list_frames, make_sample, split_frames
 from .episodes import embed, embed_many, gae, rollout
 from .export import atomic_write_bytes
 from .losses import circle_loss, weighted_bce
-from .models import STRIDE, build_all
+from .models import STRIDE, arch_of, build_all
 
 
 @dataclass
@@ -53,6 +54,17 @@ class Config:
     embed_points: int = 16384  # N while training the encoders (speed); features are density-robust
     embed_batch: int = 2
     embed_lr: float = 1e-3
+    # Stage-1 schedule: "constant" (every model up to v3) or "cosine" (linear warm-up over
+    # `embed_warmup` steps, then cosine from embed_lr to embed_lr_min at embed_steps).
+    embed_schedule: str = "constant"
+    embed_warmup: int = 0
+    embed_lr_min: float = 1e-5
+    embed_grad_clip: float = 0.0  # max gradient norm in stage 1 (0: no clipping)
+    # The encoders' normalisation (models.NORMS): "batch" (up to v3) or "group" (per-sample statistics).
+    norm: str = "batch"
+    # Optional, off: the image encoder also sees its input's luma gradient magnitude, computed in
+    # the graph (the ONNX input stays [1, 3, 160, 512] RGB).
+    image_edges: bool = False
     circle_points: int = 512
     circle_radius_cells: float = 1.0
     circle_scale: float = 10.0
@@ -82,7 +94,28 @@ class Config:
     # best.pt and export use the average: nearby checkpoints of the live weights differ by several
     # RR points, and the average smooths that update noise away.
     agent_ema: float = 0.0
+    # Augmentation for transfer (augment.AugmentOptions; the defaults are today's behaviour)
+    photometric: str = "basic"  # "heavy": exposure, contrast, white balance, gamma, hue, saturation,
+    #                             greyscale, channel shuffle, blur, noise, JPEG
+    scale_max: float = 1.0  # random zoom in [1, scale_max] before the random crop, intrinsics following
+    lidar_aug: bool = False  # beam dropout, density, range noise, an occluded azimuth sector
+    beams_min: int = 16
+    beams_max: int = 32
+    beam_dropout_p: float = 0.5
+    density_min: float = 0.3
+    range_noise_m: float = 0.03
+    occlusion_p: float = 0.3
+    occlusion_max_deg: float = 60.0
+    # Start from another run's checkpoint (its weights only; optimisers and counters start fresh):
+    # fine-tuning. Ignored when <out>/last.pt exists (resume wins).
+    init_from: str = ""
     # bookkeeping
+    # Wall-time budgets per stage (0: none). With a budget the stage ends when it is spent and its
+    # cosine runs over max(step share, time share); meant for one-shot runs (scripts/train-gpu.sh).
+    embed_seconds: float = 0.0
+    agent_seconds: float = 0.0
+    loader_workers: int = 0  # processes that build training samples ahead of the step (0: in the loop)
+    embed_eval_every: int = 0  # stage 1: match accuracy + frustum P/R on the validation frames every k steps (0: off)
     log_every: int = 10
     checkpoint_every: int = 50
     eval_every: int = 200
@@ -101,6 +134,24 @@ class Config:
         return dataclasses.replace(base, **values)
 
 
+_LOADER: dict = {}
+
+
+def build_samples(frames, seed: int, stage: int, step: int, count: int, num_points: int, augment) -> list:
+    rng = np.random.default_rng([seed, stage, step])
+    picks = rng.integers(0, len(frames), count)
+    return [make_sample(frames[i], rng, train=True, num_points=num_points, augment=augment) for i in picks]
+
+
+def _init_loader(frames, augment) -> None:
+    torch.set_num_threads(1)
+    _LOADER.update(frames=frames, augment=augment)
+
+
+def _loader_batch(seed: int, stage: int, step: int, count: int, num_points: int) -> list:
+    return build_samples(_LOADER["frames"], seed, stage, step, count, num_points, _LOADER["augment"])
+
+
 class Run:
     """Owns the models, optimisers, the run directory, logging and checkpoints."""
 
@@ -111,13 +162,19 @@ class Run:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
         torch.manual_seed(cfg.seed)
-        self.models = {k: m.to(self.device) for k, m in build_all().items()}
+        self.models = {k: m.to(self.device) for k, m in build_all(cfg.norm, cfg.image_edges).items()}
+        self.augment = AugmentOptions(photometric=cfg.photometric, scale_max=cfg.scale_max, lidar=cfg.lidar_aug,
+                                      beams_min=cfg.beams_min, beams_max=cfg.beams_max,
+                                      beam_dropout_p=cfg.beam_dropout_p, density_min=cfg.density_min,
+                                      range_noise_m=cfg.range_noise_m, occlusion_p=cfg.occlusion_p,
+                                      occlusion_max_deg=cfg.occlusion_max_deg)
         embed_params = [p for k in ("point_encoder", "image_encoder", "frustum_head") for p in self.models[k].parameters()]
         self.opt_embed = torch.optim.Adam(embed_params, lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))
         self.agent_ema = copy.deepcopy(self.models["agent"]).eval() if cfg.agent_ema > 0 else None
         self.embed_step = 0
         self.agent_iter = 0
+        self._pool, self._pending = None, {}
         self.best = None  # (rr, -rte) of the best validation so far
         frames = list_frames([s for root in cfg.data.split(",") if root for s in find_sequences(Path(root))])
         if cfg.val_data:
@@ -127,6 +184,8 @@ class Run:
             self.train_frames, val = split_frames(frames, cfg.holdout_every)
         step = max(1, len(val) // max(cfg.eval_frames, 1))
         self.val_frames = val[::step][: cfg.eval_frames]
+        if cfg.init_from and not (self.dir / "last.pt").exists():
+            self._init_from(Path(cfg.init_from))
         self._load(self.dir / "last.pt")
 
     # -- persistence -------------------------------------------------------------------------
@@ -163,15 +222,74 @@ class Run:
             self.agent_ema.load_state_dict(state.get("agent_ema", state["models"]["agent"]))
         print(f"resumed from {path}: embed step {self.embed_step}, agent iteration {self.agent_iter}", flush=True)
 
+    def _init_from(self, path: Path) -> None:
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        arch = arch_of(state.get("meta", {}).get("config", {}))
+        mine = dict(norm=self.cfg.norm, image_edges=self.cfg.image_edges)
+        if arch != mine:
+            wanted = " ".join(f"{k}={v}" for k, v in arch.items())
+            raise SystemExit(f"{path} was trained with {wanted}; pass --set {wanted}")
+        for k, m in self.models.items():
+            m.load_state_dict(state["models"][k])
+        if "agent_ema" in state:
+            self.models["agent"].load_state_dict(state["agent_ema"])
+        if self.agent_ema is not None:
+            self.agent_ema.load_state_dict(self.models["agent"].state_dict())
+        print(f"initialised from {path} (embed step {state['embed_step']}, agent iteration {state['agent_iter']})",
+              flush=True)
+
     def log(self, record: dict) -> None:
         with open(self.dir / "log.jsonl", "a") as f:
             f.write(json.dumps(record) + "\n")
 
     # -- data --------------------------------------------------------------------------------
     def samples(self, stage: int, step: int, count: int, num_points: int):
-        rng = np.random.default_rng([self.cfg.seed, stage, step])
-        picks = rng.integers(0, len(self.train_frames), count)
-        return [make_sample(self.train_frames[i], rng, train=True, num_points=num_points) for i in picks]
+        """The batch of (stage, step): the same whether built here or by a loader worker."""
+        if self.cfg.loader_workers <= 0:
+            return build_samples(self.train_frames, self.cfg.seed, stage, step, count, num_points, self.augment)
+        if self._pool is None:
+            import concurrent.futures as cf
+            import multiprocessing as mp
+            self._pool = cf.ProcessPoolExecutor(self.cfg.loader_workers, mp.get_context("fork"),
+                                                initializer=_init_loader, initargs=(self.train_frames, self.augment))
+        key = (stage, step, count, num_points)
+        if key not in self._pending:
+            self._pending[key] = self._pool.submit(_loader_batch, self.cfg.seed, *key)
+        for ahead in range(1, self.cfg.loader_workers * 2 + 1 if stage in (1, 2) else 1):  # next steps, same stage
+            nxt = (stage, step + ahead, count, num_points)
+            if nxt not in self._pending:
+                self._pending[nxt] = self._pool.submit(_loader_batch, self.cfg.seed, *nxt)
+        out = self._pending.pop(key).result()
+        for stale in [k for k in self._pending if k[0] != stage or k[1] < step]:
+            self._pending.pop(stale).cancel()
+        return out
+
+    def close(self) -> None:
+        """Stops the loader workers (prefetched batches are dropped)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool, self._pending = None, {}
+
+    def stage_progress(self, step: int, steps: int, started: float, seconds: float) -> float:
+        """Share of a stage done: by steps, or by wall time when the stage has a time budget."""
+        frac = step / max(steps, 1)
+        if seconds > 0:
+            frac = max(frac, (time.time() - started) / seconds)
+        return min(1.0, frac)
+
+    def embed_lr(self, step: int, progress: float | None = None) -> float:
+        """Stage 1's learning rate at `step` (0-based); `progress` in [0, 1] overrides the step's
+        share of the cosine (time-budgeted runs)."""
+        cfg = self.cfg
+        if cfg.embed_schedule == "constant":
+            return cfg.embed_lr
+        if cfg.embed_schedule != "cosine":
+            raise SystemExit(f"unknown embed_schedule {cfg.embed_schedule!r}; expected constant or cosine")
+        if step < cfg.embed_warmup:
+            return cfg.embed_lr * (step + 1) / cfg.embed_warmup
+        span = max(cfg.embed_steps - cfg.embed_warmup, 1)
+        frac = min(1.0, (step - cfg.embed_warmup) / span) if progress is None else progress
+        return cfg.embed_lr_min + 0.5 * (cfg.embed_lr - cfg.embed_lr_min) * (1 + math.cos(math.pi * frac))
 
     # -- stage 1 -----------------------------------------------------------------------------
     def embed_losses(self, samples) -> tuple[torch.Tensor, dict]:
@@ -212,22 +330,52 @@ class Run:
         cfg = self.cfg
         for k in ("point_encoder", "image_encoder", "frustum_head"):
             self.models[k].train()
+        started = time.time()
         while self.embed_step < cfg.embed_steps and time.time() < deadline:
+            if cfg.embed_seconds > 0 and time.time() - started >= cfg.embed_seconds:
+                # Time budget spent: stage 1 ends here (config.json records the steps done).
+                self.cfg = cfg = dataclasses.replace(cfg, embed_steps=self.embed_step)
+                atomic_write_bytes(self.dir / "config.json", (json.dumps(dataclasses.asdict(cfg), indent=2) + "\n").encode())
+                print(f"stage 1 time budget spent after {self.embed_step} steps", flush=True)
+                break
             t0 = time.time()
             samples = self.samples(1, self.embed_step, cfg.embed_batch, cfg.embed_points)
             loss, stats = self.embed_losses(samples)
+            progress = None
+            if cfg.embed_seconds > 0:
+                progress = self.stage_progress(self.embed_step, cfg.embed_steps, started, cfg.embed_seconds)
+            lr = self.embed_lr(self.embed_step, progress)
+            for group in self.opt_embed.param_groups:
+                group["lr"] = lr
             self.opt_embed.zero_grad()
             loss.backward()
+            if cfg.embed_grad_clip > 0:
+                torch.nn.utils.clip_grad_norm_([p for grp in self.opt_embed.param_groups for p in grp["params"]],
+                                               cfg.embed_grad_clip)
             self.opt_embed.step()
             self.embed_step += 1
             if self.embed_step % cfg.log_every == 0 or self.embed_step == 1:
-                rec = dict(stage="embed", step=self.embed_step, loss=loss.item(), **stats,
+                rec = dict(stage="embed", step=self.embed_step, loss=loss.item(), lr=lr, **stats,
                            samples_per_s=cfg.embed_batch / (time.time() - t0), time=time.time())
                 self.log(rec)
                 print(json.dumps(rec), flush=True)
             if self.embed_step % cfg.checkpoint_every == 0:
                 self.save("last.pt")
+            if cfg.embed_eval_every and (self.embed_step % cfg.embed_eval_every == 0 or self.embed_step == cfg.embed_steps):
+                self.validate_embeddings()
+                for k in ("point_encoder", "image_encoder", "frustum_head"):
+                    self.models[k].train()
         self.save("last.pt")
+
+    def validate_embeddings(self) -> dict:
+        from .evaluate import evaluate_embeddings
+        if not self.val_frames:
+            return {}
+        result = evaluate_embeddings(self.models, self.val_frames, num_points=self.cfg.embed_points, device=self.device)
+        rec = dict(stage="embed_val", step=self.embed_step, time=time.time(), **result)
+        self.log(rec)
+        print(json.dumps(rec), flush=True)
+        return rec
 
     # -- stage 2 -----------------------------------------------------------------------------
     def agent_update(self, eps, traj, ppo_weight: float) -> dict:
@@ -287,7 +435,11 @@ class Run:
         # The pool is rebuilt deterministically on resume (seeded by iteration), then rolls.
         pool = embed_many(self.models, self.samples(4, self.agent_iter, cfg.pool_size, cfg.num_points), self.device,
                           action_frame=cfg.action_frame)
+        started = time.time()
         while self.agent_iter < cfg.agent_iters and time.time() < deadline:
+            if cfg.agent_seconds > 0 and time.time() - started >= cfg.agent_seconds:
+                print(f"stage 2 time budget spent after {self.agent_iter} iterations", flush=True)
+                break
             t0 = time.time()
             it = self.agent_iter
             fresh = [(it * cfg.pool_refresh + j) % cfg.pool_size for j in range(cfg.pool_refresh)]
@@ -296,7 +448,8 @@ class Run:
             rows = sorted(set(fresh) | set(np.random.default_rng([cfg.seed, 5, it]).choice(
                 cfg.pool_size, cfg.agent_envs - len(fresh), replace=False).tolist()))
             eps = pool.subset(rows)
-            lr = cfg.agent_lr_min + 0.5 * (cfg.agent_lr - cfg.agent_lr_min) * (1 + math.cos(math.pi * min(1.0, it / cfg.agent_iters)))
+            frac = self.stage_progress(it, cfg.agent_iters, started, cfg.agent_seconds)
+            lr = cfg.agent_lr_min + 0.5 * (cfg.agent_lr - cfg.agent_lr_min) * (1 + math.cos(math.pi * frac))
             for group in self.opt_agent.param_groups:
                 group["lr"] = lr
             mix = cfg.expert_mix_start * max(0.0, 1.0 - it / max(cfg.expert_mix_iters, 1))
@@ -377,10 +530,12 @@ def main(argv=None) -> None:
     atomic_write_bytes(run.dir / "config.json", (json.dumps(dataclasses.asdict(cfg), indent=2) + "\n").encode())
     deadline = time.time() + args.hours * 3600
     run.train_embed(deadline)
+    cfg = run.cfg  # a stage-1 time budget lowers embed_steps to the steps done
     if run.embed_step >= cfg.embed_steps:
         run.train_agent(deadline)
         if cfg.eval_every and run.agent_iter % cfg.eval_every:
             run.validate()
+    run.close()
 
 
 if __name__ == "__main__":

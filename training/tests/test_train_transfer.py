@@ -1,0 +1,110 @@
+"""The transfer recipe's training options: GroupNorm encoders export under the same contract, the
+stage-1 schedule, loader workers draw the same batches, fine-tuning starts from a checkpoint."""
+
+import json
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from cmr.export import CONTRACT_SHAPES, example_inputs, export_models, load_models
+from cmr.models import build_all
+from cmr.train import Config, Run, main
+
+SMALL = dict(num_points=4096, embed_points=4096, embed_batch=1, agent_envs=2, pool_size=2, pool_refresh=1,
+             rollout_steps=3, minibatch=8, eval_frames=1, holdout_every=4, log_every=1, eval_every=0)
+
+
+def small_run(tmp_path, data, **extra) -> Run:
+    cfg = Config.from_overrides(Config(), [f"{k}={v}" for k, v in {**SMALL, **extra}.items()])
+    cfg = Config(**{**cfg.__dict__, "data": str(data), "out": str(tmp_path)})
+    return Run(cfg)
+
+
+def test_group_norm_encoders_keep_the_onnx_contract(tmp_path):
+    torch.manual_seed(0)
+    models = build_all("group")
+    assert any(isinstance(m, torch.nn.GroupNorm) for m in models["image_encoder"].modules())
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for k in ("image_encoder", "point_encoder")
+                   for m in models[k].modules())
+    for m in models.values():
+        m.eval()
+    doc = export_models({k: models[k] for k in ("point_encoder", "image_encoder")}, tmp_path, dict(data="test"))
+    for name in ("point_encoder", "image_encoder"):
+        sess = ort.InferenceSession(str(tmp_path / doc["graphs"][name]["file"]), providers=["CPUExecutionProvider"])
+        inputs = example_inputs(name, num_points=3000)
+        got = sess.run(None, {i.name: t.numpy() for i, t in zip(sess.get_inputs(), inputs)})[0]
+        with torch.no_grad():
+            want = models[name](*inputs).numpy()
+        assert got.shape == want.shape
+        assert np.abs(got - want).max() < 1e-4
+        assert doc["graphs"][name]["inputs"] == CONTRACT_SHAPES[name][0]
+
+
+def test_stage_one_schedule(tmp_path, tiny_dataset):
+    run = small_run(tmp_path, tiny_dataset, embed_steps=100, embed_lr=2e-3, embed_lr_min=1e-5,
+                    embed_schedule="cosine", embed_warmup=10)
+    lrs = [run.embed_lr(s) for s in range(100)]
+    assert lrs[0] == pytest.approx(2e-4) and lrs[9] == pytest.approx(2e-3)
+    assert all(a >= b for a, b in zip(lrs[10:], lrs[11:])) and lrs[-1] < 1e-4
+    assert run.embed_lr(50, progress=1.0) == pytest.approx(1e-5)
+    const = small_run(tmp_path / "c", tiny_dataset)
+    assert {const.embed_lr(s) for s in (0, 50, 99)} == {1e-3}
+
+
+def test_loader_workers_draw_the_same_batches(tmp_path, tiny_dataset):
+    extra = dict(photometric="heavy", scale_max=1.4, lidar_aug=True)
+    inline = small_run(tmp_path / "a", tiny_dataset, **extra)
+    pooled = small_run(tmp_path / "b", tiny_dataset, loader_workers=2, **extra)
+    for step in (0, 1, 2):
+        a, b = inline.samples(1, step, 2, 2048), pooled.samples(1, step, 2, 2048)
+        for x, y in zip(a, b):
+            assert np.array_equal(x.image, y.image) and np.array_equal(x.points, y.points)
+    pooled._pool.shutdown(cancel_futures=True)
+
+
+def test_group_norm_run_exports_and_fine_tunes(tmp_path, tiny_dataset):
+    base = ["--data", str(tiny_dataset), "--set"] + [f"{k}={v}" for k, v in SMALL.items()]
+    main(["--out", str(tmp_path / "src")] + base + ["embed_steps=2", "agent_iters=1", "norm=group",
+                                                     "action_frame=map_z", "photometric=heavy", "lidar_aug=1"])
+    models, meta = load_models(tmp_path / "src" / "last.pt")
+    assert meta["config"]["norm"] == "group"
+    assert any(isinstance(m, torch.nn.GroupNorm) for m in models["image_encoder"].modules())
+    # Fine-tuning: a new run starts from the checkpoint's weights, with fresh counters.
+    src = torch.load(tmp_path / "src" / "last.pt", map_location="cpu", weights_only=False)
+    run = small_run(tmp_path / "ft", tiny_dataset, norm="group", init_from=str(tmp_path / "src" / "last.pt"))
+    assert run.embed_step == 0 and run.agent_iter == 0
+    for k, v in run.models["image_encoder"].state_dict().items():
+        assert torch.equal(v, src["models"]["image_encoder"][k])
+    with pytest.raises(SystemExit, match="norm=group"):
+        small_run(tmp_path / "ft2", tiny_dataset, init_from=str(tmp_path / "src" / "last.pt"))
+
+
+def test_stage_one_time_budget_ends_the_stage(tmp_path, tiny_dataset):
+    main(["--data", str(tiny_dataset), "--out", str(tmp_path), "--set"] + [f"{k}={v}" for k, v in SMALL.items()]
+         + ["embed_steps=1000", "embed_seconds=0.001", "agent_iters=1", "embed_schedule=cosine"])
+    log = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert [r["stage"] for r in log].count("agent") == 1
+    assert json.loads((tmp_path / "config.json").read_text())["embed_steps"] < 1000
+
+
+def test_edge_channel_lives_inside_the_graph(tmp_path):
+    torch.manual_seed(1)
+    models = build_all("group", image_edges=True)
+    enc = models["image_encoder"].eval()
+    # A vertical step in the normalised image: gradient only along the step.
+    img = torch.zeros(1, 3, 160, 512)
+    img[..., 256:] = 1.0
+    edges = enc.edge_map(img)[0, 0]
+    assert edges[:, 250].max() < 0.01 and edges[:, 255:257].min() > 0.1
+    doc = export_models({"image_encoder": enc}, tmp_path, dict(data="test"))
+    assert doc["graphs"]["image_encoder"]["inputs"] == {"image": [1, 3, 160, 512]}
+    sess = ort.InferenceSession(str(tmp_path / "image_encoder.onnx"), providers=["CPUExecutionProvider"])
+    x = example_inputs("image_encoder", seed=3)[0]
+    with torch.no_grad():
+        want = enc(x).numpy()
+    assert np.abs(sess.run(None, {"image": x.numpy()})[0] - want).max() < 1e-4
+    # The edge input and GroupNorm stay well inside the 25 % FLOP budget of issue 13.
+    base = export_models({"image_encoder": build_all()["image_encoder"].eval()}, tmp_path / "b", dict(data="test"))
+    assert doc["graphs"]["image_encoder"]["flops"] < 1.25 * base["graphs"]["image_encoder"]["flops"]
