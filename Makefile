@@ -8,7 +8,9 @@ PYTHON := .venv/bin/python
 serve: build runtime
 	./target/release/cmr-agent serve --port $(PORT)
 
-test: build runtime python
+# `cargo test --release` also builds target/release/cmr-agent (the tests run it); a separate
+# `cargo build` would compile the dependencies a second time with other features.
+test: runtime python
 	$(CARGO) test --release
 	cd training && ../$(PYTHON) -m pytest -q tests
 	bash scripts/check-schema.sh

@@ -72,9 +72,14 @@ pub async fn limit_body_time(
 
 /// Whether an error (or anything in its source chain) is a passed body deadline.
 pub fn is_body_deadline(error: &(dyn std::error::Error + 'static)) -> bool {
+    has_source::<BodyDeadlineExceeded>(error)
+}
+
+/// Whether `error` or anything in its source chain is an `E`.
+pub fn has_source<E: std::error::Error + 'static>(error: &(dyn std::error::Error + 'static)) -> bool {
     let mut current = Some(error);
     while let Some(e) = current {
-        if e.is::<BodyDeadlineExceeded>() {
+        if e.is::<E>() {
             return true;
         }
         current = e.source();

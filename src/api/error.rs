@@ -145,6 +145,11 @@ impl IntoResponse for ApiError {
         if matches!(self, ApiError::QueueFull | ApiError::NotReady(_) | ApiError::Draining) {
             response.headers_mut().insert(axum::http::header::RETRY_AFTER, axum::http::HeaderValue::from_static("1"));
         }
+        // These refusals come before the request body is read: the connection cannot carry
+        // another request after an unread body, so the client is told not to reuse it.
+        if matches!(self, ApiError::QueueFull | ApiError::NotReady(_) | ApiError::Draining | ApiError::Unauthorized) {
+            response.headers_mut().insert(axum::http::header::CONNECTION, axum::http::HeaderValue::from_static("close"));
+        }
         response
     }
 }

@@ -287,23 +287,12 @@ pub(super) async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiErro
     axum::body::to_bytes(body, limit).await.map_err(|e| {
         if super::body_deadline::is_body_deadline(&e) {
             ApiError::BodyTimeout(format!("request body too slow: {e}"))
-        } else if has_source::<http_body_util::LengthLimitError>(&e) {
+        } else if super::body_deadline::has_source::<http_body_util::LengthLimitError>(&e) {
             ApiError::PayloadTooLarge(format!("request body is larger than {limit} bytes"))
         } else {
             ApiError::BadRequest(format!("cannot read the request body: {e}"))
         }
     })
-}
-
-fn has_source<E: std::error::Error + 'static>(error: &(dyn std::error::Error + 'static)) -> bool {
-    let mut current = Some(error);
-    while let Some(e) = current {
-        if e.is::<E>() {
-            return true;
-        }
-        current = e.source();
-    }
-    false
 }
 
 /// JSON syntax errors are 400; well-formed JSON with wrong fields or types is 422.

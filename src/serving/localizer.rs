@@ -131,11 +131,7 @@ impl Localizer {
     pub async fn picture_input(&self, admission: Admission, map_id: &str, request: &LocalizeRequest, image: ImagePayload) -> Result<PictureInput, LocalizeError> {
         let deadline = admission.started + self.config.request_timeout;
         let work = async {
-            validate_id(map_id)?;
-            let maps = self.maps.clone();
-            let id = map_id.to_string();
-            let entry = blocking(move || maps.store.get(&id).map_err(LocalizeError::from)).await?;
-            let valid = ValidLocalizeRequest::new(request, &self.config.defaults, entry)?;
+            let valid = self.validate(map_id, request).await?;
             let permit = self.decodes.clone().acquire_owned().await.map_err(|_| LocalizeError::Draining)?;
             let (manifest, limits) = (self.manifest.clone(), self.config.image);
             let decoded = blocking(move || {
@@ -143,9 +139,7 @@ impl Localizer {
                 decode_payload(image, &manifest, limits)
             })
             .await?;
-            let maps = self.maps.clone();
-            let entry = valid.map.clone();
-            let map = blocking(move || maps.prepared_for(&entry).map_err(LocalizeError::from)).await?;
+            let map = self.prepared(&valid).await?;
             Ok(PictureInput { image: decoded, intrinsics: valid.intrinsics, map })
         };
         let result = tokio::time::timeout_at(deadline.into(), work).await.map_err(|_| LocalizeError::DeadlineExceeded)?;
@@ -163,12 +157,7 @@ impl Localizer {
         span: tracing::Span,
     ) -> Result<(Localized, Option<PictureInput>), LocalizeError> {
         let deadline = admission.started + self.config.request_timeout;
-        validate_id(map_id)?;
-        let maps = self.maps.clone();
-        let id = map_id.to_string();
-        let entry = blocking(move || maps.store.get(&id).map_err(LocalizeError::from)).await?;
-        let valid = ValidLocalizeRequest::new(request, &self.config.defaults, entry)?;
-
+        let valid = self.validate(map_id, request).await?;
         let permit = self.decodes.clone().acquire_owned().await.map_err(|_| LocalizeError::Draining)?;
         let t = Instant::now();
         let (manifest, limits, intrinsics) = (self.manifest.clone(), self.config.image, valid.intrinsics);
@@ -182,10 +171,7 @@ impl Localizer {
         let decode_ms = ms(t);
         metrics::histogram!("cmr_phase_seconds", "phase" => "decode").record(decode_ms / 1000.0);
 
-        let maps = self.maps.clone();
-        let entry = valid.map.clone();
-        let map = blocking(move || maps.prepared_for(&entry).map_err(LocalizeError::from)).await?;
-
+        let map = self.prepared(&valid).await?;
         let (reply, answer) = oneshot::channel();
         let picture = decoded.map(|image| PictureInput { image, intrinsics, map: map.clone() });
         let start = Start { map, image_tensor: tensor, intrinsics: crop_k, prior: valid.prior, search: valid.search };
@@ -198,6 +184,24 @@ impl Localizer {
         };
         let done = Localized { localization: finished.localization, queue_ms: finished.queue_ms, decode_ms, total_ms: ms(admission.started) };
         Ok((done, picture))
+    }
+}
+
+impl Localizer {
+    /// The map entry (404 when absent) and the request checked against it and the limits.
+    async fn validate(&self, map_id: &str, request: &LocalizeRequest) -> Result<ValidLocalizeRequest, LocalizeError> {
+        validate_id(map_id)?;
+        let maps = self.maps.clone();
+        let id = map_id.to_string();
+        let entry = blocking(move || maps.store.get(&id).map_err(LocalizeError::from)).await?;
+        ValidLocalizeRequest::new(request, &self.config.defaults, entry)
+    }
+
+    /// The region's prepared map (cache, else `<id>.emb`, else the point encoder).
+    async fn prepared(&self, valid: &ValidLocalizeRequest) -> Result<Arc<PreparedMap>, LocalizeError> {
+        let maps = self.maps.clone();
+        let entry = valid.map.clone();
+        blocking(move || maps.prepared_for(&entry).map_err(LocalizeError::from)).await
     }
 }
 

@@ -170,7 +170,6 @@ impl Rig {
 #[cfg(test)]
 mod tests {
     use super::super::rigs::{named, RIG_NAMES};
-    use super::*;
     use nalgebra::Point3;
 
     #[test]
