@@ -2,11 +2,13 @@
 //! cameras, flat and hilly ground), ring counts, determinism per world family, and clear errors
 //! for unknown names.
 
-use std::path::Path;
+mod common;
 
 use cmr_agent::synth::rigs::{named, RIG_NAMES};
 use cmr_agent::synth::{generate, GeneratorConfig, LookMode, RigChoice, SensorOverrides, SequencePlan, StyleOverrides, StylePreset, WorldKind};
 use nalgebra::Point3;
+
+use common::snapshot;
 
 /// One sequence of `world` seen by `rig`, its image scaled to 480 px wide, 1000 LiDAR columns.
 fn config(world: WorldKind, rig: RigChoice, seed: u64, frames: usize) -> GeneratorConfig {
@@ -163,22 +165,6 @@ fn ring_count_equals_the_rigs_beam_count() {
     }
 }
 
-fn snapshot(root: &Path) -> Vec<(String, Vec<u8>)> {
-    let mut out = Vec::new();
-    let mut stack = vec![root.to_path_buf()];
-    while let Some(dir) = stack.pop() {
-        for entry in std::fs::read_dir(&dir).unwrap() {
-            let path = entry.unwrap().path();
-            if path.is_dir() {
-                stack.push(path);
-            } else {
-                out.push((path.strip_prefix(root).unwrap().display().to_string(), std::fs::read(&path).unwrap()));
-            }
-        }
-    }
-    out.sort();
-    out
-}
 
 /// Same seed and flags give the same bytes in every world family (random rig and look on).
 #[test]

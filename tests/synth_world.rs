@@ -1,11 +1,15 @@
 //! The synthetic world written as KITTI and read back through `cmr_agent::kitti`:
 //! determinism, format round trip, and agreement between the LiDAR and the camera.
 
+mod common;
+
 use std::path::Path;
 
 use cmr_agent::kitti::{discover_sequences, read_velodyne, Sequence};
 use cmr_agent::synth::{generate, GeneratorConfig, SensorOverrides, SequencePlan};
 use nalgebra::Point3;
+
+use common::snapshot;
 
 /// Today's generator (kitti rig, classic street and look) at a small size.
 fn small_config(seed: u64) -> GeneratorConfig {
@@ -16,23 +20,6 @@ fn small_config(seed: u64) -> GeneratorConfig {
     }
 }
 
-/// Every file under `root`, relative path → bytes, sorted.
-fn snapshot(root: &Path) -> Vec<(String, Vec<u8>)> {
-    let mut out = Vec::new();
-    let mut stack = vec![root.to_path_buf()];
-    while let Some(dir) = stack.pop() {
-        for entry in std::fs::read_dir(&dir).unwrap() {
-            let path = entry.unwrap().path();
-            if path.is_dir() {
-                stack.push(path);
-            } else {
-                out.push((path.strip_prefix(root).unwrap().display().to_string(), std::fs::read(&path).unwrap()));
-            }
-        }
-    }
-    out.sort();
-    out
-}
 
 #[test]
 fn same_seed_and_flags_give_identical_bytes() {

@@ -149,12 +149,9 @@ impl<T: Send> Batch<T> {
             }
             r.search.episodes[h].advance(&r.map, &self.actions, logits, output.value[slot]);
         }
-        let scratch = self.scratch.get_mut().expect("scratch pool");
-        if scratch.is_empty() {
-            scratch.push(ScatterScratch::default());
-        }
+        let scratch = first_scratch(&mut self.scratch);
         for r in self.running.iter_mut().filter(|r| r.failed.is_none()) {
-            r.search.after_step(&r.map, &self.layout, &mut scratch[0]);
+            r.search.after_step(&r.map, &self.layout, scratch);
         }
         rows.len()
     }
@@ -229,17 +226,22 @@ impl<T: Send> Batch<T> {
                 Some(e) => Err(e),
                 None => {
                     r.timings.agent_steps_ms = ms(r.steps_started);
-                    let scratch = self.scratch.get_mut().expect("scratch pool");
-                    if scratch.is_empty() {
-                        scratch.push(ScatterScratch::default());
-                    }
-                    Ok(r.search.finish(&r.map, &self.layout, &mut scratch[0], r.timings))
+                    Ok(r.search.finish(&r.map, &self.layout, first_scratch(&mut self.scratch), r.timings))
                 }
             };
             out.push((r.tag, result));
         }
         out
     }
+}
+
+/// A scratch buffer from the pool for single-threaded work (scoring after a step, finishing).
+fn first_scratch(pool: &mut Mutex<Vec<ScatterScratch>>) -> &mut ScatterScratch {
+    let pool = pool.get_mut().expect("scratch pool");
+    if pool.is_empty() {
+        pool.push(ScatterScratch::default());
+    }
+    &mut pool[0]
 }
 
 /// Runs the image encoder and the frustum head (everything per request that precedes the loop)

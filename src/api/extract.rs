@@ -47,8 +47,3 @@ pub struct MapIdParam {
     #[param(pattern = r"^[a-z0-9][a-z0-9_-]{0,63}$", min_length = 1, max_length = 64)]
     id: String,
 }
-
-/// Milliseconds since `since`.
-pub fn ms(since: std::time::Instant) -> f64 {
-    since.elapsed().as_secs_f64() * 1000.0
-}

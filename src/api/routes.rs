@@ -17,7 +17,8 @@ use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest};
 
 use super::AppState;
 use super::error::{ApiError, ErrorBody};
-use super::extract::{Admin, MapId, MapIdParam, ms};
+use super::extract::{Admin, MapId, MapIdParam};
+use crate::agent::ms;
 use super::types::*;
 
 type Shared = State<Arc<AppState>>;

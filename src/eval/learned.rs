@@ -14,7 +14,7 @@ use serde_json::json;
 
 use std::sync::Arc;
 
-use crate::agent::{self, SearchConfig};
+use crate::agent::{self, SearchConfig, ms};
 use crate::maps::{PreparedMap, prepare_map};
 use crate::model::Backend;
 
@@ -183,10 +183,6 @@ impl Method for Learned {
         runs.push(self.run_baseline(case, &map)?);
         Ok(runs)
     }
-}
-
-fn ms(since: Instant) -> f64 {
-    since.elapsed().as_secs_f64() * 1e3
 }
 
 #[cfg(test)]

@@ -48,12 +48,6 @@ pub struct Admission {
     _in_flight: InFlight,
 }
 
-impl Admission {
-    pub fn started(&self) -> Instant {
-        self.started
-    }
-}
-
 /// A localization and the time it spent in each serving phase.
 pub struct Localized {
     pub localization: Localization,
@@ -84,10 +78,6 @@ impl Localizer {
     pub fn new(maps: Arc<Maps>, scheduler: Arc<Scheduler>, lifecycle: Arc<Lifecycle>, manifest: Arc<Manifest>, config: LocalizerConfig) -> Self {
         let decodes = Arc::new(Semaphore::new(config.decode_permits.max(1)));
         Self { maps, scheduler, lifecycle, manifest, config, decodes }
-    }
-
-    pub fn config(&self) -> &LocalizerConfig {
-        &self.config
     }
 
     /// Admission control: call before reading or decoding anything of the request.

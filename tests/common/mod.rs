@@ -1,4 +1,8 @@
-//! Helpers shared by the fixture tests.
+//! Helpers shared by the fixture and generator tests.
+
+#![allow(dead_code)]
+
+use std::path::Path;
 
 use serde_json::Value;
 
@@ -35,3 +39,20 @@ pub fn stored_fixture(path: &str, computed: &Value, text: impl Fn(&Value) -> Str
     serde_json::from_str(&std::fs::read_to_string(path).expect("fixture file")).unwrap()
 }
 
+/// Every file under `root`, relative path → bytes, sorted.
+pub fn snapshot(root: &Path) -> Vec<(String, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut stack = vec![root.to_path_buf()];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                stack.push(path);
+            } else {
+                out.push((path.strip_prefix(root).unwrap().display().to_string(), std::fs::read(&path).unwrap()));
+            }
+        }
+    }
+    out.sort();
+    out
+}

@@ -11,15 +11,7 @@ import torch
 from cmr.export import CONTRACT_SHAPES, example_inputs, export_models, load_models
 from cmr.models import build_all
 from cmr.train import Config, Run, main
-
-SMALL = dict(num_points=4096, embed_points=4096, embed_batch=1, agent_envs=2, pool_size=2, pool_refresh=1,
-             rollout_steps=3, minibatch=8, eval_frames=1, holdout_every=4, log_every=1, eval_every=0)
-
-
-def small_run(tmp_path, data, **extra) -> Run:
-    cfg = Config.from_overrides(Config(), [f"{k}={v}" for k, v in {**SMALL, **extra}.items()])
-    cfg = Config(**{**cfg.__dict__, "data": str(data), "out": str(tmp_path)})
-    return Run(cfg)
+from test_train import SMALL, small_run
 
 
 def test_group_norm_encoders_keep_the_onnx_contract(tmp_path):
