@@ -10,8 +10,8 @@ request (`examples/localize-demo.json`, the default search):
      policy rows per request (from /metrics) and mean batch;
   3. registration of a 40,960-point map (PUT, x3);
   4. FLOPs per request from the manifest (`graphs.*.flops`: image encoder + frustum head + rows x
-     agent) and the share of the FLOP floor reached at c16 (`--peak-gflops`, the machine's fp32
-     matmul rate on all cores);
+     (agent + the server-side correlation, `correlation_flops`)) and the share of the FLOP floor
+     reached at c16 (`--peak-gflops`, the machine's fp32 matmul rate on all cores);
   5. with `--storm`: a second server with `--queue-capacity 4` under 48 closed-loop clients:
      admitted (200) requests/s against its capacity measured in the same run at 4 clients.
 
@@ -110,6 +110,18 @@ def load_phase(server, request, connections, seconds):
     return r
 
 
+def correlation_flops(manifest: dict) -> int:
+    """FLOPs per policy row that the server spends on the correlation-form state (manifest
+    `state_2d`), counted as if every cell were occupied (an upper bound): one D-long dot product
+    per shift and cell. 0 for the features form, whose agent graph counts its own correlation."""
+    spec = manifest.get("state_2d", {"form": "features"})
+    if spec.get("form") != "correlation":
+        return 0
+    f = manifest["features"]
+    shifts = len(spec["row_shifts"]) + len(spec["column_shifts"])
+    return 2 * shifts * f["dim"] * f["grid_height"] * f["grid_width"]
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--binary", default="./target/release/cmr-agent")
@@ -171,7 +183,7 @@ def main():
         print(f"register a 40,960-point map: median {record['register_40960_points_ms']:.1f} ms (x3)")
 
         if all(flops.values()):
-            per_request = flops["image_encoder"] + flops["frustum_head"] + c16["policy_rows_per_request"] * flops["agent"]
+            per_request = flops["image_encoder"] + flops["frustum_head"] + c16["policy_rows_per_request"] * (flops["agent"] + correlation_flops(manifest))
             ceiling = args.peak_gflops * 1e9 / per_request
             record["flops"] = {"per_request_gflop": per_request / 1e9, "ceiling_requests_per_s": ceiling,
                                "share_of_floor": c16["ok_per_s"] / ceiling, "peak_gflops": args.peak_gflops}

@@ -6,7 +6,7 @@
 //! pose's alignment score, which the multi-start search ranks hypotheses by. Regenerate with
 //! `REGENERATE_FIXTURES=1 cargo test --release --test state_fixture`.
 
-use cmr_agent::agent::state::{StateLayout, write_state};
+use cmr_agent::agent::state::{Form2d, ImageGrid, Shifts, StateLayout, write_state};
 use cmr_agent::geometry::{Intrinsics, Pose};
 use nalgebra::{Matrix3, Point3, Vector3};
 use rand::{Rng, SeedableRng};
@@ -29,8 +29,14 @@ fn layout() -> StateLayout {
         image_height: 160,
         num_state_points: 2048,
         xyz_scale_m: 10.0,
+        form: Form2d::Features,
     }
 }
+
+/// The shifts of `training/cmr/models.py` (ROW_SHIFTS, COLUMN_SHIFTS), which every
+/// correlation-form model so far lists in its manifest.
+const ROW_SHIFTS: [i32; 13] = [-24, -16, -10, -6, -3, -1, 0, 1, 3, 6, 10, 16, 24];
+const COLUMN_SHIFTS: [i32; 4] = [-4, -2, 2, 4];
 
 /// Points are kept away from cell borders so f32 (PyTorch) and f64 (Rust) agree on their cell.
 fn far_from_cell_borders(k: &Intrinsics, p: &Point3<f64>) -> bool {
@@ -63,7 +69,16 @@ fn compute() -> Value {
     let image: Vec<f32> = (0..layout.image_feature_len()).map(|i| (i % 7) as f32 * 0.1).collect();
     let mut state_2d = vec![f32::NAN; layout.state_2d_len()];
     let mut state_3d = vec![f32::NAN; NUM_POINTS * 5];
-    let alignment = write_state(&layout, &points, &features, &probs, &image, &k, &pose, &mut Default::default(), &mut state_2d, &mut state_3d);
+    let grid = ImageGrid::new(&layout, image.clone());
+    let alignment = write_state(&layout, &points, &features, &probs, &grid, &k, &pose, &mut Default::default(), &mut state_2d, &mut state_3d);
+
+    // The same scene in the correlation form: same 3D state and score, and the volume.
+    let correlation_layout = StateLayout { form: Form2d::Correlation(Shifts::new(&ROW_SHIFTS, &COLUMN_SHIFTS)), ..layout };
+    let grid = ImageGrid::new(&correlation_layout, image.clone());
+    let mut volume = vec![f32::NAN; correlation_layout.state_2d_len()];
+    let mut state_3d_again = vec![f32::NAN; NUM_POINTS * 5];
+    let score = write_state(&correlation_layout, &points, &features, &probs, &grid, &k, &pose, &mut Default::default(), &mut volume, &mut state_3d_again);
+    assert_eq!((score, &state_3d_again), (alignment, &state_3d), "the form changes only the 2D state");
 
     let cells = layout.cells();
     let image_part_ok = state_2d[..DIM * cells].iter().zip(&image).all(|(a, b)| a == b);
@@ -73,11 +88,21 @@ fn compute() -> Value {
         .filter(|&c| (0..DIM).any(|ch| projected[ch * cells + c] != 0.0))
         .map(|c| json!({"cell": c, "mean": (0..DIM).map(|ch| projected[ch * cells + c]).collect::<Vec<_>>()}))
         .collect();
+    // Sparse: the cells with any non-zero channel (the test checks all others are zero).
+    let channels = ROW_SHIFTS.len() + COLUMN_SHIFTS.len() + 1;
+    let correlated: Vec<Value> = (0..cells)
+        .filter(|&c| (0..channels).any(|ch| volume[ch * cells + c] != 0.0))
+        .map(|c| json!({"cell": c, "values": (0..channels).map(|ch| volume[ch * cells + c]).collect::<Vec<_>>()}))
+        .collect();
     json!({
         "about": "Agent observation built by src/agent/state.rs; read by training/tests/test_state_fixture.py.",
         "intrinsics": k, "camera_from_map": pose.to_rows(), "points_map": points,
         "point_features": features, "frustum_probs": probs,
         "occupied_cells": occupied, "state_3d": state_3d, "alignment": alignment,
+        "correlation": {
+            "row_shifts": ROW_SHIFTS, "column_shifts": COLUMN_SHIFTS,
+            "cells": correlated,
+        },
     })
 }
 

@@ -93,7 +93,7 @@ impl<T: Send> Batch<T> {
     /// Runs the per-request graphs (image encoder, frustum head) and adds the request. On error
     /// the tag comes back with the reason.
     pub fn admit(&mut self, backend: &mut dyn Backend, start: Start, tag: T) -> Result<(), (T, StepError)> {
-        match begin(backend, &start) {
+        match begin(backend, &start, &self.layout) {
             Ok((search, timings)) => {
                 self.running.push(Running { tag, map: start.map, search, timings, steps_started: Instant::now(), failed: None });
                 Ok(())
@@ -246,7 +246,7 @@ fn first_scratch(pool: &mut Mutex<Vec<ScatterScratch>>) -> &mut ScatterScratch {
 
 /// Runs the image encoder and the frustum head (everything per request that precedes the loop)
 /// and sets up the search's hypotheses.
-fn begin(backend: &mut dyn Backend, start: &Start) -> Result<(Search, Timings), StepError> {
+fn begin(backend: &mut dyn Backend, start: &Start, layout: &StateLayout) -> Result<(Search, Timings), StepError> {
     let manifest = backend.manifest().clone();
     let map = &start.map;
     if map.features.len() != map.points.len() * manifest.features.dim || map.points.len() < manifest.points.num_state_points {
@@ -261,6 +261,7 @@ fn begin(backend: &mut dyn Backend, start: &Start) -> Result<(Search, Timings), 
     let t = Instant::now();
     let logits = backend.frustum_logits(&map.features, &image_features).map_err(|e| StepError::Inference(format!("frustum head: {e:#}")))?;
     let frustum_head_ms = ms(t);
+    let image_features = state::ImageGrid::new(layout, image_features);
     let evidence = ImageEvidence { image_features, frustum_probs: logits.iter().map(|l| state::sigmoid(*l)).collect(), intrinsics: start.intrinsics };
     let search = Search::new(evidence, map, start.prior, start.search, manifest.action_frame());
     Ok((search, Timings { image_encoder_ms, frustum_head_ms, ..Default::default() }))

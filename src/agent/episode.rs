@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use crate::geometry::{ActionSet, AgentAction, Intrinsics, Pose};
 
-use super::state::{ScatterScratch, StateLayout, alignment, write_state};
+use super::state::{ImageGrid, ScatterScratch, StateLayout, alignment, write_state};
 use crate::maps::PreparedMap;
 
 /// One policy step: the action chosen at the pose before it, and the pose after it.
@@ -43,8 +43,8 @@ pub struct Confidence {
 /// What every hypothesis of one request shares: computed once per request, never copied.
 #[derive(Debug)]
 pub struct ImageEvidence {
-    /// Image features [D, GH, GW].
-    pub image_features: Vec<f32>,
+    /// Image features [D, GH, GW] (and cell-major where the state needs them).
+    pub image_features: ImageGrid,
     /// sigmoid(frustum logit) per sampled map point.
     pub frustum_probs: Vec<f32>,
     /// The crop's intrinsics.
@@ -107,7 +107,7 @@ impl Episode {
     pub fn settle(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch) {
         if self.alignment().is_nan() {
             let e = &self.evidence;
-            let score = alignment(layout, &map.points, &map.features, &e.image_features, &e.intrinsics, &self.pose, scratch);
+            let score = alignment(layout, &map.points, &map.features, &e.image_features.channel_major, &e.intrinsics, &self.pose, scratch);
             self.record_alignment(score);
         }
     }
@@ -200,7 +200,7 @@ mod tests {
         };
         let set = ActionSet::default();
         let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 256.0, cy: 80.0 };
-        let evidence = Arc::new(ImageEvidence { image_features: vec![], frustum_probs: vec![0.95], intrinsics: k });
+        let evidence = Arc::new(ImageEvidence { image_features: ImageGrid::default(), frustum_probs: vec![0.95], intrinsics: k });
         let mut ep = Episode::new(evidence, Pose::identity(), 5);
         let mut logits = vec![0f32; 33];
         logits[10] = 5.0; // yaw +62.5°

@@ -21,7 +21,7 @@ pub use batch::{Batch, Start, StepError};
 pub use episode::{Confidence, Episode, ImageEvidence, Step};
 pub use input::prepare_image;
 pub use search::{DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, Search, SearchConfig, SearchTuning, best_of, start_yaw_offsets};
-pub use state::{ScatterScratch, StateLayout};
+pub use state::{Form2d, ImageGrid, ScatterScratch, Shifts, StateLayout};
 
 /// Milliseconds spent per phase of one localization.
 #[derive(Debug, Clone, Copy, Default)]

@@ -265,7 +265,7 @@ mod tests {
         use crate::geometry::Intrinsics;
         use nalgebra::{Point3, Vector3};
         let map = PreparedMap { points: vec![[0.0, 0.0, 5.0]], features: vec![0.0; 64], pivot: Point3::new(0.0, 0.0, 5.0), source_points: 1 };
-        let evidence = ImageEvidence { image_features: vec![], frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 } };
+        let evidence = ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 } };
         let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true };
         let mut search = Search::new(evidence, &map, Pose::identity(), config, ActionFrame::CameraY);
         let shifted = |dx: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(dx, 0.0, 0.0));
@@ -274,7 +274,7 @@ mod tests {
         search.episodes[1].pose = shifted(0.5);
         search.episodes[2].pose = shifted(1.2);
         search.episodes[3].pose = shifted(9.0);
-        let (layout, mut scratch) = (StateLayout { dim: 64, stride: 4, grid_height: 1, grid_width: 1, image_width: 4, image_height: 4, num_state_points: 1, xyz_scale_m: 1.0 }, ScatterScratch::default());
+        let (layout, mut scratch) = (StateLayout { dim: 64, stride: 4, grid_height: 1, grid_width: 1, image_width: 4, image_height: 4, num_state_points: 1, xyz_scale_m: 1.0, form: crate::agent::state::Form2d::Features }, ScatterScratch::default());
         search.after_step(&map, &layout, &mut scratch);
         let dropped: Vec<bool> = search.episodes.iter().map(|e| e.dropped).collect();
         assert_eq!(dropped, vec![false, true, false, false], "a dropped hypothesis drops nobody");

@@ -1,8 +1,15 @@
 //! The agent's observation, built in Rust exactly as the model contract describes.
 //!
-//! state_2d [2D, GH, GW]: the image features, then F_k = the scatter-MEAN of the point features of
-//! every sampled point that projects (current pose, crop intrinsics) into the model input, cell
-//! (row, col) = (floor((v+0.5)/stride), floor((u+0.5)/stride)); empty cells stay 0.
+//! The 2D half comes in the form the manifest's `state_2d` section names
+//! (`model::State2dSpec`):
+//! - features: [2D, GH, GW], the image features, then F_k = the scatter-MEAN of the point
+//!   features of every sampled point that projects (current pose, crop intrinsics) into the model
+//!   input, cell (row, col) = (floor((v+0.5)/stride), floor((u+0.5)/stride)); empty cells stay 0;
+//! - correlation: [S + 1, GH, GW], what the agent makes of that pair before any learned layer
+//!   (`training/cmr/models.py::Agent.correlate`): at each cell whose F_k is not zero, the cosine of
+//!   F_k/|F_k| with the image feature s cells along the row (each row shift) or down the column
+//!   (each column shift), 0 off the grid; then the occupancy (1 at those cells). Empty cells are 0.
+//!
 //! state_3d [M, 5]: for the first M sampled points, xyz in the current camera frame divided by
 //! the manifest's scale, sigmoid(frustum logit), and 1/0 = inside the current frustum.
 //!
@@ -12,7 +19,48 @@
 use nalgebra::Point3;
 
 use crate::geometry::{Intrinsics, Pose};
-use crate::model::Manifest;
+use crate::model::{MAX_CORRELATION_SHIFTS, Manifest};
+
+/// The 2D half of the state the model reads (the manifest's `state_2d.form`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Form2d {
+    Features,
+    Correlation(Shifts),
+}
+
+/// The cell offsets of a correlation-form state: row shifts (along a row, in columns) first, then
+/// column shifts (down a column, in rows), as the manifest lists them.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Shifts {
+    values: [i16; MAX_CORRELATION_SHIFTS],
+    rows: usize,
+    columns: usize,
+}
+
+impl Shifts {
+    /// Panics beyond [`MAX_CORRELATION_SHIFTS`] or ±32767 (a loaded manifest is checked for both).
+    pub fn new(rows: &[i32], columns: &[i32]) -> Self {
+        assert!(rows.len() + columns.len() <= MAX_CORRELATION_SHIFTS, "too many correlation shifts");
+        let mut values = [0i16; MAX_CORRELATION_SHIFTS];
+        for (v, s) in values.iter_mut().zip(rows.iter().chain(columns)) {
+            *v = i16::try_from(*s).expect("shift fits the grid");
+        }
+        Self { values, rows: rows.len(), columns: columns.len() }
+    }
+
+    pub fn rows(&self) -> &[i16] {
+        &self.values[..self.rows]
+    }
+
+    pub fn columns(&self) -> &[i16] {
+        &self.values[self.rows..self.rows + self.columns]
+    }
+
+    /// Channels of the state: one per shift and the occupancy.
+    pub fn channels(&self) -> usize {
+        self.rows + self.columns + 1
+    }
+}
 
 /// The sizes the state builder needs, taken once from the manifest.
 #[derive(Debug, Clone, Copy)]
@@ -25,10 +73,12 @@ pub struct StateLayout {
     pub image_height: u32,
     pub num_state_points: usize,
     pub xyz_scale_m: f64,
+    pub form: Form2d,
 }
 
 impl StateLayout {
     pub fn from_manifest(m: &Manifest) -> Self {
+        let spec = &m.state_2d;
         Self {
             dim: m.features.dim,
             stride: m.features.stride,
@@ -38,6 +88,7 @@ impl StateLayout {
             image_height: m.image.height,
             num_state_points: m.points.num_state_points,
             xyz_scale_m: m.points.state_xyz_scale_m,
+            form: if spec.is_features() { Form2d::Features } else { Form2d::Correlation(Shifts::new(&spec.row_shifts, &spec.column_shifts)) },
         }
     }
 
@@ -49,8 +100,12 @@ impl StateLayout {
         self.dim * self.cells()
     }
 
+    /// Values of one row of the 2D state.
     pub fn state_2d_len(&self) -> usize {
-        2 * self.image_feature_len()
+        match self.form {
+            Form2d::Features => 2 * self.image_feature_len(),
+            Form2d::Correlation(shifts) => shifts.channels() * self.cells(),
+        }
     }
 
     pub fn state_3d_len(&self) -> usize {
@@ -72,6 +127,34 @@ impl StateLayout {
     }
 }
 
+/// One image's features in the layouts the state builder reads: channel-major [D, GH·GW] as the
+/// image encoder returns them, and, for the correlation form, cell-major [GH·GW, D] (so a cell's
+/// feature is one contiguous vector). Made once per request.
+#[derive(Debug, Default)]
+pub struct ImageGrid {
+    pub channel_major: Vec<f32>,
+    pub cell_major: Vec<f32>,
+}
+
+impl ImageGrid {
+    pub fn new(layout: &StateLayout, channel_major: Vec<f32>) -> Self {
+        let cell_major = match layout.form {
+            Form2d::Features => Vec::new(),
+            Form2d::Correlation(_) => {
+                let (d, cells) = (layout.dim, layout.cells());
+                let mut out = vec![0f32; d * cells];
+                for (c, channel) in channel_major.chunks_exact(cells).enumerate() {
+                    for (cell, v) in channel.iter().enumerate() {
+                        out[cell * d + c] = *v;
+                    }
+                }
+                out
+            }
+        };
+        Self { channel_major, cell_major }
+    }
+}
+
 /// Reusable buffers so a step allocates nothing.
 #[derive(Default)]
 pub struct ScatterScratch {
@@ -81,6 +164,8 @@ pub struct ScatterScratch {
     counts: Vec<u32>,
     /// Cells that received a point in this call.
     touched: Vec<u32>,
+    /// One cell's unit point feature (correlation form).
+    unit: Vec<f32>,
 }
 
 /// Writes one state into `state_2d` (len `state_2d_len`) and `state_3d` (len `state_3d_len`).
@@ -92,7 +177,7 @@ pub fn write_state(
     points: &[[f32; 3]],
     point_features: &[f32],
     frustum_probs: &[f32],
-    image_features: &[f32],
+    image: &ImageGrid,
     k: &Intrinsics,
     camera_from_map: &Pose,
     scratch: &mut ScatterScratch,
@@ -111,10 +196,98 @@ pub fn write_state(
             row[4] = if in_view { 1.0 } else { 0.0 };
         }
     });
-    let (image_part, points_part) = state_2d.split_at_mut(layout.image_feature_len());
-    image_part.copy_from_slice(image_features);
-    points_part.fill(0.0);
-    drain(layout, image_features, scratch, Some(points_part))
+    match layout.form {
+        Form2d::Features => {
+            let (image_part, points_part) = state_2d.split_at_mut(layout.image_feature_len());
+            image_part.copy_from_slice(&image.channel_major);
+            points_part.fill(0.0);
+            drain(layout, &image.channel_major, scratch, Some(points_part))
+        }
+        Form2d::Correlation(shifts) => {
+            state_2d.fill(0.0);
+            write_correlation(layout, shifts, &image.cell_major, scratch, state_2d);
+            drain(layout, &image.channel_major, scratch, None)
+        }
+    }
+}
+
+/// The correlation-form 2D state from a `scatter`'s sums (before `drain` clears them) into
+/// `out` [S + 1, cells], which must be all zero. Twin of `Agent.correlate` in
+/// `training/cmr/models.py`: the per-cell mean, its norm n, occupancy n > 1e-6, unit = mean /
+/// (n + 1e-6), and one dot product with a shifted image cell per shift.
+fn write_correlation(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) {
+    // The feature width of every model so far, unrolled; any other width takes the general loop.
+    match layout.dim {
+        64 => correlate_cells::<64>(layout, shifts, image_cells, scratch, out),
+        _ => correlate_cells::<0>(layout, shifts, image_cells, scratch, out),
+    }
+}
+
+/// `write_correlation` for feature width `D` (0: `layout.dim`, not known at compile time).
+fn correlate_cells<const D: usize>(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) {
+    let (d, w, h, cells) = (layout.dim, layout.grid_width, layout.grid_height, layout.cells());
+    debug_assert!(D == 0 || D == d);
+    debug_assert_eq!(image_cells.len(), d * cells);
+    debug_assert_eq!(out.len(), shifts.channels() * cells);
+    let ScatterScratch { sums, counts, touched, unit } = scratch;
+    // Ascending cells keep the writes to each output plane moving forward.
+    touched.sort_unstable();
+    unit.resize(d, 0.0);
+    let image_cell = |cell: usize| &image_cells[cell * d..(cell + 1) * d];
+    let occupancy = shifts.channels() - 1;
+    for &cell in touched.iter() {
+        let cell = cell as usize;
+        let count = counts[cell] as f32;
+        let mut squares = 0f32;
+        for (u, s) in unit.iter_mut().zip(&sums[cell * d..(cell + 1) * d]) {
+            *u = s / count;
+            squares += *u * *u;
+        }
+        let norm = squares.sqrt();
+        if !(norm > 1e-6) {
+            continue;
+        }
+        unit.iter_mut().for_each(|u| *u /= norm + 1e-6);
+        let (row, col) = (cell / w, cell % w);
+        for (k, &s) in shifts.rows().iter().enumerate() {
+            let other = col as isize + s as isize;
+            if (0..w as isize).contains(&other) {
+                out[k * cells + cell] = dot::<D>(unit, image_cell(row * w + other as usize));
+            }
+        }
+        for (k, &s) in shifts.columns().iter().enumerate() {
+            let other = row as isize + s as isize;
+            if (0..h as isize).contains(&other) {
+                out[(shifts.rows().len() + k) * cells + cell] = dot::<D>(unit, image_cell(other as usize * w + col));
+            }
+        }
+        out[occupancy * cells + cell] = 1.0;
+    }
+}
+
+/// f32 dot product in eight independent lanes (so the compiler can use SIMD); `D` > 0 fixes the
+/// length at compile time (fully unrolled, no bounds checks).
+#[inline(always)]
+fn dot<const D: usize>(a: &[f32], b: &[f32]) -> f32 {
+    if D > 0 && D % 8 == 0 {
+        let (a, b): (&[f32; D], &[f32; D]) = (a.try_into().expect("dim"), b.try_into().expect("dim"));
+        let mut lanes = [0f32; 8];
+        for i in (0..D).step_by(8) {
+            for j in 0..8 {
+                lanes[j] += a[i + j] * b[i + j];
+            }
+        }
+        return lanes.iter().sum();
+    }
+    let mut lanes = [0f32; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f32 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
+    for (x, y) in ca.zip(cb) {
+        for i in 0..8 {
+            lanes[i] += x[i] * y[i];
+        }
+    }
+    lanes.iter().sum::<f32>() + tail
 }
 
 /// How well a pose explains the image: the mean, over the sampled points in view, of the dot
@@ -242,6 +415,7 @@ mod tests {
             image_height: 8,
             num_state_points: 3,
             xyz_scale_m: 10.0,
+            form: Form2d::Features,
         }
     }
 
@@ -253,14 +427,14 @@ mod tests {
         let points = [[1.0f32, 1.0, 10.0], [2.0, 2.0, 10.0], [9.0, 5.0, 10.0], [50.0, 0.0, 10.0], [0.0, 0.0, -3.0]];
         let features = [1.0f32, 2.0, 3.0, 4.0, 10.0, 20.0, 7.0, 7.0, 9.0, 9.0];
         let probs = [0.1f32, 0.2, 0.3, 0.4, 0.5];
-        let image = vec![0.5f32; layout.image_feature_len()];
+        let image = ImageGrid::new(&layout, vec![0.5f32; layout.image_feature_len()]);
         let mut s2 = vec![f32::NAN; layout.state_2d_len()];
         let mut s3 = vec![f32::NAN; layout.state_3d_len()];
         let mut scratch = ScatterScratch::default();
         let score = write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut scratch, &mut s2, &mut s3);
         // Points 0-2 are in view: (0.5 (1 + 2) + 0.5 (3 + 4) + 0.5 (10 + 20)) / 3.
         assert!((score - 20.0 / 3.0).abs() < 1e-6, "{score}");
-        assert_eq!(alignment(&layout, &points, &features, &image, &k, &Pose::identity(), &mut scratch), score);
+        assert_eq!(alignment(&layout, &points, &features, &image.channel_major, &k, &Pose::identity(), &mut scratch), score);
         // A second call with the same scratch buffers gives the same state.
         let (first_2d, first_3d) = (s2.clone(), s3.clone());
         write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut scratch, &mut s2, &mut s3);
@@ -276,7 +450,42 @@ mod tests {
         assert_eq!(s3[14], 1.0);
         // Nothing in view: the worst score.
         let behind = Pose::from_rt(nalgebra::Matrix3::identity(), nalgebra::Vector3::new(0.0, 0.0, -100.0));
-        assert_eq!(alignment(&layout, &points, &features, &image, &k, &behind, &mut scratch), -1.0);
+        assert_eq!(alignment(&layout, &points, &features, &image.channel_major, &k, &behind, &mut scratch), -1.0);
+    }
+
+    #[test]
+    fn correlation_form_correlates_unit_cell_means_with_shifted_image_cells() {
+        // Grid 2 x 3, D = 2; shifts: one cell right along the row, one row down the column.
+        let layout = StateLayout { form: Form2d::Correlation(Shifts::new(&[1], &[1])), ..layout() };
+        let k = Intrinsics { fx: 10.0, fy: 10.0, cx: 0.0, cy: 0.0 };
+        // Cell (0, 0) gets the mean of (3, 0) and (1, 0) = (2, 0) -> unit (1, 0); cell (1, 2) gets
+        // (0, -4) -> unit (0, -1); a point at the origin feature (0, 0) sits alone in cell (0, 1).
+        let points = [[1.0f32, 1.0, 10.0], [2.0, 2.0, 10.0], [9.0, 5.0, 10.0], [5.0, 1.0, 10.0]];
+        let features = [3.0f32, 0.0, 1.0, 0.0, 0.0, -4.0, 0.0, 0.0];
+        let probs = [0.5f32; 4];
+        // Image feature of cell c: channel 0 = c, channel 1 = 10 c.
+        let cells = layout.cells();
+        let channel_major: Vec<f32> = (0..cells).map(|c| c as f32).chain((0..cells).map(|c| 10.0 * c as f32)).collect();
+        let image = ImageGrid::new(&layout, channel_major);
+        assert_eq!(&image.cell_major[2..4], &[1.0, 10.0]);
+        let mut s2 = vec![f32::NAN; layout.state_2d_len()];
+        let mut s3 = vec![f32::NAN; layout.state_3d_len()];
+        let score = write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut ScatterScratch::default(), &mut s2, &mut s3);
+        assert_eq!(s2.len(), 3 * cells);
+        let unit = 2.0 / (2.0 + 1e-6);
+        let (row_shift, column_shift, occupancy) = (&s2[..cells], &s2[cells..2 * cells], &s2[2 * cells..]);
+        // (0, 0): right neighbour is cell 1 -> 1 * unit; the cell below is cell 3 -> 3 * unit.
+        assert!((row_shift[0] - unit).abs() < 1e-6 && (column_shift[0] - 3.0 * unit).abs() < 1e-6, "{s2:?}");
+        // (1, 2) = cell 5: no right neighbour, no row below: 0 for both, but occupied.
+        assert_eq!((row_shift[5], column_shift[5], occupancy[5]), (0.0, 0.0, 1.0));
+        // The zero-feature cell and the empty cells are unoccupied and all zero.
+        assert_eq!(occupancy, &[1.0, 0.0, 0.0, 0.0, 0.0, 1.0]);
+        assert_eq!(s2.iter().filter(|v| **v != 0.0).count(), 4);
+        // The score is the form-independent alignment.
+        let features_form = ImageGrid::new(&self::layout(), image.channel_major.clone());
+        let mut f2 = vec![0f32; self::layout().state_2d_len()];
+        let same = write_state(&self::layout(), &points, &features, &probs, &features_form, &k, &Pose::identity(), &mut ScatterScratch::default(), &mut f2, &mut s3);
+        assert_eq!(score, same);
     }
 
     #[test]
@@ -311,15 +520,17 @@ mod timing {
     #[ignore]
     fn state_build_timing() {
         use rand::{Rng, SeedableRng};
-        let layout = StateLayout { dim: 64, stride: 4, grid_height: 40, grid_width: 128, image_width: 512, image_height: 160, num_state_points: 2048, xyz_scale_m: 10.0 };
+        let features_form = StateLayout { dim: 64, stride: 4, grid_height: 40, grid_width: 128, image_width: 512, image_height: 160, num_state_points: 2048, xyz_scale_m: 10.0, form: Form2d::Features };
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
         let points: Vec<[f32; 3]> = (0..40960).map(|_| [rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(-2.0..3.0)]).collect();
         let features: Vec<f32> = (0..40960 * 64).map(|_| rng.random_range(-0.2..0.2)).collect();
         let probs = vec![0.5f32; 40960];
-        let image = vec![0.1f32; layout.image_feature_len()];
         let k = Intrinsics { fx: 359.4, fy: 359.4, cx: 249.8, cy: 78.1 };
         let r = nalgebra::Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
         let pose = Pose::from_rt(r, nalgebra::Vector3::new(0.0, -0.08, -0.27));
+        let correlation = Form2d::Correlation(Shifts::new(&[-24, -16, -10, -6, -3, -1, 0, 1, 3, 6, 10, 16, 24], &[-4, -2, 2, 4]));
+        for layout in [features_form, StateLayout { form: correlation, ..features_form }] {
+        let image = ImageGrid::new(&layout, (0..layout.image_feature_len()).map(|i| (i % 13) as f32 * 0.01).collect());
         let mut s2 = vec![0f32; layout.state_2d_len()];
         let mut s3 = vec![0f32; layout.state_3d_len()];
         let mut scratch = ScatterScratch::default();
@@ -335,9 +546,11 @@ mod timing {
             write_state(&layout, &points, &features, &probs, &image, &k, &pose, &mut scratch, &mut s2, &mut s3);
         }
         println!(
-            "write_state (N = 40960): {:.3} ms wall, {:.3} ms CPU per state",
+            "write_state (N = 40960, {:?}): {:.3} ms wall, {:.3} ms CPU per state",
+            layout.form,
             t.elapsed().as_secs_f64() * 1000.0 / reps as f64,
             (cpu_ms() - c) / reps as f64
         );
+        }
     }
 }

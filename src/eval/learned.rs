@@ -209,6 +209,7 @@ mod tests {
             image_height: 160,
             num_state_points: 16,
             xyz_scale_m: 10.0,
+            form: crate::agent::Form2d::Features,
         };
         let k = Intrinsics { fx: 359.0, fy: 359.0, cx: 255.5, cy: 79.5 };
         let mut rng = ChaCha8Rng::seed_from_u64(5);

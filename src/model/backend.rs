@@ -167,9 +167,10 @@ impl Backend for OrtBackend {
         if state_2d.len() != batch * self.manifest.state_2d_len() || state_3d.len() != batch * m * 5 {
             bail!("agent inputs do not hold {batch} states");
         }
-        let s2 = TensorRef::from_array_view(([batch, 2 * f.dim, f.grid_height, f.grid_width], state_2d))?;
+        let spec = &self.manifest.state_2d;
+        let s2 = TensorRef::from_array_view(([batch, spec.channels(f.dim), f.grid_height, f.grid_width], state_2d))?;
         let s3 = TensorRef::from_array_view(([batch, m, 5usize], state_3d))?;
-        let outputs = self.agent.run(ort::inputs!["state_2d" => s2, "state_3d" => s3])?;
+        let outputs = self.agent.run(ort::inputs![spec.input_name() => s2, "state_3d" => s3])?;
         // Not checked for finiteness here: one row's NaN must fail only that row's request,
         // which the step loop decides (`agent::batch`).
         Ok(AgentOutput {

@@ -24,6 +24,9 @@ pub struct Manifest {
     pub points: PointSpec,
     pub actions: ActionSpec,
     pub graphs: BTreeMap<String, GraphSpec>,
+    /// How the agent reads the 2D half of its state; absent = [`State2dSpec::features`].
+    #[serde(default, skip_serializing_if = "State2dSpec::is_features")]
+    pub state_2d: State2dSpec,
     #[serde(default)]
     pub provenance: serde_json::Value,
     #[serde(default)]
@@ -67,6 +70,75 @@ pub struct ActionSpec {
     /// translation in the map's ground plane along the camera's heading).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frame: Option<String>,
+}
+
+/// Most shifts a correlation-form model may list (rows and columns together).
+pub const MAX_CORRELATION_SHIFTS: usize = 32;
+
+/// The 2D half of the agent's state (manifest `state_2d`).
+///
+/// - `"features"` (every model up to v3, and the meaning when the section is absent): the agent
+///   graph takes `state_2d` [B, 2D, GH, GW], the image features followed by the scatter-mean of
+///   the projected point features, and correlates them itself.
+/// - `"correlation"`: the server computes that correlation (`agent::state`, the twin of
+///   `training/cmr/models.py::Agent.correlate`) and the agent graph takes `correlation`
+///   [B, S + 1, GH, GW]: for each row shift s the cosine of a cell's unit point feature with the
+///   image feature s cells to the right, then for each column shift the one s cells down, each 0
+///   off the grid and at empty cells, and last the occupancy (1 where points project). Same
+///   numbers into the same layers, without the 2D·GH·GW copy per row and the dense product
+///   the graph spends most of its time on.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct State2dSpec {
+    pub form: String,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub row_shifts: Vec<i32>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub column_shifts: Vec<i32>,
+}
+
+impl Default for State2dSpec {
+    fn default() -> Self {
+        Self::features()
+    }
+}
+
+impl State2dSpec {
+    pub fn features() -> Self {
+        Self { form: "features".into(), row_shifts: Vec::new(), column_shifts: Vec::new() }
+    }
+
+    pub fn is_features(&self) -> bool {
+        self.form == "features"
+    }
+
+    /// Channels of one row of the agent's 2D input.
+    pub fn channels(&self, dim: usize) -> usize {
+        if self.is_features() { 2 * dim } else { self.row_shifts.len() + self.column_shifts.len() + 1 }
+    }
+
+    /// The agent graph's name for its 2D input.
+    pub fn input_name(&self) -> &'static str {
+        if self.is_features() { "state_2d" } else { "correlation" }
+    }
+
+    fn validate(&self, f: &FeatureSpec) -> Result<(), String> {
+        match self.form.as_str() {
+            "features" if self.row_shifts.is_empty() && self.column_shifts.is_empty() => Ok(()),
+            "features" => Err("state_2d: the features form takes no shifts".into()),
+            "correlation" => {
+                let n = self.row_shifts.len() + self.column_shifts.len();
+                if self.row_shifts.is_empty() || n > MAX_CORRELATION_SHIFTS {
+                    return Err(format!("state_2d: a correlation needs 1..={MAX_CORRELATION_SHIFTS} shifts with at least one row shift"));
+                }
+                let wide = |s: &[i32], limit: usize| s.iter().any(|d| d.unsigned_abs() as usize >= limit);
+                if wide(&self.row_shifts, f.grid_width) || wide(&self.column_shifts, f.grid_height) {
+                    return Err("state_2d: every shift must stay inside the feature grid".into());
+                }
+                Ok(())
+            }
+            other => Err(format!("state_2d.form must be \"features\" or \"correlation\", got {other:?}")),
+        }
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -185,6 +257,7 @@ impl Manifest {
             ActionFrame::parse(frame).map_err(|e| format!("actions.frame: {e}"))?;
         }
         self.action_set().validate().map_err(|e| format!("actions: {e}"))?;
+        self.state_2d.validate(f)?;
         for name in GRAPH_NAMES {
             let spec = self.graphs.get(name).ok_or_else(|| format!("graph {name:?} is missing"))?;
             let contract = self.contract(name);
@@ -229,9 +302,10 @@ impl Manifest {
         f.dim * f.grid_height * f.grid_width
     }
 
-    /// Values of one agent `state_2d` row: 2D · GH · GW.
+    /// Values of one row of the agent's 2D input (`state_2d` section): channels · GH · GW.
     pub fn state_2d_len(&self) -> usize {
-        2 * self.image_feature_len()
+        let f = &self.features;
+        self.state_2d.channels(f.dim) * f.grid_height * f.grid_width
     }
 
     pub fn num_actions(&self) -> usize {
@@ -269,7 +343,7 @@ impl Manifest {
             },
             "agent" => GraphContract {
                 inputs: vec![
-                    ("state_2d", vec![Any, Fixed(2 * d), Fixed(gh), Fixed(gw)]),
+                    (self.state_2d.input_name(), vec![Any, Fixed(self.state_2d.channels(d as usize) as i64), Fixed(gh), Fixed(gw)]),
                     ("state_3d", vec![Any, Fixed(m), Fixed(5)]),
                 ],
                 outputs: vec![("policy_logits", vec![Any, Fixed(3), Fixed(a)]), ("value", vec![Any, Fixed(1)])],
@@ -357,6 +431,14 @@ mod tests {
             (Box::new(|v| v["actions"]["dofs"] = serde_json::json!(["tx_m", "yaw_deg", "tz_m"])), "actions.dofs"),
             (Box::new(|v| v["actions"]["frame"] = "camera_z".into()), "actions.frame"),
             (Box::new(|v| v["actions"]["frame"] = serde_json::json!(3)), "malformed"),
+            (Box::new(|v| v["state_2d"] = serde_json::json!({"form": "pixels"})), "state_2d.form"),
+            (Box::new(|v| v["state_2d"] = serde_json::json!({"form": "features", "row_shifts": [1]})), "takes no shifts"),
+            (Box::new(|v| v["state_2d"] = serde_json::json!({"form": "correlation", "row_shifts": [], "column_shifts": [1]})), "at least one row shift"),
+            (Box::new(|v| v["state_2d"] = serde_json::json!({"form": "correlation", "row_shifts": [128]})), "inside the feature grid"),
+            (Box::new(|v| v["state_2d"] = serde_json::json!({"form": "correlation", "row_shifts": [0], "column_shifts": [-40]})), "inside the feature grid"),
+            // The tiny agent reads the features form: a manifest claiming the correlation form
+            // must not load it (its graph's 2D input is `state_2d`).
+            (Box::new(|v| v["state_2d"] = serde_json::json!({"form": "correlation", "row_shifts": [0, 1]})), "\"correlation\" is not declared"),
         ];
         for (edit, needle) in cases {
             let dir = tempfile::tempdir().unwrap();
@@ -365,6 +447,17 @@ mod tests {
             let err = Manifest::load(dir.path()).unwrap_err().to_string();
             assert!(err.contains(needle), "{err} should mention {needle}");
         }
+    }
+
+    #[test]
+    fn state_2d_defaults_to_the_features_form_and_sizes_the_correlation_form() {
+        let mut m = Manifest::load(&fixture_dir()).unwrap();
+        assert!(m.state_2d.is_features());
+        assert_eq!((m.state_2d.input_name(), m.state_2d_len()), ("state_2d", 2 * 64 * 40 * 128));
+        assert!(serde_json::to_value(&m).unwrap().get("state_2d").is_none(), "absent stays absent");
+        m.state_2d = State2dSpec { form: "correlation".into(), row_shifts: vec![-1, 0, 1], column_shifts: vec![2] };
+        assert_eq!((m.state_2d.input_name(), m.state_2d_len()), ("correlation", 5 * 40 * 128));
+        assert_eq!(m.contract("agent").inputs[0], ("correlation", vec![Dim::Any, Dim::Fixed(5), Dim::Fixed(40), Dim::Fixed(128)]));
     }
 
     #[test]

@@ -13,7 +13,7 @@ use anyhow::Result;
 
 pub use backend::{BackendOptions, ModelSet, OrtBackend};
 pub use fake::FakeBackend;
-pub use manifest::{MANIFEST_FORMAT, Manifest};
+pub use manifest::{MANIFEST_FORMAT, MAX_CORRELATION_SHIFTS, Manifest, State2dSpec};
 
 /// The agent's raw outputs for a batch of B states.
 #[derive(Debug, Clone)]
@@ -40,7 +40,8 @@ pub trait Backend: Send {
     /// In-frustum logits [N] for the map's point features [N, D] given one image's features.
     fn frustum_logits(&mut self, point_features: &[f32], image_features: &[f32]) -> Result<Vec<f32>>;
 
-    /// One batched policy step: `state_2d` [B, 2D, GH, GW] and `state_3d` [B, M, 5].
+    /// One batched policy step: the 2D input [B, C, GH, GW] (`Manifest::state_2d`: the features
+    /// form's C = 2D, the correlation form's C = shifts + 1) and `state_3d` [B, M, 5].
     fn agent_step(&mut self, state_2d: &[f32], state_3d: &[f32], batch: usize) -> Result<AgentOutput>;
 
     /// Runs every graph once on synthetic inputs so the first real request does not pay for

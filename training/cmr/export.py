@@ -1,9 +1,17 @@
 """Export the four graphs to ONNX and write `models/manifest.json` (format cmr-agent-manifest/1).
 
     python -m cmr.export --checkpoint runs/x/agent.pt --out ../models [--validation eval.json]
+    python -m cmr.export --to-correlation ../models
 
 Without --checkpoint the graphs carry their random initialisation (said so in the provenance).
 Every file is written atomically (temp file in the same directory, fsync, rename).
+
+The agent is exported in the correlation form (manifest `state_2d.form`): the graph starts after
+`Agent.correlate`, which is parameter-free and which the server computes in Rust on the occupied
+cells only; a network without `correlate` (the tiny test fixture) keeps the features form.
+`--to-correlation DIR` converts a features-form model set whose agent is `models.Agent` (v3 and
+older) by cutting its ONNX graph at the correlation volume: same weights, checked against the
+uncut graph on random states before anything is written.
 """
 
 from __future__ import annotations
@@ -21,12 +29,13 @@ from pathlib import Path
 
 import numpy as np
 import onnx
+import onnx.utils
 import torch
 
 from . import geometry as g
 from .flops import count as count_flops
-from .models import (FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, IMAGE_HEIGHT, IMAGE_WIDTH, NUM_DOFS, NUM_STEPS,
-                     STRIDE, arch_of, build_all, parameter_counts)
+from .models import (COLUMN_SHIFTS, FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, IMAGE_HEIGHT, IMAGE_WIDTH, NUM_DOFS,
+                     NUM_STEPS, ROW_SHIFTS, STRIDE, Agent, arch_of, build_all, parameter_counts)
 
 MANIFEST_FORMAT = "cmr-agent-manifest/1"
 OPSET = 18
@@ -43,9 +52,14 @@ GRAPH_IO = {
     "image_encoder": (["image"], ["image_features"], {}),
     "frustum_head": (["point_features", "image_features"], ["frustum_logits"],
                      {"point_features": {1: "N"}, "frustum_logits": {1: "N"}}),
-    "agent": (["state_2d", "state_3d"], ["policy_logits", "value"],
-              {"state_2d": {0: "B"}, "state_3d": {0: "B"}, "policy_logits": {0: "B"}, "value": {0: "B"}}),
+    "agent": (["correlation", "state_3d"], ["policy_logits", "value"],
+              {"correlation": {0: "B"}, "state_3d": {0: "B"}, "policy_logits": {0: "B"}, "value": {0: "B"}}),
 }
+# The agent in the features form (networks without `correlate`).
+AGENT_FEATURES_IO = (["state_2d", "state_3d"], ["policy_logits", "value"],
+                     {"state_2d": {0: "B"}, "state_3d": {0: "B"}, "policy_logits": {0: "B"}, "value": {0: "B"}})
+CORRELATION_CHANNELS = len(ROW_SHIFTS) + len(COLUMN_SHIFTS) + 1
+CORRELATION_STATE = dict(form="correlation", row_shifts=list(ROW_SHIFTS), column_shifts=list(COLUMN_SHIFTS))
 
 CONTRACT_SHAPES = {
     "point_encoder": ({"points": [1, "N", 3]}, {"point_features": [1, "N", FEATURE_DIM]}),
@@ -54,9 +68,27 @@ CONTRACT_SHAPES = {
     "frustum_head": ({"point_features": [1, "N", FEATURE_DIM],
                       "image_features": [1, FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH]},
                      {"frustum_logits": [1, "N"]}),
-    "agent": ({"state_2d": ["B", 2 * FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH], "state_3d": ["B", NUM_STATE_POINTS, 5]},
+    "agent": ({"correlation": ["B", CORRELATION_CHANNELS, GRID_HEIGHT, GRID_WIDTH], "state_3d": ["B", NUM_STATE_POINTS, 5]},
               {"policy_logits": ["B", NUM_DOFS, NUM_STEPS], "value": ["B", 1]}),
 }
+AGENT_FEATURES_SHAPES = ({"state_2d": ["B", 2 * FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH], "state_3d": ["B", NUM_STATE_POINTS, 5]},
+                         {"policy_logits": ["B", NUM_DOFS, NUM_STEPS], "value": ["B", 1]})
+
+
+class AgentOnCorrelation(torch.nn.Module):
+    """`Agent.decide` as a graph: (correlation [B, S+1, GH, GW], state_3d [B, M, 5]) -> (policy
+    logits [B, 3, 11], value [B, 1])."""
+
+    def __init__(self, agent: Agent):
+        super().__init__()
+        self.agent = agent
+
+    def forward(self, correlation, state_3d):
+        return self.agent.decide(correlation, state_3d)
+
+
+def is_correlation_agent(module: torch.nn.Module) -> bool:
+    return hasattr(module, "correlate") and hasattr(module, "decide")
 
 
 def example_inputs(name: str, num_points: int = 4096, batch: int = 1, seed: int = 0) -> tuple[torch.Tensor, ...]:
@@ -73,6 +105,8 @@ def example_inputs(name: str, num_points: int = 4096, batch: int = 1, seed: int 
         return pf, im
     if name == "agent":
         s2 = torch.randn(batch, 2 * FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, generator=gen) * 0.1
+        # A state has empty cells (exactly zero point features), as in the server.
+        s2[:, FEATURE_DIM:] *= (torch.rand(batch, 1, GRID_HEIGHT, GRID_WIDTH, generator=gen) < 0.4).float()
         s3 = torch.rand(batch, NUM_STATE_POINTS, 5, generator=gen)
         return s2, s3
     raise KeyError(name)
@@ -94,13 +128,23 @@ def atomic_write_bytes(path: Path, data: bytes) -> None:
         raise
 
 
-def onnx_bytes(name: str, module: torch.nn.Module) -> bytes:
+def onnx_bytes(name: str, module: torch.nn.Module, correlation: bool = True) -> bytes:
+    """One graph as ONNX bytes; `correlation`: export an agent that has `correlate` in the
+    correlation form (else the features form)."""
     inputs, outputs, dynamic = GRAPH_IO[name]
+    example = example_inputs(name)
+    if name == "agent":
+        if correlation and is_correlation_agent(module):
+            with torch.no_grad():
+                example = (module.eval().correlate(example[0]), example[1])
+            module = AgentOnCorrelation(module)
+        else:
+            inputs, outputs, dynamic = AGENT_FEATURES_IO
     buf = io.BytesIO()
     # The TorchScript exporter is deprecated but yields plain opset-18 graphs with stable names.
     with torch.no_grad(), warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
-        torch.onnx.export(module.eval(), example_inputs(name), buf, input_names=inputs, output_names=outputs,
+        torch.onnx.export(module.eval(), example, buf, input_names=inputs, output_names=outputs,
                           dynamic_axes=dynamic or None, opset_version=OPSET, dynamo=False, do_constant_folding=True)
     return buf.getvalue()
 
@@ -120,14 +164,14 @@ def action_frame_of(meta: dict) -> str:
 
 
 def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenance: dict, validation: dict,
-             action_frame: str = g.CAMERA_Y, flops: dict[str, int] | None = None) -> dict:
+             action_frame: str = g.CAMERA_Y, flops: dict[str, int] | None = None, correlation: bool = True) -> dict:
     graphs = {}
     for name, (file, sha) in files.items():
-        ins, outs = CONTRACT_SHAPES[name]
+        ins, outs = AGENT_FEATURES_SHAPES if name == "agent" and not correlation else CONTRACT_SHAPES[name]
         graphs[name] = dict(file=file, sha256=sha, inputs=ins, outputs=outs)
         if flops and name in flops:
             graphs[name]["flops"] = flops[name]
-    return {
+    doc = {
         "format": MANIFEST_FORMAT,
         "image": dict(width=IMAGE_WIDTH, height=IMAGE_HEIGHT, nominal_scale=NOMINAL_SCALE, mean=list(IMAGE_MEAN),
                       std=list(IMAGE_STD)),
@@ -140,14 +184,20 @@ def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenan
         "validation": validation,
         "parameters": params,
     }
+    if correlation:
+        doc["state_2d"] = dict(CORRELATION_STATE)
+    return doc
 
 
 def export_models(models: dict[str, torch.nn.Module], out_dir: Path, provenance: dict, validation: dict | None = None,
-                  action_frame: str = g.CAMERA_Y) -> dict:
+                  action_frame: str = g.CAMERA_Y, correlation: bool = True) -> dict:
+    """Writes the four graphs and the manifest. `correlation=False` keeps the agent in the
+    features form even when it could take the correlation (for tests of `to_correlation`)."""
     out_dir = Path(out_dir)
+    correlation = correlation and is_correlation_agent(models["agent"])
     files, flops = {}, {}
     for name, module in models.items():
-        data = onnx_bytes(name, module)
+        data = onnx_bytes(name, module, correlation)
         atomic_write_bytes(out_dir / f"{name}.onnx", data)
         files[name] = (f"{name}.onnx", hashlib.sha256(data).hexdigest())
         sizes = {"N": NUM_POINTS, "B": 1}
@@ -155,8 +205,67 @@ def export_models(models: dict[str, torch.nn.Module], out_dir: Path, provenance:
     provenance = dict(provenance)
     provenance.setdefault("git_commit", git_commit())
     provenance.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
-    doc = manifest(files, parameter_counts(models), provenance, validation or {}, action_frame, flops)
+    doc = manifest(files, parameter_counts(models), provenance, validation or {}, action_frame, flops,
+                   correlation=correlation)
     atomic_write_bytes(out_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
+    return doc
+
+
+def to_correlation(model_dir: Path, seed: int = 0) -> dict:
+    """Converts a features-form model set in place: cuts `agent.onnx` at the correlation volume
+    (the input of its first Conv, the output of `Agent.correlate`'s final Concat), renames that
+    input `correlation`, checks the cut graph on `Agent.correlate` of random states against the
+    uncut graph (relative error < 1e-4 on a batch of 4), then rewrites the graph and the manifest
+    (state_2d section, agent sha256, inputs and FLOPs). Raises ValueError when the set is already
+    converted or its agent is not `models.Agent`."""
+    import onnxruntime as ort
+
+    model_dir = Path(model_dir)
+    doc = json.loads((model_dir / "manifest.json").read_text())
+    if doc.get("state_2d", {}).get("form", "features") != "features":
+        raise ValueError(f"{model_dir}: the agent is already in the {doc['state_2d']['form']} form")
+    spec = doc["graphs"]["agent"]
+    full = onnx.load(str(model_dir / spec["file"]))
+    inferred = onnx.shape_inference.infer_shapes(full)
+    convs = [n for n in inferred.graph.node if n.op_type == "Conv"]
+    producers = {o: n for n in inferred.graph.node for o in n.output}
+    if not convs or producers.get(convs[0].input[0]) is None or producers[convs[0].input[0]].op_type != "Concat":
+        raise ValueError(f"{model_dir}: the agent graph is not models.Agent (no correlation volume before its CNN)")
+    volume = convs[0].input[0]
+    cut = onnx.utils.Extractor(inferred).extract_model([volume, "state_3d"], ["policy_logits", "value"])
+    for node in cut.graph.node:
+        node.input[:] = ["correlation" if i == volume else i for i in node.input]
+    cut.graph.input[0].name = "correlation"
+    cut.graph.input[0].type.tensor_type.shape.dim[0].dim_param = "B"
+    channels = [d.dim_value for d in cut.graph.input[0].type.tensor_type.shape.dim[1:]]
+    if channels != [CORRELATION_CHANNELS, GRID_HEIGHT, GRID_WIDTH]:
+        raise ValueError(f"{model_dir}: the correlation volume is {channels}, expected {[CORRELATION_CHANNELS, GRID_HEIGHT, GRID_WIDTH]}")
+    del cut.graph.value_info[:]
+    onnx.checker.check_model(cut)
+    data = cut.SerializeToString()
+
+    # Same numbers: the uncut graph on random states vs the cut one on their correlation.
+    state_2d, state_3d = example_inputs("agent", batch=4, seed=seed)
+    with torch.no_grad():
+        volume_in = Agent().correlate(state_2d)
+    opts = ort.SessionOptions()
+    want = ort.InferenceSession(full.SerializeToString(), opts, providers=["CPUExecutionProvider"]).run(
+        None, {"state_2d": state_2d.numpy(), "state_3d": state_3d.numpy()})
+    got = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"]).run(
+        None, {"correlation": volume_in.numpy(), "state_3d": state_3d.numpy()})
+    for w, g_ in zip(want, got):
+        rel = float(np.abs(w - g_).max() / max(np.abs(w).max(), 1e-6))
+        if not rel < 1e-4:
+            raise ValueError(f"{model_dir}: the cut agent differs from the full one (relative error {rel:.2e})")
+
+    atomic_write_bytes(model_dir / spec["file"], data)
+    spec["sha256"] = hashlib.sha256(data).hexdigest()
+    spec["inputs"] = CONTRACT_SHAPES["agent"][0]
+    spec["flops"] = count_flops(cut, {"B": 1})[0]
+    doc["state_2d"] = dict(CORRELATION_STATE)
+    doc.setdefault("provenance", {})["converted"] = (
+        "agent cut at the correlation volume by `python -m cmr.export --to-correlation` (same weights)")
+    atomic_write_bytes(model_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
     return doc
 
 
@@ -184,7 +293,13 @@ def main(argv=None) -> None:
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[2] / "models")
     ap.add_argument("--validation", type=Path, help="JSON file with validation figures to embed")
     ap.add_argument("--seed", type=int, default=0, help="init seed when no checkpoint is given")
+    ap.add_argument("--to-correlation", type=Path, metavar="DIR",
+                    help="convert the features-form model set in DIR to the correlation form, in place")
     args = ap.parse_args(argv)
+    if args.to_correlation:
+        doc = to_correlation(args.to_correlation)
+        print(json.dumps({"state_2d": doc["state_2d"], "agent": doc["graphs"]["agent"]}, indent=2))
+        return
     torch.manual_seed(args.seed)
     models, meta = load_models(args.checkpoint)
     if args.checkpoint is None:

@@ -9,7 +9,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from cmr.export import GRAPH_IO, MANIFEST_FORMAT, example_inputs, export_models
+from cmr.export import GRAPH_IO, MANIFEST_FORMAT, example_inputs, export_models, to_correlation
 from cmr.models import build_all
 
 
@@ -54,6 +54,9 @@ def test_parity(exported, name):
     with torch.no_grad():
         want = models[name](*inputs)
     want = want if isinstance(want, tuple) else (want,)
+    if name == "agent":  # the correlation form: the graph starts after `Agent.correlate`
+        with torch.no_grad():
+            inputs = (models["agent"].correlate(inputs[0]), inputs[1])
     sess = ort.InferenceSession(str(out / f"{name}.onnx"), providers=["CPUExecutionProvider"])
     got = sess.run(None, {i.name: t.numpy() for i, t in zip(sess.get_inputs(), inputs)})
     for w, g_ in zip(want, got):
@@ -73,3 +76,42 @@ def test_features_are_unit_length_and_origin_free(exported):
     assert np.allclose(np.linalg.norm(a, axis=-1), 1.0, atol=1e-4)
     # Centring inside the graph: moving the map origin changes (almost) nothing.
     assert np.median(np.abs(a - b)) < 1e-3
+
+
+def test_to_correlation_cuts_a_features_form_agent_without_changing_it(tmp_path):
+    """v3 and older ship the agent in the features form; `--to-correlation` cuts the graph at the
+    correlation volume. The cut graph fed with `Agent.correlate` answers as the network did."""
+    torch.manual_seed(1)
+    models = build_all()
+    for m in models.values():
+        m.eval()
+    doc = export_models(models, tmp_path, dict(data="test", seeds={}), correlation=False)
+    assert "state_2d" not in doc and list(doc["graphs"]["agent"]["inputs"]) == ["state_2d", "state_3d"]
+    doc = to_correlation(tmp_path)
+    assert doc["state_2d"]["form"] == "correlation"
+    assert json.loads((tmp_path / "manifest.json").read_text()) == doc
+    data = (tmp_path / "agent.onnx").read_bytes()
+    assert hashlib.sha256(data).hexdigest() == doc["graphs"]["agent"]["sha256"]
+    sess = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
+    assert [i.name for i in sess.get_inputs()] == ["correlation", "state_3d"]
+    state_2d, state_3d = example_inputs("agent", batch=2, seed=5)
+    with torch.no_grad():
+        want = models["agent"](state_2d, state_3d)
+        volume = models["agent"].correlate(state_2d)
+    got = sess.run(None, {"correlation": volume.numpy(), "state_3d": state_3d.numpy()})
+    for w, g_ in zip(want, got):
+        assert np.abs(w.numpy() - g_).max() <= 1e-4 * max(np.abs(w.numpy()).max(), 1e-6)
+    # The FLOPs left in the graph: the dense correlation product is gone.
+    assert doc["graphs"]["agent"]["flops"] < 0.5 * 146e6
+    with pytest.raises(ValueError, match="already"):
+        to_correlation(tmp_path)
+
+
+def test_to_correlation_refuses_an_agent_without_a_correlation(tmp_path):
+    from cmr.fixture_models import TinyAgent, TinyFrustumHead, TinyImageEncoder, TinyPointEncoder
+    torch.manual_seed(0)
+    models = {"point_encoder": TinyPointEncoder(), "image_encoder": TinyImageEncoder(),
+              "frustum_head": TinyFrustumHead(), "agent": TinyAgent()}
+    export_models(models, tmp_path, dict(data="test", seeds={}))
+    with pytest.raises(ValueError, match="not models.Agent"):
+        to_correlation(tmp_path)

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cmr.models import FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH
+from cmr.models import COLUMN_SHIFTS, FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, ROW_SHIFTS, Agent
 from cmr.state import alignment, build_state
 
 FIXTURE = json.loads((Path(__file__).resolve().parents[2] / "fixtures" / "state.json").read_text())
@@ -46,3 +46,19 @@ def test_alignment_matches_rust():
     want = FIXTURE["alignment"]
     got = float(alignment(pose, points, kk, features, image)[0])
     assert abs(got - want) <= 1e-4 * abs(want), (got, want)
+
+
+def test_correlation_matches_rust():
+    """The correlation-form state (manifest `state_2d.form` = correlation): the server computes
+    `Agent.correlate` in Rust (`agent::state::write_correlation`); key `correlation` holds its cells."""
+    pose, points, kk, features, image, probs = fixture_tensors()
+    stored = FIXTURE["correlation"]
+    assert (tuple(stored["row_shifts"]), tuple(stored["column_shifts"])) == (ROW_SHIFTS, COLUMN_SHIFTS)
+    state_2d, _ = build_state(pose, points, kk, features, image, probs)
+    with torch.no_grad():
+        volume = Agent().correlate(state_2d)[0].reshape(len(ROW_SHIFTS) + len(COLUMN_SHIFTS) + 1, -1).numpy()
+    expected = np.zeros_like(volume)
+    for entry in stored["cells"]:
+        expected[:, entry["cell"]] = entry["values"]
+    assert len(stored["cells"]) > 10
+    assert np.allclose(volume, expected, atol=1e-5), np.abs(volume - expected).max()
