@@ -194,7 +194,7 @@ def export_models(models: dict[str, torch.nn.Module], out_dir: Path, provenance:
     """Writes the four graphs and the manifest. `correlation=False` keeps the agent in the
     features form even when it could take the correlation (for tests of `to_correlation`)."""
     out_dir = Path(out_dir)
-    correlation = correlation and is_correlation_agent(models["agent"])
+    correlation = correlation and "agent" in models and is_correlation_agent(models["agent"])
     files, flops = {}, {}
     for name, module in models.items():
         data = onnx_bytes(name, module, correlation)

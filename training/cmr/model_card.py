@@ -71,6 +71,27 @@ Agent (argmax policy), single start (the paper's protocol: one trajectory from t
 {_table(evaluation['agent_single_start'], keys, heads)}"""
 
 
+def compute_table(manifest: dict) -> str:
+    """The graphs' FLOPs from the manifest (`graphs.*.flops`, counted by `cmr.flops`; N = 40,960
+    points, batch 1) and, for a correlation-form agent (`state_2d`), the server's share of each
+    policy row counted as if every cell were occupied (an upper bound)."""
+    graphs = manifest["graphs"]
+    if not all("flops" in g for g in graphs.values()):
+        return "FLOPs: not recorded in this manifest."
+    f = manifest["features"]
+    spec = manifest.get("state_2d", {"form": "features"})
+    rows = [f"| {name} ({'per policy row' if name == 'agent' else 'per request' if name != 'point_encoder' else 'per map'}) "
+            f"| {graphs[name]['flops'] / 1e9:.3f} |" for name in graphs]
+    note = f"Agent state form: `{spec['form']}`."
+    if spec["form"] == "correlation":
+        shifts = len(spec["row_shifts"]) + len(spec["column_shifts"])
+        upper = 2 * shifts * f["dim"] * f["grid_height"] * f["grid_width"]
+        rows.append(f"| correlation in the server (per policy row, at most) | {upper / 1e9:.3f} |")
+        note += (" The server computes the parameter-free correlation on the occupied cells and the graph "
+                 "starts after it (docs/architecture.md, model contract).")
+    return "| graph | GFLOP |\n|---|---|\n" + "\n".join(rows) + "\n\n" + note
+
+
 def render(manifest: dict, evaluation: dict, bench: dict, train_rows: list[dict], test_rows: list[dict],
            curves: str, notes: str, diagnosis: dict | None = None) -> str:
     params = manifest["parameters"]
@@ -94,6 +115,10 @@ Four ONNX graphs (opset 18, standard operators) described by `manifest.json` (fo
 
 Provenance: `{json.dumps(manifest['provenance'].get('training', {}))}`, git commit
 `{manifest['provenance'].get('git_commit')}`, created {manifest['provenance'].get('created')}.
+
+Compute:
+
+{compute_table(manifest)}
 
 ## Data
 Training sequences (KITTI-odometry layout written by `cmr-agent synth`):
