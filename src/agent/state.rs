@@ -224,6 +224,9 @@ fn write_correlation(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], 
 }
 
 /// `write_correlation` for feature width `D` (0: `layout.dim`, not known at compile time).
+/// Compiled also for AVX2 and chosen at run time where the CPU has it (`multiversion`): wider
+/// vectors for the same operations in the same order (no FMA), so the same results.
+#[multiversion::multiversion(targets("x86_64+avx2"))]
 fn correlate_cells<const D: usize>(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) {
     let (d, w, h, cells) = (layout.dim, layout.grid_width, layout.grid_height, layout.cells());
     debug_assert!(D == 0 || D == d);
