@@ -348,7 +348,7 @@ function showResult(r) {
   table.dataset.cameraFromMap = JSON.stringify(r.pose.camera_from_map);
   for (const row of r.pose.camera_from_map) {
     const tr = document.createElement('tr');
-    for (const v of row) tr.appendChild(cell('td', fmt(v, 6)));
+    for (const v of row) tr.appendChild(cell('td', fmt(Math.abs(v) < 5e-7 ? 0 : v, 6)));
     table.appendChild(tr);
   }
   out.appendChild(table);
@@ -437,7 +437,7 @@ function drawImageView() {
   ctx.fillRect(0, 0, canvas.width, canvas.height);
   const k = scaled(state.intrinsicsUsed, s);
   const projected = projectPoints(state.points, pose, k, canvas.width, canvas.height);
-  const r = Math.max(1.5, canvas.width / 700);
+  const r = Math.max(1.2, canvas.width / 1000);
   for (const [u, v, z] of projected) {
     ctx.fillStyle = depthColor(z);
     ctx.fillRect(u - r, v - r, 2 * r, 2 * r);
