@@ -29,12 +29,17 @@ fn say(line: &str) {
     let _ = writeln!(std::io::stderr(), "{line}");
 }
 
-fn find_program(env: &str, names: &[&str]) -> Option<PathBuf> {
+/// `$env` when set (it must name a file), else the first of `names` on PATH; Err says why not.
+fn find_program(env: &str, names: &[&str]) -> Result<PathBuf, String> {
     if let Some(p) = std::env::var_os(env).filter(|p| !p.is_empty()) {
-        return Some(PathBuf::from(p));
+        let p = PathBuf::from(p);
+        return if p.is_file() { Ok(p) } else { Err(format!("{env}={} is not a file", p.display())) };
     }
-    let path = std::env::var_os("PATH")?;
-    std::env::split_paths(&path).flat_map(|dir| names.iter().map(move |n| dir.join(n))).find(|p| p.is_file())
+    let path = std::env::var_os("PATH").unwrap_or_default();
+    std::env::split_paths(&path)
+        .flat_map(|dir| names.iter().map(move |n| dir.join(n)))
+        .find(|p| p.is_file())
+        .ok_or_else(|| format!("none of {names:?} on PATH"))
 }
 
 /// chromedriver on a free loopback port, killed on drop.
@@ -173,11 +178,18 @@ async fn web_page_in_chromium() {
     let required = std::env::var("CMR_REQUIRE_BROWSER").is_ok_and(|v| v == "1");
     let chromium = find_program("CHROMIUM", &["chromium", "chromium-browser", "google-chrome"]);
     let chromedriver = find_program("CHROMEDRIVER", &["chromedriver"]);
-    let (Some(chromium), Some(chromedriver)) = (chromium, chromedriver) else {
-        let why = "web_page_in_chromium SKIPPED: chromium and/or chromedriver not found (run scripts/install-chromium.sh, or set CHROMIUM and CHROMEDRIVER)";
-        say(why);
-        assert!(!required, "{why}, and CMR_REQUIRE_BROWSER=1");
-        return;
+    let (chromium, chromedriver) = match (chromium, chromedriver) {
+        (Ok(a), Ok(b)) => (a, b),
+        (a, b) => {
+            let reasons: Vec<String> = [a.err(), b.err()].into_iter().flatten().collect();
+            let why = format!(
+                "web_page_in_chromium SKIPPED: no browser: {} (run scripts/install-chromium.sh, or set CHROMIUM and CHROMEDRIVER)",
+                reasons.join("; ")
+            );
+            say(&why);
+            assert!(!required, "{why}, and CMR_REQUIRE_BROWSER=1");
+            return;
+        }
     };
 
     // A real server with the default model, the demo region and an admin token.
