@@ -1,9 +1,10 @@
 //! The web page in a real browser: Debian's headless Chromium driven through chromedriver
 //! (WebDriver, the `fantoccini` crate) against a real server on loopback with the project's
-//! default model. It loads the page, picks an image through the file input, runs the demo,
-//! checks that the pose the page shows is the API's answer to the same request, that both
-//! canvases are drawn and the iteration slider redraws, that an API error is shown as the API's
-//! `{error, error_type}`, and that a region can be uploaded and deleted with the admin token.
+//! default model. It loads the page, picks an image through the file input and drops one on the
+//! page, runs the demo, checks that the pose the page shows is the API's answer to the same
+//! request, that both canvases are drawn and the iteration slider redraws, that an API error is
+//! shown as the API's `{error, error_type}`, and that a region can be uploaded and deleted with
+//! the admin token.
 //! It saves a screenshot to `target/web-ui.png` (and to `docs/web-ui.png` with
 //! `CMR_UPDATE_DOCS=1`).
 //!
@@ -222,6 +223,16 @@ async fn web_page_in_chromium() {
     assert_eq!(text(&c, "#image-info").await, "street.jpg: 1241×376");
     assert_eq!(js(&c, "return document.getElementById('preset').value").await, json!("kitti"));
 
+    // A file dropped on the page (a real `drop` event carrying a File).
+    let drop_file = r#"
+        const bytes = Uint8Array.from(atob(arguments[0]), (ch) => ch.charCodeAt(0));
+        const data = new DataTransfer();
+        data.items.add(new File([bytes], 'dropped.jpg', {type: 'image/jpeg'}));
+        document.getElementById('drop').dispatchEvent(new DragEvent('drop', {dataTransfer: data, bubbles: true, cancelable: true}));
+    "#;
+    c.execute(drop_file, vec![demo["image"].clone()]).await.unwrap();
+    wait_for(&c, "document.getElementById('image-info').textContent === 'dropped.jpg: 1241×376'", Duration::from_secs(10), "the dropped image").await;
+
     // The demo, through the page.
     c.find(Locator::Id("demo")).await.unwrap().click().await.unwrap();
     wait_for(&c, "document.getElementById('image-info').textContent.startsWith('demo image')", Duration::from_secs(10), "the demo image").await;
@@ -251,6 +262,31 @@ async fn web_page_in_chromium() {
     assert_eq!(text(&c, "#r-converged").await.starts_with("yes"), answer["converged"].as_bool().unwrap());
     assert!(text(&c, "#r-confidence").await.starts_with(&format!("{:.3}", answer["confidence"]["score"].as_f64().unwrap())));
     assert!(text(&c, "#timings").await.contains("agent steps"));
+
+    // The page's projection (app.js projectPoints) is src/geometry's: the same points, pose and
+    // intrinsics give the same pixels and depths as render::project_points.
+    let page_points: Vec<[f64; 3]> = serde_json::from_value(
+        js(&c, "const p = projectPoints(state.points, state.poses[state.poses.length - 1], state.intrinsicsUsed, state.image.width, state.image.height); return p;").await,
+    )
+    .unwrap();
+    let n_points = js(&c, "return state.points.length / 3").await.as_u64().unwrap() as usize;
+    let entry = server.state.maps.store.get("demo").unwrap();
+    let prepared = server.state.maps.prepared_for(&entry).unwrap();
+    let rows: [[f64; 4]; 4] = serde_json::from_value(api_pose.clone()).unwrap();
+    let k = cmr_agent::geometry::Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 };
+    assert_eq!(serde_json::to_value(k).unwrap(), demo["intrinsics"]);
+    let pose = cmr_agent::geometry::Pose::from_matrix(&rows).unwrap();
+    let rust_points = cmr_agent::render::project_points(&prepared.points[..n_points], &k, &pose, 1241, 376);
+    assert!(rust_points.len() > 500, "{} points in view", rust_points.len());
+    assert_eq!(page_points.len(), rust_points.len(), "points in view: page {}, Rust {}", page_points.len(), rust_points.len());
+    let key = |p: &[f64; 3]| ((p[0] * 1e3).round() as i64, (p[1] * 1e3).round() as i64);
+    let mut a: Vec<[f64; 3]> = page_points.clone();
+    let mut b: Vec<[f64; 3]> = rust_points.iter().map(|&(u, v, z)| [u, v, z]).collect();
+    a.sort_by_key(key);
+    b.sort_by_key(key);
+    for (p, q) in a.iter().zip(&b) {
+        assert!((0..3).all(|i| (p[i] - q[i]).abs() < 1e-6), "page {p:?}, Rust {q:?}");
+    }
 
     // Both canvases are drawn: points changed the image's pixels; the top view has the cloud
     // and the selected camera.

@@ -559,7 +559,8 @@ async function upload() {
   if (description) params.set('description', description);
   $('admin-info').textContent = `uploading ${file.name} …`;
   try {
-    const r = await api(`/v1/maps/${encodeURIComponent(id)}${params.size ? `?${params}` : ''}`, {
+    const query = params.toString();
+    const r = await api(`/v1/maps/${encodeURIComponent(id)}${query ? `?${query}` : ''}`, {
       method: 'PUT',
       headers: { 'content-type': 'application/octet-stream', ...authHeaders() },
       body: file,
@@ -601,17 +602,26 @@ async function start() {
   $('refresh').addEventListener('click', guard(() => loadMaps()));
   $('demo').addEventListener('click', guard(useDemo));
   $('file').addEventListener('change', guard((e) => useFile(e.target.files[0])));
+  // An image dropped anywhere on the page is taken (the browser would otherwise open it).
   const drop = $('drop');
-  drop.addEventListener('dragover', (e) => {
+  document.addEventListener('dragover', (e) => {
     e.preventDefault();
     drop.classList.add('over');
   });
-  drop.addEventListener('dragleave', () => drop.classList.remove('over'));
-  drop.addEventListener('drop', guard((e) => {
+  document.addEventListener('dragleave', (e) => {
+    if (!e.relatedTarget) drop.classList.remove('over');
+  });
+  document.addEventListener('drop', guard((e) => {
     e.preventDefault();
     drop.classList.remove('over');
-    return useFile(e.dataTransfer.files[0]);
+    return useFile(e.dataTransfer && e.dataTransfer.files[0]);
   }));
+  drop.addEventListener('keydown', (e) => {
+    if (e.key === 'Enter' || e.key === ' ') {
+      e.preventDefault();
+      $('file').click();
+    }
+  });
   $('preset').addEventListener('change', (e) => applyPreset(e.target.value));
   for (const key of ['fx', 'fy', 'cx', 'cy']) $(key).addEventListener('input', () => ($('preset').value = 'custom'));
   $('run').addEventListener('click', guard(localize));
