@@ -153,9 +153,11 @@ async fn points_route_page_files_and_hypothesis_starts() {
             a => format!("web/{a}"),
         })).unwrap(), "{asset} is the committed file");
     }
-    let r = c.get(server.url("/ui/secrets.txt")).send().await.unwrap();
-    assert_eq!(r.status(), 404);
-    assert_eq!(r.json::<serde_json::Value>().await.unwrap()["error_type"], "not_found");
+    for (path, status, kind) in [("/ui/secrets.txt", 404, "not_found"), ("/ui/%FF", 400, "bad_request"), ("/ui/a/b", 404, "not_found")] {
+        let r = c.get(server.url(path)).send().await.unwrap();
+        assert_eq!(r.status(), status, "{path}");
+        assert_eq!(r.json::<serde_json::Value>().await.unwrap()["error_type"], kind, "{path}");
+    }
 
     // Each hypothesis's start: the first is the prior, the second the prior turned by 180°.
     let mut req = kitti_request(2);

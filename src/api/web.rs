@@ -6,6 +6,7 @@
 //! upload and delete); nothing here is part of the API contract.
 
 use axum::extract::Path;
+use axum::extract::rejection::PathRejection;
 use axum::http::{HeaderValue, header};
 use axum::response::{IntoResponse, Response};
 
@@ -37,7 +38,11 @@ pub async fn index() -> Response {
 
 /// `GET /ui/{asset}`: the page's script and style sheet, and `demo.json` (the demo localize
 /// request: a base64 JPEG, its intrinsics and `max_iterations`, for the `demo` region).
-pub async fn asset(Path(name): Path<String>) -> Response {
+pub async fn asset(name: Result<Path<String>, PathRejection>) -> Response {
+    let name = match name {
+        Ok(Path(name)) => name,
+        Err(e) => return ApiError::BadRequest(format!("asset name: {}", e.body_text())).into_response(),
+    };
     match name.as_str() {
         "app.js" => static_file("text/javascript; charset=utf-8", APP_JS),
         "style.css" => static_file("text/css; charset=utf-8", STYLE_CSS),
