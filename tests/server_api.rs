@@ -91,6 +91,87 @@ async fn service_endpoints_and_a_localization() {
     server.stop().await;
 }
 
+/// The compact points route gives the prepared sample's prefix as little-endian float32; the
+/// web page's files are served from the binary; each hypothesis names its start.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn points_route_page_files_and_hypothesis_starts() {
+    let maps = maps_dir_with_street();
+    let server = TestServer::start(&tiny_model(), maps.path(), &[]).await;
+    let c = &server.client;
+    let entry = server.state.maps.store.get("street").unwrap();
+    let prepared = server.state.maps.prepared_for(&entry).unwrap();
+
+    let r = c.get(server.url("/v1/maps/street/points?max=100")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.headers()["content-type"], "application/octet-stream");
+    assert_eq!(r.headers()["x-point-count"], "100");
+    assert_eq!(r.headers()["x-points-total"], (200 * 90).to_string().as_str());
+    let bytes = r.bytes().await.unwrap();
+    assert_eq!(bytes.len(), 100 * 12);
+    let got: Vec<f32> = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    let want: Vec<f32> = prepared.points[..100].iter().flatten().copied().collect();
+    assert_eq!(got, want, "the first 100 points of the prepared sample, x y z little-endian");
+
+    let r = c.get(server.url("/v1/maps/street/points")).send().await.unwrap();
+    let count = prepared.points.len().min(20_000);
+    assert_eq!(r.headers()["x-point-count"], count.to_string().as_str());
+    assert_eq!(r.bytes().await.unwrap().len(), count * 12, "default max 20000, at most the sample");
+    for (query, status, kind) in [
+        ("max=0", 422, "invalid_input"),
+        ("max=100001", 422, "invalid_input"),
+        ("max=-3", 422, "invalid_input"),
+        ("max=lots", 422, "invalid_input"),
+        ("limit=5", 422, "invalid_input"),
+    ] {
+        let r = c.get(server.url(&format!("/v1/maps/street/points?{query}"))).send().await.unwrap();
+        assert_eq!(r.status(), status, "{query}");
+        let body: serde_json::Value = r.json().await.unwrap();
+        assert_eq!(body["error_type"], kind, "{query}: {body}");
+    }
+    for (path, status, kind) in [("/v1/maps/nowhere/points", 404, "not_found"), ("/v1/maps/Bad%21/points", 400, "bad_request")] {
+        let r = c.get(server.url(path)).send().await.unwrap();
+        assert_eq!(r.status(), status, "{path}");
+        let body: serde_json::Value = r.json().await.unwrap();
+        assert_eq!(body["error_type"], kind, "{path}: {body}");
+    }
+
+    // The page and its files, from the binary, allowed to load from this origin only.
+    let page = c.get(server.url("/")).send().await.unwrap();
+    assert_eq!(page.status(), 200);
+    assert_eq!(page.headers()["content-type"], "text/html; charset=utf-8");
+    assert!(page.headers()["content-security-policy"].to_str().unwrap().starts_with("default-src 'self'"));
+    let html = page.text().await.unwrap();
+    assert!(html.contains(r#"<script src="/ui/app.js""#) && html.contains(r#"href="/ui/style.css""#));
+    assert!(!html.contains("http://") && !html.contains("https://"), "nothing from outside");
+    for (asset, kind) in [("app.js", "text/javascript; charset=utf-8"), ("style.css", "text/css; charset=utf-8"), ("demo.json", "application/json")] {
+        let r = c.get(server.url(&format!("/ui/{asset}"))).send().await.unwrap();
+        assert_eq!(r.status(), 200, "{asset}");
+        assert_eq!(r.headers()["content-type"], kind, "{asset}");
+        let text = r.text().await.unwrap();
+        assert_eq!(text.as_bytes(), std::fs::read(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(match asset {
+            "demo.json" => "examples/localize-demo.json".to_string(),
+            a => format!("web/{a}"),
+        })).unwrap(), "{asset} is the committed file");
+    }
+    for (path, status, kind) in [("/ui/secrets.txt", 404, "not_found"), ("/ui/%FF", 400, "bad_request"), ("/ui/a/b", 404, "not_found")] {
+        let r = c.get(server.url(path)).send().await.unwrap();
+        assert_eq!(r.status(), status, "{path}");
+        assert_eq!(r.json::<serde_json::Value>().await.unwrap()["error_type"], kind, "{path}");
+    }
+
+    // Each hypothesis's start: the first is the prior, the second the prior turned by 180°.
+    let mut req = kitti_request(2);
+    req["hypotheses"] = json!(2);
+    let (status, body, _) = server.localize("street", &req).await;
+    assert_eq!(status, 200, "{body}");
+    let h = body["hypotheses"].as_array().unwrap();
+    assert_close(&h[0]["start_camera_from_map"], rig_matrix(), "the first start is the prior");
+    assert_eq!(h[1]["start_yaw_offset_deg"], 180.0);
+    let turned = &h[1]["start_camera_from_map"];
+    assert!((turned[0][1].as_f64().unwrap() - 1.0).abs() < 1e-9, "a half turn about the vertical flips the heading: {turned}");
+    server.stop().await;
+}
+
 fn assert_close(got: &serde_json::Value, want: [[f64; 4]; 4], what: &str) {
     for r in 0..4 {
         for c in 0..4 {

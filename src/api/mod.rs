@@ -10,6 +10,7 @@ pub mod openapi;
 pub mod overlay;
 pub mod routes;
 pub mod types;
+pub mod web;
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -116,9 +117,12 @@ pub fn router(state: Arc<AppState>) -> Router {
             "/v1/maps/{id}",
             get(routes::get_map).put(routes::put_map).delete(routes::delete_map).layer(DefaultBodyLimit::max(map_limit)),
         )
+        .route("/v1/maps/{id}/points", get(routes::map_points))
         .route("/v1/maps/{id}/metadata", put(routes::put_metadata).layer(DefaultBodyLimit::max(1024 * 1024)))
         .route("/v1/maps/{id}/localize", post(routes::localize).layer(DefaultBodyLimit::max(body_limit)))
         .route("/v1/maps/{id}/overlay", post(overlay::overlay).layer(DefaultBodyLimit::max(body_limit)))
+        .route("/", get(web::index))
+        .route("/ui/{asset}", get(web::asset))
         .fallback(routes::not_found)
         .layer(axum::middleware::from_fn_with_state(
             Duration::from_millis(state.config.body_timeout_ms),

@@ -14,7 +14,7 @@ use crate::maps::MapMetadata;
     info(title = "cmr-agent", description = "Localize a camera image inside a pre-built LiDAR map (CMR-Agent)."),
     paths(
         routes::health, routes::ready, routes::metrics, routes::info,
-        routes::list_maps, routes::get_map, routes::put_map, routes::put_metadata, routes::delete_map,
+        routes::list_maps, routes::get_map, routes::map_points, routes::put_map, routes::put_metadata, routes::delete_map,
         routes::localize, super::overlay::overlay,
     ),
     components(schemas(ErrorBody, crate::serving::LocalizeRequest, crate::serving::Matrix4x4, LocalizeResponse, super::overlay::OverlayRequest, MapList, MapSummary, MapMetadata, RegisterResponse, Info)),

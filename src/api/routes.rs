@@ -109,6 +109,50 @@ pub async fn get_map(State(st): Shared, MapId(id): MapId) -> Result<Json<MapSumm
     Ok(Json(MapSummary::new(entry, cached)))
 }
 
+/// Largest `max` of the points route, and its default.
+pub const MAX_POINTS_QUERY: u32 = 100_000;
+pub const DEFAULT_POINTS_QUERY: u32 = 20_000;
+
+/// A compact sample of a region's points for drawing them client-side (the web page projects
+/// them at every iteration): the first `min(max, N)` points of the region's prepared N-point
+/// sample (a seeded random permutation of the stored cloud, so any prefix is a uniform subsample;
+/// the same points the agent and the overlay use). Body: `count` × 12 bytes, each point x, y, z as
+/// little-endian float32, map frame, metres; `x-point-count` gives `count`, `x-points-total`
+/// the stored cloud's finite points. At most 100,000 × 12 bytes = 1.2 MB. Preparing a region
+/// that is not prepared yet runs the point encoder once (as localize would).
+#[utoipa::path(get, path = "/v1/maps/{id}/points", params(MapIdParam, PointsParams),
+    responses((status = 200, content_type = "application/octet-stream", body = Vec<u8>,
+            description = "count × (x, y, z) little-endian float32, map frame, metres",
+            headers(("x-point-count" = u32, description = "points in the body"),
+                ("x-points-total" = u64, description = "finite points of the stored cloud"))),
+        (status = 400, body = ErrorBody), (status = 404, body = ErrorBody), (status = 422, body = ErrorBody),
+        (status = 500, body = ErrorBody)))]
+pub async fn map_points(State(st): Shared, MapId(id): MapId, query: axum::extract::RawQuery) -> Result<Response, ApiError> {
+    let params: PointsParams = serde_urlencoded_query(query.0.as_deref().unwrap_or(""))?;
+    let max = params.max.unwrap_or(DEFAULT_POINTS_QUERY);
+    if !(1..=MAX_POINTS_QUERY).contains(&max) {
+        return Err(ApiError::Invalid(format!("max must be 1..={MAX_POINTS_QUERY}, got {max}")));
+    }
+    let maps = st.maps.clone();
+    let prepared = blocking(move || {
+        let entry = maps.store.get(&id)?;
+        maps.prepared_for(&entry)
+    })
+    .await?;
+    let count = prepared.points.len().min(max as usize);
+    let mut body = Vec::with_capacity(count * 12);
+    for v in prepared.points[..count].iter().flatten() {
+        body.extend_from_slice(&v.to_le_bytes());
+    }
+    let headers = [
+        (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
+        (header::CACHE_CONTROL, HeaderValue::from_static("no-cache")),
+        (header::HeaderName::from_static("x-point-count"), HeaderValue::from(count as u64)),
+        (header::HeaderName::from_static("x-points-total"), HeaderValue::from(prepared.source_points as u64)),
+    ];
+    Ok((headers, body).into_response())
+}
+
 /// Whether the body is gzip-compressed by `Content-Encoding` (`gzip`, `x-gzip` or `identity`;
 /// anything else is 415).
 fn gzip_encoded(headers: &HeaderMap) -> Result<bool, ApiError> {

@@ -107,6 +107,10 @@ pub struct HypothesisBody {
     /// Alignment score of the start and of the final pose.
     pub start_alignment: f32,
     pub alignment: f32,
+    /// The start: the prior turned by `start_yaw_offset_deg` (camera_from_map, row-major).
+    #[schema(value_type = Matrix4x4)]
+    pub start_camera_from_map: Rows4x4,
+    /// The hypothesis's final pose.
     #[schema(value_type = Matrix4x4)]
     pub camera_from_map: Rows4x4,
     pub iterations: usize,
@@ -195,6 +199,7 @@ impl LocalizeResponse {
                     start_yaw_offset_deg: h.start_yaw_offset_deg,
                     start_alignment: h.start_alignment,
                     alignment: h.alignment(),
+                    start_camera_from_map: h.start.to_rows(),
                     camera_from_map: h.camera_from_map().to_rows(),
                     iterations: h.steps.len(),
                     converged: h.converged,
@@ -276,6 +281,16 @@ pub struct RawLocalizeParams {
     /// Starts of the multi-start search, 1..=16; default: the server's `default_hypotheses`.
     #[param(minimum = 1, maximum = 16)]
     pub hypotheses: Option<u32>,
+}
+
+/// Query of `GET /v1/maps/{id}/points`.
+#[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[serde(deny_unknown_fields)]
+pub struct PointsParams {
+    /// At most this many points, 1..=100000; default 20000. The answer holds
+    /// min(max, the region's sample size N) points.
+    #[param(minimum = 1, maximum = 100000)]
+    pub max: Option<u32>,
 }
 
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
