@@ -111,7 +111,7 @@ fn print_figures(label: &str, s: &serde_json::Value) {
 }
 
 /// 100 frames, 5 mm apart (0.5 m in all, centred on the map's scan): the first from a prior
-/// 5 m / 30° off with the full search, the rest tracked; then the first 20 over HTTP with the
+/// 5 m / 30° off with the full search, the rest tracked; then frames 40-59 over HTTP with the
 /// client script against a real server holding the same region (uploaded with PUT).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn track_a_drive_offline_and_over_http() {
@@ -153,7 +153,7 @@ async fn track_a_drive_offline_and_over_http() {
     let http_out = root.path().join("track-http");
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/track-http.py");
     let mut client = Command::new("python3");
-    client.arg(&script).args(["--server", &server.base, "--id", "drive", "--frames", "20"]);
+    client.arg(&script).args(["--server", &server.base, "--id", "drive", "--first", "40", "--frames", "20"]);
     client.arg("--sequence").arg(&sequence).arg("--out").arg(&http_out);
     let printed = tokio::task::spawn_blocking(move || run_ok(client)).await.unwrap();
     server.stop().await;
