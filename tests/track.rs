@@ -51,7 +51,7 @@ fn read_json(path: &Path) -> serde_json::Value {
 
 fn track(maps: &Path, sequence: &Path, out: &Path, extra: &[&str]) -> serde_json::Value {
     let mut track = cmr_agent();
-    track.args(["track", "--id", "drive", "--cold-reference", "5"]).args(extra);
+    track.args(["track", "--id", "drive"]).args(extra);
     track.arg("--maps").arg(maps).arg("--sequence").arg(sequence).arg("--out").arg(out);
     track.arg("--models").arg(default_model());
     let printed: serde_json::Value = serde_json::from_str(&run_ok(track)).expect("track prints the summary");
@@ -132,7 +132,7 @@ async fn track_a_drive_offline_and_over_http() {
     let out = root.path().join("track");
     let summary = tokio::task::spawn_blocking({
         let (maps, sequence, out) = (maps.clone(), sequence.clone(), out.clone());
-        move || track(&maps, &sequence, &out, &[])
+        move || track(&maps, &sequence, &out, &["--cold-reference", "5"])
     })
     .await
     .unwrap();
@@ -144,6 +144,31 @@ async fn track_a_drive_offline_and_over_http() {
     assert!(ate <= 0.3, "ATE {ate} m over the drive");
     assert_eq!(summary["cold_reference"]["registration_recall"], 1.0, "every cold localization registers");
     check_outputs(&sequence, &out, &summary, frames);
+    // A region the store does not hold, or frames the sequence does not have: a clear error.
+    for (flags, needle) in [(["--id", "nowhere"], "nowhere"), (["--first", "100"], "no frames from 100")] {
+        let mut bad = cmr_agent();
+        bad.args(["track"]).args(flags).arg("--maps").arg(&maps).arg("--sequence").arg(&sequence);
+        bad.arg("--out").arg(root.path().join("bad")).arg("--models").arg(default_model());
+        if flags[0] == "--first" {
+            bad.args(["--id", "drive"]);
+        }
+        let output = bad.output().unwrap();
+        assert!(!output.status.success());
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(stderr.contains(needle), "{stderr}");
+    }
+    assert!(!root.path().join("bad").exists(), "nothing is written on an error");
+    // A threshold above any score sends every tracked frame to the full search.
+    let forced = root.path().join("track-fallback");
+    let summary = tokio::task::spawn_blocking({
+        let (maps, sequence, forced) = (maps.clone(), sequence.clone(), forced.clone());
+        move || track(&maps, &sequence, &forced, &["--first", "45", "--frames", "4", "--fallback-below", "2"])
+    })
+    .await
+    .unwrap();
+    assert_eq!(summary["modes"], serde_json::json!({"cold": 1, "tracked": 0, "fallback": 3}));
+    assert_eq!(summary["first_frame"], 45);
+    assert!(summary["error"]["ate_rmse_m"].as_f64().unwrap() <= 0.3);
 
     // Over HTTP: the server's maps directory starts empty; the region is uploaded.
     let served = tempfile::tempdir().unwrap();
@@ -156,7 +181,6 @@ async fn track_a_drive_offline_and_over_http() {
     client.arg(&script).args(["--server", &server.base, "--id", "drive", "--first", "40", "--frames", "20"]);
     client.arg("--sequence").arg(&sequence).arg("--out").arg(&http_out);
     let printed = tokio::task::spawn_blocking(move || run_ok(client)).await.unwrap();
-    server.stop().await;
     let http: serde_json::Value = serde_json::from_str(&printed).expect("the script prints its summary");
     println!("scripts/track-http.py: {http}");
     assert_eq!(http, read_json(&http_out.join("summary.json")));
@@ -165,6 +189,21 @@ async fn track_a_drive_offline_and_over_http() {
     assert!(http_ate <= 0.3, "ATE over HTTP {http_ate} m");
     let lines = std::fs::read_to_string(http_out.join("trajectory.kitti.txt")).unwrap();
     assert_eq!(cmr_agent::kitti::poses::parse_poses(&lines, "trajectory.kitti.txt").unwrap().len(), 20);
+    // The script's fallback path: every tracked frame redone with the full search.
+    let mut forced = Command::new("python3");
+    forced.arg(&script).args(["--server", &server.base, "--id", "drive", "--first", "45", "--frames", "3", "--fallback-below", "2"]);
+    forced.arg("--sequence").arg(&sequence).arg("--out").arg(root.path().join("track-http-fallback"));
+    let printed = tokio::task::spawn_blocking(move || run_ok(forced)).await.unwrap();
+    let forced: serde_json::Value = serde_json::from_str(&printed).unwrap();
+    assert_eq!(forced["fallbacks"], 2, "{forced}");
+    // A map the server does not hold: the script stops with the server's error.
+    let mut missing = Command::new("python3");
+    missing.arg(&script).args(["--server", &server.base, "--id", "nowhere", "--frames", "1"]);
+    missing.arg("--sequence").arg(&sequence).arg("--out").arg(root.path().join("track-http-missing"));
+    let output = tokio::task::spawn_blocking(move || missing.output().unwrap()).await.unwrap();
+    assert!(!output.status.success());
+    assert!(String::from_utf8_lossy(&output.stderr).contains("HTTP 404"), "{}", String::from_utf8_lossy(&output.stderr));
+    server.stop().await;
 }
 
 /// The bar on a drive that moves: 100 frames 0.2 m apart (20 m) in a region made of
@@ -180,7 +219,7 @@ fn acceptance_drive_of_20_m() {
     std::fs::create_dir_all(&maps).unwrap();
     std::fs::write(maps.join("drive.bin"), one_scan_map(&sequence, 50)).unwrap();
     let out = root.path().join("track");
-    let summary = track(&maps, &sequence, &out, &[]);
+    let summary = track(&maps, &sequence, &out, &["--cold-reference", "5"]);
     print_figures("20 m drive", &summary);
     check_outputs(&sequence, &out, &summary, 100);
     let ate = summary["error"]["ate_rmse_m"].as_f64().unwrap();
