@@ -1,6 +1,7 @@
 //! `cmr-agent localize`: one localization from files, no HTTP, through the server's own
 //! [`Localizer`] (same validation, limits, decode and search as `POST /v1/maps/{id}/localize`),
 //! printing the same response JSON. The map file is registered in a temporary map store first.
+//! [`OfflineLocalizer`] is that path for any command-line tool (`cmr-agent track` uses it too).
 
 use std::path::PathBuf;
 use std::sync::Arc;
