@@ -308,9 +308,12 @@ mod tests {
         assert_eq!(basin.calls[0].1, CONFIG.full);
         let e = PoseError::between(&frames[3].prior, &truth[3]);
         assert!(e.rte_m < 1e-9 && e.rre_geodesic_deg < 1e-9, "exact prediction from exact estimates: {e:?}");
-        // 0.5 m reach: frame 1 (predicted standing still, 1 m off) needs the full search.
+        // 0.5 m reach (1.5 m for the full search): frame 1 (predicted standing still, 1 m off)
+        // needs the full search.
         let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![] };
+        let first = coarse_prior(&truth[0], 1.0, 0.0, 1);
         let frames = track(&mut basin, 6, first, &CONFIG, |_| {}).unwrap();
+        assert_eq!(frames[0].estimate, truth[0]);
         assert_eq!(frames[1].mode, Mode::Fallback);
         assert_eq!(frames[1].tracked_confidence, Some(0.1));
         assert_eq!(frames[1].estimate, truth[1]);
