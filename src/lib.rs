@@ -12,6 +12,7 @@
 //! - `api`: the HTTP transport: routes, errors, configuration, lifecycle;
 //! - `render`: pictures of a pose (map points projected onto the image), for the API and `eval`;
 //! - `eval`: the paper's metrics and tables over a KITTI-layout data set;
+//! - `track`: following a drive frame after frame (the loop, its errors, trajectory files, plot);
 //! - `atomic_file`: the one crash-safe file writer everything uses.
 
 pub mod agent;
@@ -25,3 +26,4 @@ pub mod model;
 pub mod render;
 pub mod serving;
 pub mod synth;
+pub mod track;

@@ -19,6 +19,8 @@ enum Command {
     Eval(cmr_agent::eval::cli::Args),
     /// Localize one request file against one map file, without HTTP (prints the response JSON).
     Localize(cmr_agent::api::offline::LocalizeArgs),
+    /// Follow a KITTI-layout drive in a stored map region, frame after frame; writes the trajectory, ATE/RPE, latency, plot.
+    Track(cmr_agent::api::track::TrackArgs),
     /// Print the OpenAPI document (the committed openapi/openapi.json).
     PrintSchema,
 }
@@ -34,6 +36,7 @@ fn main() -> anyhow::Result<()> {
         Command::Serve(args) => cmr_agent::api::run_serve(args),
         Command::Eval(args) => cmr_agent::eval::cli::main(args),
         Command::Localize(args) => cmr_agent::api::offline::run(args),
+        Command::Track(args) => cmr_agent::api::track::run(args),
         Command::PrintSchema => {
             print!("{}", cmr_agent::api::openapi::schema_json());
             Ok(())

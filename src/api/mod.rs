@@ -9,6 +9,7 @@ pub mod offline;
 pub mod openapi;
 pub mod overlay;
 pub mod routes;
+pub mod track;
 pub mod types;
 pub mod web;
 

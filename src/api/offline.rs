@@ -1,6 +1,7 @@
 //! `cmr-agent localize`: one localization from files, no HTTP, through the server's own
 //! [`Localizer`] (same validation, limits, decode and search as `POST /v1/maps/{id}/localize`),
 //! printing the same response JSON. The map file is registered in a temporary map store first.
+//! [`OfflineLocalizer`] is that path for any command-line tool (`cmr-agent track` uses it too).
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -10,7 +11,7 @@ use anyhow::{Context, Result, anyhow};
 use crate::maps::formats::CloudFormat;
 use crate::maps::{MapCache, MapMetadata, MapStore, Maps, Upload};
 use crate::model::{BackendOptions, ModelSet};
-use crate::serving::{ImagePayload, Lifecycle, LocalizeRequest, Localizer, Scheduler};
+use crate::serving::{ImagePayload, Lifecycle, LocalizeError, LocalizeRequest, Localized, Localizer, Scheduler};
 
 use super::config::ServeArgs;
 use super::types::{LocalizeResponse, TimingsMs};
@@ -37,8 +38,6 @@ pub struct LocalizeArgs {
 
 pub fn run(args: LocalizeArgs) -> Result<()> {
     let started = std::time::Instant::now();
-    let config = args.serve.clone();
-    let models = ModelSet::load(&config.models, BackendOptions { intra_threads: config.intra_threads(), ort_lib: config.ort_lib.clone() })?;
     let bytes = std::fs::read(&args.map).with_context(|| format!("cannot read {}", args.map.display()))?;
     let format = args.map.extension().and_then(|e| e.to_str()).and_then(CloudFormat::from_extension);
     let sidecar = args.map.with_extension("json");
@@ -54,24 +53,53 @@ pub fn run(args: LocalizeArgs) -> Result<()> {
 
     let dir = tempfile::tempdir()?;
     let (store, _) = MapStore::open(dir.path()).map_err(|e| anyhow!("{e}"))?;
-    let maps = Arc::new(Maps::new(store, MapCache::new(1 << 30), Box::new(models.backend()?)));
+    let offline = OfflineLocalizer::new(&args.serve, store)?;
     let id = "map";
-    maps.register(id, Upload { bytes: &bytes, format, gzip: false, max_bytes: usize::MAX }, metadata).map_err(|e| anyhow!("{}: {e}", args.map.display()))?;
-    let scheduler = Arc::new(Scheduler::start(&models.factory(), super::config::ServeArgs { workers: 1, ..config.clone() }.scheduler())?);
-    let lifecycle = Arc::new(Lifecycle::default());
-    lifecycle.set_ready();
-    let localizer = Localizer::new(maps, scheduler.clone(), lifecycle, models.manifest.clone(), config.localizer());
-
-    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
-    let done = runtime.block_on(async {
-        let admission = localizer.admit()?;
-        localizer.localize(admission, id, &request, image).await
-    });
-    scheduler.shutdown(std::time::Duration::from_secs(2));
-    let done = done.map_err(|e| anyhow!("{e}"))?;
+    offline.localizer.maps.register(id, Upload { bytes: &bytes, format, gzip: false, max_bytes: usize::MAX }, metadata).map_err(|e| anyhow!("{}: {e}", args.map.display()))?;
+    let done = offline.localize(id, &request, image).map_err(|e| anyhow!("{e}"))?;
+    drop(offline);
     let loc = &done.localization;
     let timings = TimingsMs::new(done.queue_ms, done.decode_ms, &loc.timings, started.elapsed().as_secs_f64() * 1000.0);
     let name = args.map.file_stem().and_then(|s| s.to_str()).unwrap_or(id);
     println!("{}", serde_json::to_string_pretty(&LocalizeResponse::new(name, loc, timings))?);
     Ok(())
+}
+
+/// The server's localize path without HTTP, for the command-line tools (`localize`, `track`):
+/// the models, a map store, one worker's scheduler and a ready [`Localizer`], driven from
+/// synchronous code. Dropping it stops the worker.
+pub struct OfflineLocalizer {
+    pub localizer: Localizer,
+    scheduler: Arc<Scheduler>,
+    runtime: tokio::runtime::Runtime,
+}
+
+impl OfflineLocalizer {
+    /// Loads `config.models` and serves from `store` with `config`'s limits and search defaults
+    /// (one worker). Errors: the models or ONNX Runtime cannot be loaded.
+    pub fn new(config: &ServeArgs, store: MapStore) -> Result<Self> {
+        let models = ModelSet::load(&config.models, BackendOptions { intra_threads: config.intra_threads(), ort_lib: config.ort_lib.clone() })?;
+        let maps = Arc::new(Maps::new(store, MapCache::new(config.cache_mb.saturating_mul(1024 * 1024)), Box::new(models.backend()?)));
+        let scheduler = Arc::new(Scheduler::start(&models.factory(), ServeArgs { workers: 1, ..config.clone() }.scheduler())?);
+        let lifecycle = Arc::new(Lifecycle::default());
+        lifecycle.set_ready();
+        let localizer = Localizer::new(maps, scheduler.clone(), lifecycle, models.manifest.clone(), config.localizer());
+        let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+        Ok(Self { localizer, scheduler, runtime })
+    }
+
+    /// One localization of map `id`, exactly as `POST /v1/maps/{id}/localize` runs it
+    /// (admission, validation, decode, search, deadline); `request.image` is ignored.
+    pub fn localize(&self, id: &str, request: &LocalizeRequest, image: ImagePayload) -> Result<Localized, LocalizeError> {
+        self.runtime.block_on(async {
+            let admission = self.localizer.admit()?;
+            self.localizer.localize(admission, id, request, image).await
+        })
+    }
+}
+
+impl Drop for OfflineLocalizer {
+    fn drop(&mut self) {
+        self.scheduler.shutdown(std::time::Duration::from_secs(2));
+    }
 }

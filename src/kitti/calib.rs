@@ -122,6 +122,14 @@ impl Calib {
         Ok(offset.compose(&rect).compose(&self.velo_to_cam0))
     }
 
+    /// Rectified cam0_from_lidar: `R0_rect · Tr` (the frame KITTI's `poses.txt` is given in).
+    pub fn rectified_cam0_from_lidar(&self) -> Pose {
+        match &self.r0_rect {
+            Some(r) => Pose::from_rt(*r, Vector3::zeros()).compose(&self.velo_to_cam0),
+            None => self.velo_to_cam0,
+        }
+    }
+
     /// The colour camera's (image_2) intrinsics.
     pub fn color_intrinsics(&self) -> Result<Intrinsics> {
         self.intrinsics(COLOR_CAMERA)

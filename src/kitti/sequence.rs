@@ -119,6 +119,77 @@ impl Sequence {
     pub fn frames(&self) -> Result<Vec<Frame>> {
         self.frame_indices.iter().map(|&i| self.frame(i)).collect()
     }
+
+    // --- The sequence's map frame -------------------------------------------------------------
+    //
+    // `poses.txt` gives world_from_cam0 with world = cam0 at frame 0: a y-down camera frame. The
+    // model and the map store work in a z-up map frame, so a sequence's map frame is the same
+    // place expressed in the LiDAR's axes: **the velodyne frame at frame 0** (x forward, y left,
+    // z up). map_from_lidar(k) = C⁻¹ · world_from_cam0(k) · C with C = rectified cam0_from_lidar
+    // (`R0_rect · Tr`). A map fused from the sequence's scans, the truth of every frame and a
+    // tracked trajectory all use this frame.
+
+    fn pose_of(&self, index: usize) -> Result<Pose> {
+        let poses = self.poses.as_ref().with_context(|| format!("sequence {} ({}) has no poses file", self.name, self.dir.display()))?;
+        poses.get(index).copied().with_context(|| format!("sequence {} has no pose for frame {index}", self.name))
+    }
+
+    /// map_from_lidar of frame `index` (the scan's placement in the sequence's map frame, above).
+    /// Errors: no poses file, or no pose for that frame.
+    pub fn map_from_lidar(&self, index: usize) -> Result<Pose> {
+        let c = self.calib.rectified_cam0_from_lidar();
+        Ok(c.inverse().compose(&self.pose_of(index)?).compose(&c))
+    }
+
+    /// The true camera_from_map of image_2 at frame `index`: camera_from_lidar · map_from_lidar⁻¹.
+    pub fn camera_from_map(&self, index: usize) -> Result<Pose> {
+        Ok(self.calib.color_camera_from_lidar()?.compose(&self.map_from_lidar(index)?.inverse()))
+    }
+
+    /// The inverse of [`Sequence::camera_from_map`]: the `poses.txt` line (world_from_cam0,
+    /// world = cam0 at frame 0) of an image_2 camera_from_map in the map frame, so estimated
+    /// trajectories are written in the same convention as the ground truth.
+    pub fn world_from_cam0(&self, camera_from_map: &Pose) -> Result<Pose> {
+        let c = self.calib.rectified_cam0_from_lidar();
+        let map_from_lidar = camera_from_map.inverse().compose(&self.calib.color_camera_from_lidar()?);
+        Ok(c.compose(&map_from_lidar).compose(&c.inverse()))
+    }
+
+    /// Frame `index`'s scan in the sequence's map frame (intensity kept).
+    pub fn scan_in_map_frame(&self, index: usize) -> Result<Vec<LidarPoint>> {
+        let map_from_lidar = self.map_from_lidar(index)?;
+        let points = self.frame(index)?.read_points()?;
+        Ok(points
+            .into_iter()
+            .map(|p| {
+                let m = map_from_lidar.transform(&nalgebra::Point3::new(p.x as f64, p.y as f64, p.z as f64));
+                LidarPoint { x: m.x as f32, y: m.y as f32, z: m.z as f32, intensity: p.intensity }
+            })
+            .collect())
+    }
+
+    /// Seconds per frame from `times.txt` (one number a line, KITTI-odometry's timestamps),
+    /// `None` when the sequence has no such file. Errors: unreadable file, a bad line, fewer
+    /// lines than frames.
+    pub fn times(&self) -> Result<Option<Vec<f64>>> {
+        let path = self.dir.join("times.txt");
+        let text = match std::fs::read_to_string(&path) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(e).with_context(|| format!("reading {}", path.display())),
+        };
+        let mut times = Vec::new();
+        for (line_no, line) in text.lines().enumerate().filter(|(_, l)| !l.trim().is_empty()) {
+            let v = super::poses::parse_floats(line, 1).with_context(|| format!("{}:{}", path.display(), line_no + 1))?;
+            times.push(v[0]);
+        }
+        if let Some(&last) = self.frame_indices.last() {
+            if last >= times.len() {
+                bail!("{}: has {} times but velodyne/ goes up to frame {last}", path.display(), times.len());
+            }
+        }
+        Ok(Some(times))
+    }
 }
 
 fn is_sequence_dir(dir: &Path) -> bool {
@@ -192,5 +263,38 @@ mod tests {
         assert!(err.contains("poses.txt") && err.contains("has 2 poses"), "{err}");
         let empty = tempfile::tempdir().unwrap();
         assert!(discover_sequences(empty.path()).unwrap_err().to_string().contains("no KITTI sequence"));
+    }
+
+    #[test]
+    fn the_map_frame_is_the_lidar_at_frame_0_and_conversions_invert() {
+        let root = tempfile::tempdir().unwrap();
+        let dir = root.path().join("00");
+        write_sequence(&dir, 2, 2);
+        let mut seq = Sequence::open(&dir, None).unwrap();
+        // Frame 1: cam0 moved 2 m forward (cam0 z) and turned 10° about cam0 y.
+        let turn = Pose::from_rt(*nalgebra::Rotation3::from_axis_angle(&nalgebra::Vector3::y_axis(), 10f64.to_radians()).matrix(), nalgebra::Vector3::new(0.0, 0.0, 2.0));
+        seq.poses = Some(vec![Pose::identity(), turn]);
+        assert!((seq.map_from_lidar(0).unwrap().matrix() - Pose::identity().matrix()).abs().max() < 1e-12);
+        let m1 = seq.map_from_lidar(1).unwrap();
+        // In the LiDAR's axes that is about 2 m along +x (forward; the turn is about cam0, not
+        // the LiDAR, hence the few cm sideways), no height change, a turn about z.
+        let t = m1.translation();
+        assert!((t.x - 2.0).abs() < 0.01 && t.y.abs() < 0.05 && t.z.abs() < 1e-9, "{m1:?}");
+        assert!((m1.rotation()[(2, 2)] - 1.0).abs() < 1e-12);
+        // Truth of image_2 and its poses.txt line are each other's inverse.
+        let truth = seq.camera_from_map(1).unwrap();
+        assert!((seq.world_from_cam0(&truth).unwrap().matrix() - turn.matrix()).abs().max() < 1e-12);
+        let expected = seq.calib.color_camera_from_lidar().unwrap().compose(&m1.inverse());
+        assert!((truth.matrix() - expected.matrix()).abs().max() < 1e-12);
+        // A scan point moves with its frame.
+        let p = seq.scan_in_map_frame(1).unwrap()[0];
+        let q = m1.transform(&nalgebra::Point3::new(1.0, 0.0, 0.0));
+        assert!((p.x as f64 - q.x).abs() < 1e-5 && (p.y as f64 - q.y).abs() < 1e-5);
+        // times.txt: absent → None; short → an error naming the file.
+        assert!(seq.times().unwrap().is_none());
+        std::fs::write(dir.join("times.txt"), "0.0\n").unwrap();
+        assert!(seq.times().unwrap_err().to_string().contains("times.txt"));
+        std::fs::write(dir.join("times.txt"), "0.0\n0.103\n").unwrap();
+        assert_eq!(seq.times().unwrap().unwrap(), vec![0.0, 0.103]);
     }
 }

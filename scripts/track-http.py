@@ -1,0 +1,231 @@
+#!/usr/bin/env python3
+"""Follow a KITTI-layout drive against a running cmr-agent server (Python standard library only).
+
+The same loop as `cmr-agent track` (src/track/mod.rs), over HTTP: the first frame is localized
+with the full search from a coarse prior (the truth moved --prior-noise-m in the ground plane and
+turned --prior-noise-deg about the vertical), every later frame from the previous estimate moved
+by a constant-velocity prediction with a small search (--tracked-hypotheses starts,
+--tracked-iterations steps); an answer whose confidence score is below --fallback-below is redone
+with the full search (the server's defaults) from the same prior.
+
+The map region must already be stored on the server (PUT /v1/maps/{id}) in the sequence's map
+frame: the LiDAR's frame at the sequence's frame 0 (see docs/tracking.md).
+
+    python3 scripts/track-http.py --server http://localhost:8080 --id drive \
+        --sequence data/drive/00 --out /tmp/track-http
+
+Writes OUT/trajectory.kitti.txt (poses.txt convention: world_from_cam0, world = cam0 at frame
+0), OUT/frames.csv and OUT/summary.json (ATE = RMSE of camera-centre errors, no alignment; RPE
+between consecutive frames), and prints the summary. Exit status 1 on any HTTP or input error.
+"""
+
+import argparse
+import base64
+import csv
+import json
+import math
+import os
+import random
+import sys
+import time
+import urllib.error
+import urllib.request
+
+# --- rigid 4x4 transforms as nested lists -------------------------------------------------------
+
+
+def mul(a, b):
+    return [[sum(a[i][k] * b[k][j] for k in range(4)) for j in range(4)] for i in range(4)]
+
+
+def inv(t):
+    r = [[t[j][i] for j in range(3)] for i in range(3)]  # R^T
+    p = [-sum(r[i][k] * t[k][3] for k in range(3)) for i in range(3)]
+    return [r[0] + [p[0]], r[1] + [p[1]], r[2] + [p[2]], [0.0, 0.0, 0.0, 1.0]]
+
+
+def from_3x4(values):
+    return [values[0:4], values[4:8], values[8:12], [0.0, 0.0, 0.0, 1.0]]
+
+
+def centre(camera_from_map):
+    """Camera centre in the map frame: -R^T t."""
+    m = inv(camera_from_map)
+    return m[0][3], m[1][3], m[2][3]
+
+
+def angle_deg(t):
+    cos = max(-1.0, min(1.0, (t[0][0] + t[1][1] + t[2][2] - 1.0) / 2.0))
+    return math.degrees(math.acos(cos))
+
+
+def ground_motion(yaw, dx, dy):
+    c, s = math.cos(yaw), math.sin(yaw)
+    return [[c, -s, 0.0, dx], [s, c, 0.0, dy], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+
+
+# --- the sequence ---------------------------------------------------------------------------------
+
+
+def read_sequence(root):
+    calib = {}
+    with open(os.path.join(root, "calib.txt")) as f:
+        for line in f:
+            if ":" in line:
+                key, values = line.split(":", 1)
+                calib[key.strip()] = [float(v) for v in values.split()]
+    p2 = calib["P2"]
+    tr = from_3x4(calib.get("Tr", calib.get("Tr_velo_to_cam")))
+    if "R0_rect" in calib:
+        r = calib["R0_rect"]
+        tr = mul([r[0:3] + [0.0], r[3:6] + [0.0], r[6:9] + [0.0], [0, 0, 0, 1.0]], tr)
+    offset = [[1.0, 0, 0, p2[3] / p2[0]], [0, 1.0, 0, p2[7] / p2[5]], [0, 0, 1.0, p2[11]], [0, 0, 0, 1.0]]
+    with open(os.path.join(root, "poses.txt")) as f:
+        poses = [from_3x4([float(v) for v in line.split()]) for line in f if line.strip()]
+    images = sorted(n for n in os.listdir(os.path.join(root, "image_2")) if n.endswith(".png"))
+    return {
+        "intrinsics": {"fx": p2[0], "fy": p2[5], "cx": p2[2], "cy": p2[6]},
+        "cam0_from_lidar": tr,  # C, rectified
+        "camera_from_lidar": mul(offset, tr),  # image_2
+        "poses": poses,  # world_from_cam0
+        "images": [(int(n[:-4]), os.path.join(root, "image_2", n)) for n in images],
+    }
+
+
+def truth_camera_from_map(seq, index):
+    """image_2's camera_from_map; the map frame is the LiDAR at frame 0: C^-1 W_k C."""
+    c = seq["cam0_from_lidar"]
+    map_from_lidar = mul(mul(inv(c), seq["poses"][index]), c)
+    return mul(seq["camera_from_lidar"], inv(map_from_lidar))
+
+
+def world_from_cam0(seq, camera_from_map):
+    c = seq["cam0_from_lidar"]
+    map_from_lidar = mul(inv(camera_from_map), seq["camera_from_lidar"])
+    return mul(mul(c, map_from_lidar), inv(c))
+
+
+def coarse_prior(truth, noise_m, noise_deg, rng):
+    direction = rng.uniform(0.0, 2.0 * math.pi)
+    yaw = math.radians(noise_deg if rng.random() < 0.5 else -noise_deg)
+    cx, cy, _ = centre(truth)
+    mx, my = cx + noise_m * math.cos(direction), cy + noise_m * math.sin(direction)
+    turned = (math.cos(yaw) * cx - math.sin(yaw) * cy, math.sin(yaw) * cx + math.cos(yaw) * cy)
+    q = ground_motion(yaw, mx - turned[0], my - turned[1])
+    return mul(truth, inv(q))
+
+
+def predict(before_last, last):
+    return last if before_last is None else mul(mul(last, inv(before_last)), last)
+
+
+# --- HTTP -----------------------------------------------------------------------------------------
+
+
+def localize(server, map_id, image_b64, intrinsics, prior, hypotheses, iterations):
+    body = json.dumps({
+        "image": image_b64,
+        "intrinsics": intrinsics,
+        "prior_camera_from_map": prior,
+        "hypotheses": hypotheses,
+        "max_iterations": iterations,
+    }).encode()
+    request = urllib.request.Request(f"{server}/v1/maps/{map_id}/localize", data=body, headers={"Content-Type": "application/json"})
+    started = time.perf_counter()
+    try:
+        with urllib.request.urlopen(request, timeout=60) as response:
+            answer = json.load(response)
+    except urllib.error.HTTPError as e:
+        raise SystemExit(f"localize failed: HTTP {e.code}: {e.read().decode(errors='replace')}")
+    latency_ms = (time.perf_counter() - started) * 1000.0
+    return answer["pose"]["camera_from_map"], answer["confidence"]["score"], latency_ms
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--server", default="http://localhost:8080")
+    parser.add_argument("--id", required=True, help="map region id on the server")
+    parser.add_argument("--sequence", required=True, help="KITTI-layout sequence directory")
+    parser.add_argument("--out", required=True)
+    parser.add_argument("--first", type=int, default=0, help="first frame (file index)")
+    parser.add_argument("--frames", type=int, default=None, help="frames to follow (default: all)")
+    parser.add_argument("--prior-noise-m", type=float, default=5.0)
+    parser.add_argument("--prior-noise-deg", type=float, default=30.0)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--tracked-hypotheses", type=int, default=1)
+    parser.add_argument("--tracked-iterations", type=int, default=3)
+    parser.add_argument("--full-hypotheses", type=int, default=4)
+    parser.add_argument("--full-iterations", type=int, default=10)
+    parser.add_argument("--fallback-below", type=float, default=0.3)
+    args = parser.parse_args()
+
+    seq = read_sequence(args.sequence)
+    frames = [(i, path) for i, path in seq["images"] if i >= args.first][: args.frames]
+    if not frames:
+        raise SystemExit(f"{args.sequence}: no frames from {args.first} on")
+    rng = random.Random(args.seed)
+    rows, estimates = [], []
+    for position, (index, path) in enumerate(frames):
+        with open(path, "rb") as f:
+            image_b64 = base64.b64encode(f.read()).decode()
+        truth = truth_camera_from_map(seq, index)
+        full = (args.full_hypotheses, args.full_iterations)
+        if position == 0:
+            prior = coarse_prior(truth, args.prior_noise_m, args.prior_noise_deg, rng)
+            pose, confidence, latency = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
+            mode, tracked_confidence = "cold", None
+        else:
+            prior = predict(estimates[-2] if position >= 2 else None, estimates[-1])
+            pose, confidence, latency = localize(
+                args.server, args.id, image_b64, seq["intrinsics"], prior, args.tracked_hypotheses, args.tracked_iterations
+            )
+            mode, tracked_confidence = "tracked", confidence
+            if confidence < args.fallback_below:
+                pose, confidence, more = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
+                mode, latency = "fallback", latency + more
+        estimates.append(pose)
+        est, gt = centre(pose), centre(truth)
+        row = {
+            "position": position, "frame": index, "mode": mode, "confidence": confidence,
+            "tracked_confidence": tracked_confidence, "latency_ms": latency,
+            "position_error_m": math.dist(est, gt), "rpe_translation_m": None, "rpe_rotation_deg": None,
+            "estimate_x": est[0], "estimate_y": est[1], "truth_x": gt[0], "truth_y": gt[1],
+        }
+        if position > 0:
+            # E = (T_gt,k-1 T_gt,k^-1)^-1 (T_est,k-1 T_est,k^-1), as in src/track/metrics.rs.
+            previous_truth = truth_camera_from_map(seq, frames[position - 1][0])
+            e = mul(inv(mul(previous_truth, inv(truth))), mul(estimates[-2], inv(pose)))
+            row["rpe_translation_m"] = math.hypot(e[0][3], e[1][3], e[2][3])
+            row["rpe_rotation_deg"] = angle_deg(e)
+        rows.append(row)
+        print(f"frame {index}: {mode}, confidence {confidence:.2f}, error {row['position_error_m']:.3f} m, {latency:.0f} ms", file=sys.stderr)
+
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "trajectory.kitti.txt"), "w") as f:
+        for pose in estimates:
+            w = world_from_cam0(seq, pose)
+            f.write(" ".join(f"{v:.12e}" for v in w[0] + w[1] + w[2]) + "\n")
+    with open(os.path.join(args.out, "frames.csv"), "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    rpe_t = [r["rpe_translation_m"] for r in rows[1:]]
+    rpe_r = [r["rpe_rotation_deg"] for r in rows[1:]]
+    later = [r["latency_ms"] for r in rows[1:]]
+    rms = lambda v: math.sqrt(sum(x * x for x in v) / len(v)) if v else 0.0
+    summary = {
+        "frames": len(rows),
+        "ate_rmse_m": rms([r["position_error_m"] for r in rows]),
+        "rpe_translation_rmse_m": rms(rpe_t),
+        "rpe_rotation_rmse_deg": rms(rpe_r),
+        "fallbacks": sum(r["mode"] == "fallback" for r in rows),
+        "first_frame_ms": rows[0]["latency_ms"],
+        "mean_per_frame_ms": sum(later) / len(later) if later else 0.0,
+    }
+    with open(os.path.join(args.out, "summary.json"), "w") as f:
+        json.dump(summary, f, indent=2)
+    print(json.dumps(summary, indent=2))
+
+
+if __name__ == "__main__":
+    main()

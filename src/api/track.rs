@@ -1,0 +1,165 @@
+//! `cmr-agent track`: follows a KITTI-layout drive in a stored map region, frame after frame,
+//! through the server's own localize path ([`OfflineLocalizer`], the one `cmr-agent localize`
+//! uses), and writes the trajectory, its errors, latencies and a plot (`track::output`).
+//!
+//! The map frame is the sequence's (`kitti::Sequence::map_from_lidar`: the LiDAR at frame 0), so
+//! the region must be in that frame, e.g. built from the same drive's scans.
+
+use std::path::PathBuf;
+
+use anyhow::{Context, Result, anyhow, bail};
+use bytes::Bytes;
+
+use crate::geometry::Pose;
+use crate::geometry::pose::Matrix4x4;
+use crate::kitti::{Frame, Sequence};
+use crate::maps::MapStore;
+use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest};
+use crate::track::output::TrackRun;
+use crate::track::{FrameAnswer, FrameLocalizer, SearchSize, TrackConfig, coarse_prior, cold_reference, spread, track};
+
+use super::config::ServeArgs;
+use super::offline::OfflineLocalizer;
+
+#[derive(Debug, Clone, clap::Args)]
+pub struct TrackArgs {
+    /// Map region id in the `--maps` directory (the server's store; the region must be in the
+    /// sequence's map frame: the LiDAR's frame at frame 0).
+    #[arg(long)]
+    pub id: String,
+    /// A KITTI-layout sequence directory (calib.txt, poses.txt, image_2/, velodyne/).
+    #[arg(long)]
+    pub sequence: PathBuf,
+    /// Where the trajectory files, summary, CSV and plot go (created if missing).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// First frame (file index) of the drive.
+    #[arg(long, default_value_t = 0)]
+    pub first: usize,
+    /// Frames to follow (default: to the end of the sequence).
+    #[arg(long)]
+    pub frames: Option<usize>,
+    /// The first frame's prior is the truth with the camera moved this far (metres, ground plane,
+    /// direction drawn from --seed) ...
+    #[arg(long, default_value_t = 5.0)]
+    pub prior_noise_m: f64,
+    /// ... and turned this much (degrees about the vertical, sign drawn from --seed).
+    #[arg(long, default_value_t = 30.0)]
+    pub prior_noise_deg: f64,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Starts of a tracked frame's search (from the constant-velocity prediction).
+    #[arg(long, default_value_t = 1)]
+    pub tracked_hypotheses: u32,
+    /// Policy steps of a tracked frame's search.
+    #[arg(long, default_value_t = 3)]
+    pub tracked_iterations: u32,
+    /// A tracked answer whose confidence score is below this is redone with the full search
+    /// (`--default-hypotheses` starts, `--default-max-iterations` steps) from the same prior.
+    #[arg(long, default_value_t = 0.3)]
+    pub fallback_below: f32,
+    /// After tracking, localize this many frames (spread over the drive) cold: the full search
+    /// from a coarse prior, for the summary's latency and accuracy comparison.
+    #[arg(long, default_value_t = 0)]
+    pub cold_reference: usize,
+    /// Every `serve` setting (models, `--maps`, limits, search defaults) applies here too.
+    #[command(flatten)]
+    pub serve: ServeArgs,
+}
+
+/// Localizes frames of one sequence in one stored region through [`OfflineLocalizer`].
+struct StoredRegion<'a> {
+    offline: &'a OfflineLocalizer,
+    id: &'a str,
+    frames: &'a [Frame],
+}
+
+impl FrameLocalizer for StoredRegion<'_> {
+    fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize) -> Result<FrameAnswer> {
+        let frame = &self.frames[position];
+        let bytes = std::fs::read(&frame.image_path).with_context(|| format!("reading {}", frame.image_path.display()))?;
+        let k = frame.intrinsics;
+        let request = LocalizeRequest {
+            image: String::new(),
+            intrinsics: IntrinsicsBody { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy },
+            prior_camera_from_map: Some(Matrix4x4::from_rows(prior.to_rows())),
+            max_iterations: Some(search.max_iterations),
+            hypotheses: Some(search.hypotheses),
+        };
+        let started = std::time::Instant::now();
+        let done = self
+            .offline
+            .localize(self.id, &request, ImagePayload::Raw(Bytes::from(bytes)))
+            .map_err(|e| anyhow!("frame {} ({}): {e}", frame.index, frame.image_path.display()))?;
+        let latency_ms = crate::agent::ms(started);
+        let loc = &done.localization;
+        Ok(FrameAnswer { camera_from_map: loc.camera_from_map(), confidence: loc.confidence.score, iterations: loc.best().steps.len(), latency_ms })
+    }
+}
+
+pub fn run(args: TrackArgs) -> Result<()> {
+    let sequence = Sequence::open(&args.sequence, None)?;
+    if sequence.poses.is_none() {
+        bail!("{}: no poses.txt; tracking needs the truth for the first prior and the errors", args.sequence.display());
+    }
+    let file_indices: Vec<usize> = sequence
+        .frame_indices
+        .iter()
+        .copied()
+        .filter(|&i| i >= args.first)
+        .take(args.frames.unwrap_or(usize::MAX))
+        .collect();
+    if file_indices.is_empty() {
+        bail!("{}: no frames from {} on", args.sequence.display(), args.first);
+    }
+    let frames = file_indices.iter().map(|&i| sequence.frame(i)).collect::<Result<Vec<_>>>()?;
+    let truth = file_indices.iter().map(|&i| sequence.camera_from_map(i)).collect::<Result<Vec<_>>>()?;
+    let config = TrackConfig {
+        tracked: SearchSize { hypotheses: args.tracked_hypotheses, max_iterations: args.tracked_iterations },
+        full: SearchSize { hypotheses: args.serve.default_hypotheses, max_iterations: args.serve.default_max_iterations },
+        fallback_below: args.fallback_below,
+    };
+
+    let (store, warnings) = MapStore::open(&args.serve.maps).map_err(|e| anyhow!("{e}"))?;
+    for w in warnings {
+        tracing::warn!("map store: {w}");
+    }
+    let entry = store.get(&args.id).map_err(|e| anyhow!("map {}: {e}", args.id))?;
+    let offline = OfflineLocalizer::new(&args.serve, store)?;
+    // Prepare the region's embeddings before the clock of the first frame starts.
+    let map = offline.localizer.maps.prepared_for(&entry).map_err(|e| anyhow!("map {}: {e}", args.id))?;
+
+    let mut region = StoredRegion { offline: &offline, id: &args.id, frames: &frames };
+    let first_prior = coarse_prior(&truth[0], args.prior_noise_m, args.prior_noise_deg, args.seed);
+    let tracked = track(&mut region, frames.len(), first_prior, &config, |f| {
+        let c = f.estimate.camera_position_in_map();
+        let gt = truth[f.position].camera_position_in_map();
+        tracing::info!(
+            frame = file_indices[f.position],
+            mode = f.mode.name(),
+            confidence = format!("{:.2}", f.confidence),
+            error_m = format!("{:.3}", (c - gt).norm()),
+            latency_ms = format!("{:.1}", f.latency_ms),
+            "tracked"
+        );
+    })?;
+    let cold = cold_reference(&mut region, &spread(frames.len(), args.cold_reference), &truth, args.prior_noise_m, args.prior_noise_deg, args.seed ^ 0xC01D, &config)?;
+    drop(region);
+    drop(offline);
+
+    let run = TrackRun {
+        sequence: &sequence,
+        map_id: &args.id,
+        file_indices: &file_indices,
+        frames: &tracked,
+        truth: &truth,
+        cold: &cold,
+        config,
+        prior_noise_m: args.prior_noise_m,
+        prior_noise_deg: args.prior_noise_deg,
+        seed: args.seed,
+    };
+    let summary = run.write(&args.out, &map.points)?;
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(())
+}

@@ -1,0 +1,332 @@
+//! Following a drive: localize the frames of a sequence in order, each from the previous
+//! estimate moved by a constant-velocity prediction.
+//!
+//! - The first frame starts from a coarse prior (GNSS-like: [`coarse_prior`]) and runs the full
+//!   multi-start search (a cold localize).
+//! - Every later frame starts from [`predict`]ed pose and runs a small search (by default one
+//!   start, three policy steps). When that answer's confidence score (`agent::Confidence::score`
+//!   = sqrt(frustum IoU × the last step's policy certainty), in [0, 1]) is below
+//!   [`TrackConfig::fallback_below`], the frame is localized again with the full search from
+//!   the same predicted prior, and that answer is kept.
+//!
+//! The loop does no I/O and knows nothing of HTTP or the server: a [`FrameLocalizer`] answers one
+//! frame (`cmr-agent track` implements it with `serving::Localizer`, the path
+//! `cmr-agent localize` and `POST /v1/maps/{id}/localize` share). Errors of the trajectory
+//! ([`metrics`]) and the files written from it ([`output`], [`plot`]) live beside it.
+//!
+//! Poses are camera_from_map of image_2 (OpenCV camera frame; map frame z-up, see
+//! `kitti::Sequence::map_from_lidar` for a KITTI-layout sequence's map frame), metres.
+
+pub mod metrics;
+pub mod output;
+pub mod plot;
+
+use nalgebra::Vector3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+
+use crate::geometry::Pose;
+
+/// How large one localization's search is: starts of the multi-start search and policy steps
+/// per start (the localize request's `hypotheses` and `max_iterations`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub struct SearchSize {
+    pub hypotheses: u32,
+    pub max_iterations: u32,
+}
+
+/// The tracker's settings.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct TrackConfig {
+    /// The search of a tracked frame (from the prediction).
+    pub tracked: SearchSize,
+    /// The search of the first frame and of a fallback.
+    pub full: SearchSize,
+    /// A tracked answer whose confidence score is below this falls back to the full search.
+    /// 0 never falls back; anything above 1 always does.
+    pub fallback_below: f32,
+}
+
+/// One frame's answer from a [`FrameLocalizer`].
+#[derive(Debug, Clone, Copy)]
+pub struct FrameAnswer {
+    /// Estimated camera_from_map.
+    pub camera_from_map: Pose,
+    /// `agent::Confidence::score` of the answer, in [0, 1].
+    pub confidence: f32,
+    /// Steps of the chosen hypothesis.
+    pub iterations: usize,
+    /// Time the localization took as the caller sees it (the localize call, or the HTTP round
+    /// trip), milliseconds; reading the frame from disk is not part of it.
+    pub latency_ms: f64,
+}
+
+/// Localizes frame `position` (0-based position in the drive, not the file index) from `prior`.
+pub trait FrameLocalizer {
+    fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize) -> anyhow::Result<FrameAnswer>;
+}
+
+/// How a frame was localized.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Mode {
+    /// The first frame: the full search from the coarse prior.
+    Cold,
+    /// The small search from the prediction was confident enough.
+    Tracked,
+    /// The small search was not; the full search from the prediction answered.
+    Fallback,
+}
+
+impl Mode {
+    pub fn name(self) -> &'static str {
+        match self {
+            Mode::Cold => "cold",
+            Mode::Tracked => "tracked",
+            Mode::Fallback => "fallback",
+        }
+    }
+}
+
+/// One frame of a tracked drive.
+#[derive(Debug, Clone, Copy)]
+pub struct TrackedFrame {
+    /// Position in the drive (0-based).
+    pub position: usize,
+    pub mode: Mode,
+    /// Where the search started (camera_from_map).
+    pub prior: Pose,
+    /// The answer kept (camera_from_map).
+    pub estimate: Pose,
+    /// Confidence score of the kept answer.
+    pub confidence: f32,
+    /// Confidence score of the small search, for tracked and fallback frames.
+    pub tracked_confidence: Option<f32>,
+    /// Steps of the kept answer's chosen hypothesis.
+    pub iterations: usize,
+    /// Sum of the localizations' latencies for this frame (both, on a fallback), ms.
+    pub latency_ms: f64,
+}
+
+/// Constant-velocity prediction of the next camera_from_map from the last two estimates
+/// (`before_last` = frame k−2, `last` = frame k−1): the camera moves again by the motion it made
+/// between them, in its own frame: T_k = (T_{k−1}·T_{k−2}⁻¹)·T_{k−1}. With one estimate only,
+/// the camera is predicted to stand still.
+pub fn predict(before_last: Option<&Pose>, last: &Pose) -> Pose {
+    match before_last {
+        Some(before) => last.compose(&before.inverse()).compose(last),
+        None => *last,
+    }
+}
+
+/// A GNSS-like prior: `truth` (camera_from_map) with the camera centre moved by exactly
+/// `noise_m` metres in the map's ground plane (direction uniform) and its heading turned by
+/// `noise_deg` degrees about the map's z axis through the camera centre (sign uniform); height,
+/// pitch and roll are kept. Seeded: the same seed gives the same prior.
+pub fn coarse_prior(truth: &Pose, noise_m: f64, noise_deg: f64, seed: u64) -> Pose {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let direction: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+    let yaw = if rng.random_bool(0.5) { noise_deg } else { -noise_deg }.to_radians();
+    let centre = truth.camera_position_in_map();
+    let moved = centre + Vector3::new(noise_m * direction.cos(), noise_m * direction.sin(), 0.0);
+    // Q = T(moved) · Rz(yaw) · T(−centre) moves the camera in the map: map_from_camera' = Q · map_from_camera.
+    let turn = Pose::ground_motion(yaw, 0.0, 0.0);
+    let turned_centre = turn.rotation() * centre;
+    let q = Pose::ground_motion(yaw, moved.x - turned_centre.x, moved.y - turned_centre.y);
+    truth.compose(&q.inverse())
+}
+
+/// Follows a drive of `frames` frames: the first from `first_prior` with the full search, the
+/// rest as the module doc says. `on_frame` sees each frame as soon as it is done (progress).
+/// Errors: the first error of `localizer`, with the frame's position.
+pub fn track(
+    localizer: &mut dyn FrameLocalizer,
+    frames: usize,
+    first_prior: Pose,
+    config: &TrackConfig,
+    mut on_frame: impl FnMut(&TrackedFrame),
+) -> anyhow::Result<Vec<TrackedFrame>> {
+    use anyhow::Context;
+    let mut done: Vec<TrackedFrame> = Vec::with_capacity(frames);
+    for position in 0..frames {
+        let at = || format!("frame {position} of the drive");
+        let frame = if position == 0 {
+            let answer = localizer.localize(0, &first_prior, config.full).with_context(at)?;
+            tracked_frame(0, Mode::Cold, first_prior, &answer, None, answer.latency_ms)
+        } else {
+            let last = &done[position - 1].estimate;
+            let before_last = position.checked_sub(2).map(|i| &done[i].estimate);
+            let prior = predict(before_last, last);
+            let small = localizer.localize(position, &prior, config.tracked).with_context(at)?;
+            if small.confidence >= config.fallback_below {
+                tracked_frame(position, Mode::Tracked, prior, &small, Some(small.confidence), small.latency_ms)
+            } else {
+                let full = localizer.localize(position, &prior, config.full).with_context(at)?;
+                tracked_frame(position, Mode::Fallback, prior, &full, Some(small.confidence), small.latency_ms + full.latency_ms)
+            }
+        };
+        on_frame(&frame);
+        done.push(frame);
+    }
+    Ok(done)
+}
+
+fn tracked_frame(position: usize, mode: Mode, prior: Pose, answer: &FrameAnswer, tracked_confidence: Option<f32>, latency_ms: f64) -> TrackedFrame {
+    TrackedFrame {
+        position,
+        mode,
+        prior,
+        estimate: answer.camera_from_map,
+        confidence: answer.confidence,
+        tracked_confidence,
+        iterations: answer.iterations,
+        latency_ms,
+    }
+}
+
+/// One cold localization: the full search from a coarse prior, as a reference for the tracked
+/// latency and accuracy.
+#[derive(Debug, Clone, Copy)]
+pub struct ColdFrame {
+    pub position: usize,
+    pub prior: Pose,
+    pub answer: FrameAnswer,
+}
+
+/// Localizes each of `positions` cold: the full search from [`coarse_prior`] of that frame's
+/// `truth`, seeded with `seed + position`.
+pub fn cold_reference(
+    localizer: &mut dyn FrameLocalizer,
+    positions: &[usize],
+    truth: &[Pose],
+    noise_m: f64,
+    noise_deg: f64,
+    seed: u64,
+    config: &TrackConfig,
+) -> anyhow::Result<Vec<ColdFrame>> {
+    positions
+        .iter()
+        .map(|&position| {
+            let prior = coarse_prior(&truth[position], noise_m, noise_deg, seed.wrapping_add(position as u64));
+            let answer = localizer.localize(position, &prior, config.full)?;
+            Ok(ColdFrame { position, prior, answer })
+        })
+        .collect()
+}
+
+/// `count` positions spread evenly over `0..frames` (first and last included when count ≥ 2).
+pub fn spread(frames: usize, count: usize) -> Vec<usize> {
+    let count = count.min(frames);
+    match count {
+        0 => vec![],
+        1 => vec![frames / 2],
+        _ => (0..count).map(|i| i * (frames - 1) / (count - 1)).collect(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::PoseError;
+
+    /// A drive at constant speed and turn rate (1 m and 0.5° per frame): camera_from_map truths.
+    fn drive(frames: usize) -> Vec<Pose> {
+        let rig = Pose::from_rt(
+            nalgebra::Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0),
+            Vector3::new(0.0, -0.08, -0.27),
+        );
+        let step = Pose::ground_motion(0.5f64.to_radians(), 1.0, 0.1);
+        let mut map_from_lidar = Pose::identity();
+        let mut truth = Vec::new();
+        for _ in 0..frames {
+            truth.push(rig.compose(&map_from_lidar.inverse()));
+            map_from_lidar = map_from_lidar.compose(&step);
+        }
+        truth
+    }
+
+    /// Answers with the truth when the prior is within `reach_m` of it, else with the prior,
+    /// whose confidence is then low: a stand-in for the agent with a basin of attraction.
+    struct Basin {
+        truth: Vec<Pose>,
+        reach_m: f64,
+        calls: Vec<(usize, SearchSize)>,
+    }
+
+    impl FrameLocalizer for Basin {
+        fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize) -> anyhow::Result<FrameAnswer> {
+            self.calls.push((position, search));
+            let truth = self.truth[position];
+            let off = (prior.camera_position_in_map() - truth.camera_position_in_map()).norm();
+            // The full search reaches 3 times as far.
+            let reach = if search.hypotheses > 1 { 3.0 * self.reach_m } else { self.reach_m };
+            let (pose, confidence) = if off <= reach { (truth, 0.9) } else { (*prior, 0.1) };
+            Ok(FrameAnswer { camera_from_map: pose, confidence, iterations: 3, latency_ms: search.hypotheses as f64 })
+        }
+    }
+
+    const CONFIG: TrackConfig = TrackConfig {
+        tracked: SearchSize { hypotheses: 1, max_iterations: 3 },
+        full: SearchSize { hypotheses: 4, max_iterations: 10 },
+        fallback_below: 0.5,
+    };
+
+    #[test]
+    fn constant_velocity_continues_the_last_motion() {
+        let truth = drive(4);
+        let predicted = predict(Some(&truth[1]), &truth[2]);
+        // The drive's motion is constant, so the prediction is the next truth.
+        let e = PoseError::between(&predicted, &truth[3]);
+        assert!(e.rte_m < 1e-9 && e.rre_geodesic_deg < 1e-9, "{e:?}");
+        assert_eq!(predict(None, &truth[2]), truth[2]);
+    }
+
+    #[test]
+    fn the_coarse_prior_is_exactly_as_far_off_as_asked_and_seeded() {
+        let truth = drive(1)[0];
+        let prior = coarse_prior(&truth, 5.0, 30.0, 7);
+        let off = prior.camera_position_in_map() - truth.camera_position_in_map();
+        assert!((off.norm() - 5.0).abs() < 1e-9 && off.z.abs() < 1e-9, "{off:?}");
+        let turn = (prior.camera_heading_in_map_deg() - truth.camera_heading_in_map_deg()).abs();
+        assert!((turn - 30.0).abs() < 1e-9, "{turn}");
+        assert_eq!(prior, coarse_prior(&truth, 5.0, 30.0, 7));
+        assert_ne!(prior, coarse_prior(&truth, 5.0, 30.0, 8));
+    }
+
+    #[test]
+    fn tracks_with_small_searches_and_falls_back_when_unsure() {
+        let truth = drive(6);
+        // 1.5 m reach: every prediction is reached by the small search (frame 1's, standing
+        // still, is 1 m behind; later ones are exact).
+        let mut basin = Basin { truth: truth.clone(), reach_m: 1.5, calls: vec![] };
+        let first = coarse_prior(&truth[0], 3.0, 0.0, 1);
+        let frames = track(&mut basin, 6, first, &CONFIG, |_| {}).unwrap();
+        assert_eq!(frames[0].mode, Mode::Cold);
+        assert!(frames[1..].iter().all(|f| f.mode == Mode::Tracked));
+        assert_eq!(basin.calls.len(), 6);
+        assert_eq!(basin.calls[0].1, CONFIG.full);
+        let e = PoseError::between(&frames[3].prior, &truth[3]);
+        assert!(e.rte_m < 1e-9 && e.rre_geodesic_deg < 1e-9, "exact prediction from exact estimates: {e:?}");
+        // 0.5 m reach (1.5 m for the full search): frame 1 (predicted standing still, 1 m off)
+        // needs the full search.
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![] };
+        let first = coarse_prior(&truth[0], 1.0, 0.0, 1);
+        let frames = track(&mut basin, 6, first, &CONFIG, |_| {}).unwrap();
+        assert_eq!(frames[0].estimate, truth[0]);
+        assert_eq!(frames[1].mode, Mode::Fallback);
+        assert_eq!(frames[1].tracked_confidence, Some(0.1));
+        assert_eq!(frames[1].estimate, truth[1]);
+        assert_eq!(frames[1].latency_ms, 1.0 + 4.0, "both searches count");
+        assert!(frames[2..].iter().all(|f| f.mode == Mode::Tracked));
+        assert_eq!(basin.calls[1..3], [(1, CONFIG.tracked), (1, CONFIG.full)]);
+    }
+
+    #[test]
+    fn spread_covers_the_drive() {
+        assert_eq!(spread(100, 5), vec![0, 24, 49, 74, 99]);
+        assert_eq!(spread(3, 10), vec![0, 1, 2]);
+        assert_eq!(spread(10, 1), vec![5]);
+        assert!(spread(10, 0).is_empty());
+    }
+}
