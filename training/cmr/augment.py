@@ -37,10 +37,13 @@ class AugmentOptions:
     range_noise_m: float = 0.03  # max sigma of Gaussian range noise (drawn per sample in [0, this])
     occlusion_p: float = 0.3  # share of samples with one azimuth sector dropped
     occlusion_max_deg: float = 60.0
+    # The map from other scans of the drive (`data.neighbour_map`): 0 = the frame's own scan.
+    map_window: int = 0  # frames each side to draw from
+    map_scans: int = 3  # scans in the union
 
     @property
     def active(self) -> bool:
-        return self.photometric != "basic" or self.scale_max > 1.0 or self.lidar
+        return self.photometric != "basic" or self.scale_max > 1.0 or self.lidar or self.map_window > 0
 
 
 DEFAULT = AugmentOptions()

@@ -7,6 +7,11 @@ A sequence directory holds `calib.txt`, `velodyne/NNNNNN.bin` (float32 x, y, z, 
 - the scan sampled to N points (random permutation, refilled with replacement when short);
 - a random map-frame motion Q (yaw over the full circle, ground shift within +-10 m):
   map = Q * scan, truth camera_from_map = camera_from_lidar * Q^-1, initial pose camera_from_lidar;
+- optionally (training, `AugmentOptions.map_window` > 0) the map is not this frame's own scan but
+  the union of the scans of `map_scans` frames drawn within +-`map_window` of it, moved into this
+  frame's LiDAR frame with `poses.txt`: the camera is then not at the centre of the map's rings,
+  as in a region built from a drive (a model trained only on own scans learns to put the camera
+  where the scan was taken);
 - in-frustum labels of every sampled point under the true pose.
 
 Decoded frames (resized image, xyz) are cached in memory: PNG decode dominates on 2 cores.
@@ -39,6 +44,7 @@ class DataError(ValueError):
 class Calibration:
     camera_from_lidar: np.ndarray  # 4x4, velodyne -> rectified image_2 camera
     intrinsics: np.ndarray  # (fx, fy, cx, cy) of image_2
+    cam0_from_lidar: np.ndarray | None = None  # 4x4, Tr: velodyne -> camera 0 (the frame of poses.txt)
 
 
 def parse_calib(path: Path) -> Calibration:
@@ -59,7 +65,7 @@ def parse_calib(path: Path) -> Calibration:
     tr[:3, :] = rows["Tr"].reshape(3, 4)
     shift = np.eye(4)
     shift[:3, 3] = (p2[0, 3] / p2[0, 0], p2[1, 3] / p2[1, 1], p2[2, 3])
-    return Calibration(shift @ tr, np.array([p2[0, 0], p2[1, 1], p2[0, 2], p2[1, 2]]))
+    return Calibration(shift @ tr, np.array([p2[0, 0], p2[1, 1], p2[0, 2], p2[1, 2]]), tr)
 
 
 def read_scan(path: Path) -> np.ndarray:
@@ -83,6 +89,51 @@ class Frame:
     @property
     def scan_path(self) -> Path:
         return self.sequence / "velodyne" / f"{self.index:06d}.bin"
+
+
+@lru_cache(maxsize=64)
+def read_poses(sequence: Path) -> np.ndarray:
+    """`poses.txt` of a KITTI-odometry sequence: [F, 4, 4] world_from_cam0 per frame (12 numbers a
+    line, the 3x4 row-major top of each matrix)."""
+    path = Path(sequence) / "poses.txt"
+    try:
+        rows = np.loadtxt(path, ndmin=2)
+    except (OSError, ValueError) as e:
+        raise DataError(f"{path}: cannot read poses ({e})") from e
+    if rows.shape[1] != 12:
+        raise DataError(f"{path}: need 12 numbers per line, got {rows.shape[1]}")
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :] = rows.reshape(-1, 3, 4)
+    return poses
+
+
+def lidar_from_lidar(frame: "Frame", other: int) -> np.ndarray:
+    """4x4 mapping the LiDAR frame of frame `other` of the same sequence into `frame`'s LiDAR frame:
+    Tr^-1 * pose_i^-1 * pose_j * Tr."""
+    tr = frame.calib.cam0_from_lidar
+    if tr is None:
+        raise DataError(f"{frame.sequence}: the calibration has no Tr")
+    poses = read_poses(frame.sequence)
+    if not (0 <= frame.index < len(poses) and 0 <= other < len(poses)):
+        raise DataError(f"{frame.sequence}/poses.txt has {len(poses)} poses, frames {frame.index} and {other} asked")
+    return g.invert(tr) @ g.invert(poses[frame.index]) @ poses[other] @ tr
+
+
+def neighbour_map(frame: "Frame", rng: np.random.Generator, window: int, scans: int,
+                  augment: "aug.AugmentOptions | None" = None) -> np.ndarray:
+    """The union of the scans of `scans` distinct frames drawn within +-`window` of `frame` (frames
+    that exist in its sequence; possibly `frame` itself), each LiDAR-augmented in its own frame
+    when `augment.lidar`, moved into `frame`'s LiDAR frame. [M, 3] float64."""
+    candidates = [j for j in range(frame.index - window, frame.index + window + 1)
+                  if (frame.sequence / "velodyne" / f"{j:06d}.bin").is_file()]
+    picks = rng.choice(candidates, size=min(scans, len(candidates)), replace=False)
+    parts = []
+    for j in sorted(int(j) for j in picks):
+        xyz = read_scan(frame.sequence / "velodyne" / f"{j:06d}.bin")
+        if augment is not None and augment.lidar:
+            xyz = aug.lidar_augment(xyz, rng, augment)
+        parts.append(g.transform(lidar_from_lidar(frame, j), xyz.astype(np.float64)))
+    return np.concatenate(parts)
 
 
 def list_frames(sequences: list[Path]) -> list[Frame]:
@@ -180,7 +231,9 @@ def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points:
     image = ((rgb - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1).astype(np.float32)
     k = g.adjust_intrinsics(plan, frame.calib.intrinsics, w, h)
 
-    if train and augment.lidar:
+    if train and augment.map_window > 0:
+        xyz = neighbour_map(frame, rng, augment.map_window, augment.map_scans, augment)
+    elif train and augment.lidar:
         xyz = aug.lidar_augment(xyz, rng, augment)
     scan = sample_points(xyz, num_points, rng).astype(np.float64)
     q = g.ground_motion(rng.uniform(-math.pi, math.pi), *rng.uniform(-max_shift_m, max_shift_m, 2))

@@ -106,6 +106,10 @@ class Config:
     range_noise_m: float = 0.03
     occlusion_p: float = 0.3
     occlusion_max_deg: float = 60.0
+    # Maps from other scans of the drive (data.neighbour_map; needs poses.txt): a region built from
+    # a drive does not have its scan centre at the camera. 0 = each frame's own scan (v3).
+    map_window: int = 0
+    map_scans: int = 3
     # Start from another run's checkpoint (its weights only; optimisers and counters start fresh):
     # fine-tuning. Ignored when <out>/last.pt exists (resume wins).
     init_from: str = ""
@@ -167,7 +171,8 @@ class Run:
                                       beams_min=cfg.beams_min, beams_max=cfg.beams_max,
                                       beam_dropout_p=cfg.beam_dropout_p, density_min=cfg.density_min,
                                       range_noise_m=cfg.range_noise_m, occlusion_p=cfg.occlusion_p,
-                                      occlusion_max_deg=cfg.occlusion_max_deg)
+                                      occlusion_max_deg=cfg.occlusion_max_deg, map_window=cfg.map_window,
+                                      map_scans=cfg.map_scans)
         embed_params = [p for k in ("point_encoder", "image_encoder", "frustum_head") for p in self.models[k].parameters()]
         self.opt_embed = torch.optim.Adam(embed_params, lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))
