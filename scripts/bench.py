@@ -15,7 +15,7 @@ request (`examples/localize-demo.json`, the default search):
   5. with `--storm`: a second server with `--queue-capacity 4` under 48 closed-loop clients:
      admitted (200) requests/s against its capacity measured in the same run at 4 clients.
 
-    python3 scripts/bench.py [--binary PATH] [--serve-args "..."] [--seconds 30] [--storm] [--out FILE]
+    python3 scripts/bench.py [--binary PATH] [--models DIR] [--serve-args "..."] [--seconds 30] [--storm] [--out FILE]
 oha (a Rust HTTP load generator) comes from scripts/install-oha.sh (into .tools/bin).
 """
 
@@ -125,6 +125,7 @@ def correlation_flops(manifest: dict) -> int:
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--binary", default="./target/release/cmr-agent")
+    ap.add_argument("--models", default="models", help="model directory (the server's --models; FLOPs are read from its manifest)")
     ap.add_argument("--serve-args", default="", help="extra flags for the server")
     ap.add_argument("--request", default="examples/localize-demo.json")
     ap.add_argument("--seconds", type=int, default=30, help="length of the c16 phase")
@@ -138,10 +139,11 @@ def main():
         sys.exit("oha not found: run scripts/install-oha.sh")
     record = {"binary": args.binary, "serve_args": args.serve_args, "request": args.request,
               "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "load_average_before": os.getloadavg()}
-    manifest = json.load(open("models/manifest.json"))
+    manifest = json.load(open(os.path.join(args.models, "manifest.json")))
+    record["models"] = args.models
     flops = {k: v.get("flops") for k, v in manifest["graphs"].items()}
 
-    server = Server(args.binary, args.serve_args.split())
+    server = Server(args.binary, args.serve_args.split() + ["--models", args.models])
     try:
         body = open(args.request, "rb").read()
         for _ in range(3):
@@ -194,7 +196,7 @@ def main():
         server.stop()
 
     if args.storm:
-        storm_server = Server(args.binary, args.serve_args.split() + ["--queue-capacity", "4"])
+        storm_server = Server(args.binary, args.serve_args.split() + ["--models", args.models, "--queue-capacity", "4"])
         try:
             capacity = load_phase(storm_server, args.request, 4, 20)
             storm = load_phase(storm_server, args.request, 48, 20)
