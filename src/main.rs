@@ -19,6 +19,8 @@ enum Command {
     Eval(cmr_agent::eval::cli::Args),
     /// Localize one request file against one map file, without HTTP (prints the response JSON).
     Localize(cmr_agent::api::offline::LocalizeArgs),
+    /// Map regions: `map build` fuses a KITTI-layout sequence's scans into one map file.
+    Map(cmr_agent::maps::build::MapArgs),
     /// Print the OpenAPI document (the committed openapi/openapi.json).
     PrintSchema,
 }
@@ -34,6 +36,7 @@ fn main() -> anyhow::Result<()> {
         Command::Serve(args) => cmr_agent::api::run_serve(args),
         Command::Eval(args) => cmr_agent::eval::cli::main(args),
         Command::Localize(args) => cmr_agent::api::offline::run(args),
+        Command::Map(args) => cmr_agent::maps::build::run(args),
         Command::PrintSchema => {
             print!("{}", cmr_agent::api::openapi::schema_json());
             Ok(())

@@ -54,9 +54,9 @@ pub fn run(args: LocalizeArgs) -> Result<()> {
 
     let dir = tempfile::tempdir()?;
     let (store, _) = MapStore::open(dir.path()).map_err(|e| anyhow!("{e}"))?;
-    let maps = Arc::new(Maps::new(store, MapCache::new(1 << 30), Box::new(models.backend()?)));
+    let maps = Arc::new(Maps::new(store, MapCache::new(1 << 30), Box::new(models.backend()?), config.regions()));
     let id = "map";
-    maps.register(id, Upload { bytes: &bytes, format, gzip: false, max_bytes: usize::MAX }, metadata).map_err(|e| anyhow!("{}: {e}", args.map.display()))?;
+    maps.register(id, Upload { bytes: &bytes, format, gzip: false, max_bytes: usize::MAX }, Default::default(), metadata).map_err(|e| anyhow!("{}: {e}", args.map.display()))?;
     let scheduler = Arc::new(Scheduler::start(&models.factory(), super::config::ServeArgs { workers: 1, ..config.clone() }.scheduler())?);
     let lifecycle = Arc::new(Lifecycle::default());
     lifecycle.set_ready();

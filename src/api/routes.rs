@@ -12,7 +12,7 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use crate::agent::search::{MAX_HYPOTHESES, MAX_ITERATIONS};
 use crate::maps::formats::CloudFormat;
-use crate::maps::{MapMetadata, Upload, validate_id};
+use crate::maps::{MapMetadata, Upload, UploadOptions, validate_id};
 use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest};
 
 use super::AppState;
@@ -80,6 +80,9 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             request_timeout_ms: c.request_timeout_ms,
             body_timeout_ms: c.body_timeout_ms,
             cache_budget_bytes: st.maps.cache.budget_bytes(),
+            max_map_points: c.max_map_points,
+            tile_above_points: c.tile_above_points,
+            default_radius_m: c.default_radius_m,
         },
         workers: c.workers.max(1),
         onnxruntime_library: crate::model::runtime::loaded_library().map(|p| p.display().to_string()),
@@ -90,23 +93,18 @@ pub async fn info(State(st): Shared) -> Json<Info> {
 #[utoipa::path(get, path = "/v1/maps", responses((status = 200, body = MapList)))]
 pub async fn list_maps(State(st): Shared) -> Result<Json<MapList>, ApiError> {
     let maps = st.maps.clone();
-    let entries = blocking(move || Ok::<_, ApiError>(maps.store.list())).await?;
-    let maps = entries.into_iter().map(|e| {
-        let cached = st.maps.cache.contains(&e.id);
-        MapSummary::new(e, cached)
-    });
-    Ok(Json(MapList { maps: maps.collect() }))
+    let summaries = blocking(move || Ok::<_, ApiError>(maps.store.list().into_iter().map(|e| MapSummary::new(e, &maps)).collect())).await?;
+    Ok(Json(MapList { maps: summaries }))
 }
 
-/// One map region.
+/// One map region: its points, origin and extent (map frame), whether it is tiled, its tiles and
+/// where its bytes are.
 #[utoipa::path(get, path = "/v1/maps/{id}", params(MapIdParam),
     responses((status = 200, body = MapSummary), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody)))]
 pub async fn get_map(State(st): Shared, MapId(id): MapId) -> Result<Json<MapSummary>, ApiError> {
     let maps = st.maps.clone();
-    let id2 = id.clone();
-    let entry = blocking(move || maps.store.get(&id2)).await?;
-    let cached = st.maps.cache.contains(&id);
-    Ok(Json(MapSummary::new(entry, cached)))
+    let summary = blocking(move || maps.store.get(&id).map(|e| MapSummary::new(e, &maps))).await?;
+    Ok(Json(summary))
 }
 
 /// Whether the body is gzip-compressed by `Content-Encoding` (`gzip`, `x-gzip` or `identity`;
@@ -123,7 +121,11 @@ fn gzip_encoded(headers: &HeaderMap) -> Result<bool, ApiError> {
 /// Uploads (or replaces) a map region from raw point-cloud bytes: KITTI .bin, PCD, PLY or LAS
 /// 1.0-1.4, optionally gzip-compressed (`Content-Encoding: gzip`, or a gzip body recognised by
 /// its magic bytes; inflated size bounded by `max_map_bytes`). Coordinates must be finite-or-NaN
-/// and within ±1e7 m (points with a NaN/infinite coordinate are dropped). The previous region stays
+/// and within ±1e7 m (points with a NaN/infinite coordinate are dropped); they are read as float64
+/// and stored as float32 relative to the region's `origin`, so UTM-size coordinates keep their
+/// precision. At most `max_map_points` points (413 beyond); `voxel_m` downsamples before storing.
+/// A region with more than `tile_above_points` points is tiled: its embeddings are computed here,
+/// tile by tile (this takes about 0.3 s per 20,000 points on one CPU). The previous region stays
 /// intact unless the new one parses, encodes and is stored. With an admin token, the token is
 /// checked before the body is read.
 #[utoipa::path(put, path = "/v1/maps/{id}", params(MapIdParam, UploadParams,
@@ -134,9 +136,9 @@ fn gzip_encoded(headers: &HeaderMap) -> Result<bool, ApiError> {
         (status = 400, body = ErrorBody, description = "invalid map id or unreadable body"),
         (status = 401, body = ErrorBody, description = "missing or wrong bearer token (checked before the body is read)"),
         (status = 408, body = ErrorBody, description = "the body did not arrive in time"),
-        (status = 413, body = ErrorBody, description = "the body, or its gzip-inflated content, is larger than max_map_bytes"),
+        (status = 413, body = ErrorBody, description = "the body, or its gzip-inflated content, is larger than max_map_bytes, or the file holds more than max_map_points points"),
         (status = 415, body = ErrorBody, description = "recognised as something other than a point cloud this server reads (PNG/JPEG image, zip/7z/xz/zstd/bzip2 archive, LAZ, gzip inside gzip, JSON/HTML/PDF) or an unsupported Content-Encoding; the message names what was received"),
-        (status = 422, body = ErrorBody, description = "bytes of no known format, a cloud that does not parse, has a coordinate beyond ±1e7 m or no finite point, corrupt gzip, or a body whose header contradicts `format`")),
+        (status = 422, body = ErrorBody, description = "bytes of no known format, a cloud that does not parse, has a coordinate beyond ±1e7 m or no finite point, corrupt gzip, a body whose header contradicts `format`, or an `origin` or `voxel_m` out of range")),
     security(("bearer" = [])))]
 pub async fn put_map(
     _admin: Admin,
@@ -152,6 +154,7 @@ pub async fn put_map(
         None | Some("") => None,
         Some(name) => Some(name.parse::<CloudFormat>().map_err(ApiError::Invalid)?),
     };
+    let options = UploadOptions { origin: params.origin()?, voxel_m: params.voxel_m };
     let body = body.map_err(ApiError::from_body)?;
     let t = Instant::now();
     let maps = st.maps.clone();
@@ -164,15 +167,16 @@ pub async fn put_map(
             m.description = Some(d);
             m
         });
-        let (entry, timings) = maps.register(&id, Upload { bytes: &body, format, gzip, max_bytes }, metadata)?;
-        Ok::<_, ApiError>((entry, timings, replaced))
+        let (entry, timings) = maps.register(&id, Upload { bytes: &body, format, gzip, max_bytes }, options, metadata)?;
+        drop(body);
+        Ok::<_, ApiError>((MapSummary::new(entry, &maps), timings, replaced))
     })
     .await?;
     let total = ms(t);
     metrics::histogram!("cmr_map_register_seconds").record(total / 1000.0);
     let status = if replaced { StatusCode::OK } else { StatusCode::CREATED };
     let body = RegisterResponse {
-        map: MapSummary::new(entry, true),
+        map: entry,
         replaced,
         timings_ms: RegisterTimingsMs { parse: timings.parse_ms, point_encoder: timings.encode_ms, store: timings.store_ms, total },
     };
@@ -197,9 +201,8 @@ pub async fn put_metadata(
     let metadata = MapMetadata::from_json(parse_json(&body)?)?;
     let maps = st.maps.clone();
     let id2 = id.clone();
-    let entry = blocking(move || maps.store.set_metadata(&id2, metadata)).await?;
-    let cached = st.maps.cache.contains(&id);
-    Ok(Json(MapSummary::new(entry, cached)))
+    let summary = blocking(move || maps.store.set_metadata(&id2, metadata).map(|e| MapSummary::new(e, &maps))).await?;
+    Ok(Json(summary))
 }
 
 /// Deletes a region and its cached embeddings.
@@ -243,7 +246,14 @@ fn read_request(query: Option<&str>, headers: &HeaderMap, body: Bytes) -> Result
         let q: RawLocalizeParams = serde_urlencoded_query(query.unwrap_or(""))?;
         let need = |v: Option<f64>, name: &str| v.ok_or_else(|| ApiError::Invalid(format!("query parameter {name} is required with a raw image body")));
         let intrinsics = IntrinsicsBody { fx: need(q.fx, "fx")?, fy: need(q.fy, "fy")?, cx: need(q.cx, "cx")?, cy: need(q.cy, "cy")? };
-        let request = LocalizeRequest { image: String::new(), intrinsics, prior_camera_from_map: None, max_iterations: q.max_iterations, hypotheses: q.hypotheses };
+        let request = LocalizeRequest {
+            image: String::new(),
+            intrinsics,
+            prior_camera_from_map: None,
+            max_iterations: q.max_iterations,
+            hypotheses: q.hypotheses,
+            radius_m: q.radius_m,
+        };
         return Ok((request, ImagePayload::Raw(body)));
     }
     if !(ct.is_empty() || ct.starts_with("application/json")) {
