@@ -3,7 +3,7 @@
 use std::path::PathBuf;
 
 use crate::agent::search::{DEFAULT_HYPOTHESES, SearchTuning};
-use crate::maps::RegionConfig;
+use crate::maps::{CropEmbeddings, RegionConfig};
 use crate::serving::{ImageLimits, LocalizerConfig, RequestDefaults, SchedulerConfig};
 
 #[derive(Debug, Clone, clap::Args)]
@@ -63,10 +63,15 @@ pub struct ServeArgs {
     /// within `radius_m` of its prior. Smaller regions are sampled whole, as one scan.
     #[arg(long, env = "CMR_TILE_ABOVE_POINTS", default_value_t = 300_000)]
     pub tile_above_points: usize,
-    /// Default crop radius of a localize in a tiled region, metres (about the range the model
-    /// was trained on: its point encoder sees ±38.4 m around the scan's centre).
-    #[arg(long, env = "CMR_DEFAULT_RADIUS_M", default_value_t = 40.0)]
+    /// Default crop radius of a localize in a tiled region, metres: the virtual scan from the
+    /// prior keeps points within this ground distance (a single scan of the training rig has 90 %
+    /// of its points within 20 m and reaches 80 m).
+    #[arg(long, env = "CMR_DEFAULT_RADIUS_M", default_value_t = 60.0)]
     pub default_radius_m: f64,
+    /// Where a tiled region's crop gets its embeddings: `encode` (the point encoder on each
+    /// request's crop) or `stored` (the per-tile float16 embeddings computed at upload).
+    #[arg(long, env = "CMR_CROP_EMBEDDINGS", value_enum, default_value_t = CropEmbeddings::Encode)]
+    pub crop_embeddings: CropEmbeddings,
     /// Largest accepted image width or height, pixels.
     #[arg(long, env = "CMR_MAX_IMAGE_SIDE", default_value_t = 8192)]
     pub max_image_side: u32,
@@ -137,7 +142,7 @@ impl ServeArgs {
 impl ServeArgs {
     /// How regions are stored and prepared.
     pub fn regions(&self) -> RegionConfig {
-        RegionConfig { tile_above_points: self.tile_above_points, max_points: self.max_map_points, ..RegionConfig::default() }
+        RegionConfig { tile_above_points: self.tile_above_points, max_points: self.max_map_points, crop_embeddings: self.crop_embeddings, ..RegionConfig::default() }
     }
 }
 

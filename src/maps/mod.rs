@@ -34,13 +34,27 @@ pub struct RegionConfig {
     pub tiles: TileConfig,
     /// The most points an uploaded file may hold, before any voxel downsampling (`--max-map-points`).
     pub max_points: usize,
+    /// Where a tiled region's crop gets its embeddings (`--crop-embeddings`).
+    pub crop_embeddings: CropEmbeddings,
+}
+
+/// Where the embeddings of a tiled region's crop come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CropEmbeddings {
+    /// The point encoder runs on each request's crop (one call, about 0.15 s on 2 cores): what
+    /// the shipped model needs (its embeddings depend on where the input's centre is).
+    #[default]
+    Encode,
+    /// The per-tile embeddings stored at upload (float16, memory-mapped), no encoder call.
+    Stored,
 }
 
 impl Default for RegionConfig {
     /// Tiles above 300,000 points (two HDL-64E sweeps; every single scan of the rigs we know is
     /// below), 20 m cells with 40 m context, uploads up to 10 M points.
     fn default() -> Self {
-        RegionConfig { tile_above_points: 300_000, tiles: TileConfig::default(), max_points: 10_000_000 }
+        RegionConfig { tile_above_points: 300_000, tiles: TileConfig::default(), max_points: 10_000_000, crop_embeddings: CropEmbeddings::Encode }
     }
 }
 
@@ -78,13 +92,13 @@ impl Prepared {
         }
     }
 
-    /// What one localize uses: the whole region's sample, or the model's N points within
-    /// `radius_m` of `centre` (local frame, ground plane) with their stored embeddings.
-    /// Errors: a crop with fewer than `min_points` points.
-    pub fn around(&self, centre: [f64; 2], radius_m: f64, min_points: usize) -> Result<Arc<PreparedMap>, SparseCrop> {
+    /// What one localize uses: the whole region's sample, or the model's N points of a virtual
+    /// scan from `sensor` (local frame) within `radius_m` with their stored embeddings
+    /// ([`TiledMap::around`]). Errors: a crop with fewer than `min_points` points.
+    pub fn around(&self, sensor: [f64; 3], radius_m: f64, min_points: usize) -> Result<Arc<PreparedMap>, SparseCrop> {
         match self {
             Prepared::Whole(m) => Ok(m.clone()),
-            Prepared::Tiled(t) => t.around(centre, radius_m, min_points).map(Arc::new),
+            Prepared::Tiled(t) => t.around(sensor, radius_m, min_points).map(Arc::new),
         }
     }
 }
@@ -202,6 +216,14 @@ impl Maps {
         Ok(Prepared::Whole(Arc::new(map)))
     }
 
+    /// A crop with its embeddings computed now, by the point encoder on the crop's own points
+    /// (`CropEmbeddings::Encode`), instead of the stored per-tile ones.
+    pub fn reencode(&self, crop: &PreparedMap) -> Result<PreparedMap, MapError> {
+        let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
+        let features = encoder.encode_points(&crop.points).map_err(|e| MapError::Inference(format!("{e:#}")))?;
+        Ok(PreparedMap { features, ..crop.clone() })
+    }
+
     fn encode(&self, cloud: &[[f32; 3]]) -> Result<PreparedMap, MapError> {
         let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
         prepare_map(encoder.as_mut(), cloud).map_err(|e| MapError::Inference(format!("{e:#}")))
@@ -230,7 +252,7 @@ impl Maps {
             validate_voxel(v).map_err(MapError::BadOption)?;
         }
         let t = Instant::now();
-        let limits = formats::Limits { max_points: self.config.max_points, ..formats::Limits::default() };
+        let limits = formats::Limits { max_points: self.config.max_points, frame: given_frame, ..formats::Limits::default() };
         let mut parsed = upload::read_upload(upload, limits)?;
         if parsed.dropped_non_finite > 0 {
             tracing::info!(map = id, dropped = parsed.dropped_non_finite, kept = parsed.cloud.len(), "dropped points with non-finite coordinates");

@@ -100,6 +100,35 @@ fn within(cells: &HashMap<(i32, i32), Cell>, points: impl Fn(usize) -> [f32; 3],
     }
 }
 
+/// The virtual scan's grid: beams (elevation rows), columns (azimuth) and the elevation span,
+/// degrees (an HDL-64E-like sensor, the rig the model was trained with).
+pub const SCAN_BEAMS: usize = 64;
+pub const SCAN_COLUMNS: usize = 2048;
+pub const SCAN_ELEVATION_DEG: (f64, f64) = (-25.0, 3.0);
+
+/// Of `candidates`, the nearest to `sensor` in each elevation × azimuth cell, in cell order.
+fn virtual_scan(candidates: &[u32], point: impl Fn(u32) -> [f32; 3], sensor: [f64; 3]) -> Vec<u32> {
+    let mut nearest = vec![(f32::INFINITY, u32::MAX); SCAN_BEAMS * SCAN_COLUMNS];
+    let (low, high) = SCAN_ELEVATION_DEG;
+    for &i in candidates {
+        let p = point(i);
+        let d = [p[0] as f64 - sensor[0], p[1] as f64 - sensor[1], p[2] as f64 - sensor[2]];
+        let ground = d[0].hypot(d[1]);
+        let elevation = d[2].atan2(ground).to_degrees();
+        let row = ((elevation - low) / (high - low) * SCAN_BEAMS as f64).floor();
+        if !(0.0..SCAN_BEAMS as f64).contains(&row) {
+            continue;
+        }
+        let column = (((d[1].atan2(d[0]) + std::f64::consts::PI) / std::f64::consts::TAU * SCAN_COLUMNS as f64) as usize).min(SCAN_COLUMNS - 1);
+        let range = (ground * ground + d[2] * d[2]).sqrt() as f32;
+        let cell = &mut nearest[row as usize * SCAN_COLUMNS + column];
+        if range < cell.0 {
+            *cell = (range, i);
+        }
+    }
+    nearest.into_iter().filter(|c| c.1 != u32::MAX).map(|c| c.1).collect()
+}
+
 /// `n` of `candidates` (ChaCha8 with `seed`): distinct ones when there are enough, else every one
 /// and the rest drawn with replacement (as [`super::sample_points`] fills a small cloud).
 fn sample_indices(candidates: &[u32], n: usize, seed: u64) -> Vec<u32> {
@@ -283,16 +312,21 @@ impl TiledMap {
         self.cells.capacity() * (CELL_BYTES + 16) + std::mem::size_of::<Self>()
     }
 
-    /// The model's N points within `radius_m` (ground-plane distance) of `centre` (local frame,
-    /// metres), drawn by ChaCha8(seed 0), with their embeddings: a prepared map like a whole
-    /// region's, pivot at its centroid. Errors: fewer than `min_points` points in the disc.
-    pub fn around(&self, centre: [f64; 2], radius_m: f64, min_points: usize) -> Result<PreparedMap, SparseCrop> {
+    /// A virtual LiDAR scan of the region from `sensor` (local frame, metres; the prior camera's
+    /// position): of the points within `radius_m` (ground-plane distance), the nearest one in
+    /// each cell of a [`SCAN_BEAMS`] × [`SCAN_COLUMNS`] elevation × azimuth grid (elevations
+    /// [`SCAN_ELEVATION_DEG`]), so the crop has a scan's occlusion and its density falling with
+    /// range, what the point encoder was trained on; then the model's N of them, drawn by
+    /// ChaCha8(seed 0), with their stored embeddings: a prepared map like a whole region's, pivot
+    /// at its centroid. Errors: fewer than `min_points` points in the virtual scan.
+    pub fn around(&self, sensor: [f64; 3], radius_m: f64, min_points: usize) -> Result<PreparedMap, SparseCrop> {
         let mut candidates = Vec::new();
-        within(&self.cells, |i| self.point(i), self.config.tile_m, centre, radius_m, &mut candidates);
-        if candidates.len() < min_points.max(1) {
-            return Err(SparseCrop { found: candidates.len(), needed: min_points.max(1), radius_m, x: centre[0], y: centre[1] });
+        within(&self.cells, |i| self.point(i), self.config.tile_m, [sensor[0], sensor[1]], radius_m, &mut candidates);
+        let visible = virtual_scan(&candidates, |i| self.point(i as usize), sensor);
+        if visible.len() < min_points.max(1) {
+            return Err(SparseCrop { found: visible.len(), needed: min_points.max(1), radius_m, x: sensor[0], y: sensor[1] });
         }
-        let chosen = sample_indices(&candidates, self.n, 0);
+        let chosen = sample_indices(&visible, self.n, 0);
         let points: Vec<[f32; 3]> = chosen.iter().map(|&i| self.point(i as usize)).collect();
         let mut features = Vec::with_capacity(chosen.len() * self.d);
         for &i in &chosen {
@@ -355,14 +389,14 @@ mod tests {
         given.sort();
         assert_eq!(stored, given);
         // The fake encoder's features depend on the point only: the stored f16 ones match.
-        let crop = tiled.around([15.0, 10.0], 6.0, 10).unwrap();
+        let crop = tiled.around([15.0, 10.0, 1.0], 6.0, 10).unwrap();
         assert_eq!(crop.points.len(), 64);
         let direct = backend.encode_points(&crop.points).unwrap();
         let worst = direct.iter().zip(&crop.features).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
         assert!(worst < 2e-3, "f16 round trip {worst}");
         assert!(crop.points.iter().all(|p| (p[0] as f64 - 15.0).hypot(p[1] as f64 - 10.0) <= 6.0));
-        assert_eq!(tiled.around([15.0, 10.0], 6.0, 10).unwrap().points, crop.points, "deterministic");
-        let sparse = tiled.around([500.0, 500.0], 40.0, 10).unwrap_err();
+        assert_eq!(tiled.around([15.0, 10.0, 1.0], 6.0, 10).unwrap().points, crop.points, "deterministic");
+        let sparse = tiled.around([500.0, 500.0, 1.0], 40.0, 10).unwrap_err();
         assert_eq!(sparse.found, 0);
     }
 }

@@ -16,7 +16,7 @@ use tokio::sync::{Semaphore, oneshot};
 use tracing::Instrument;
 
 use crate::agent::{Localization, Start, ms};
-use crate::maps::{Maps, validate_id};
+use crate::maps::{CropEmbeddings, Maps, validate_id};
 use crate::model::Manifest;
 
 use image::RgbImage;
@@ -204,9 +204,11 @@ impl Localizer {
         let min_points = self.manifest.points.num_state_points;
         blocking(move || {
             let prepared = maps.prepared_for(&entry).map_err(LocalizeError::from)?;
-            match crop {
-                None => prepared.around([0.0; 2], 0.0, 0).map_err(|e| LocalizeError::Internal(e.to_string())),
-                Some(c) => prepared.around(c.centre, c.radius_m, min_points).map_err(|e| LocalizeError::Invalid(format!("prior_camera_from_map: {e}"))),
+            let Some(c) = crop else { return prepared.around([0.0; 3], 0.0, 0).map_err(|e| LocalizeError::Internal(e.to_string())) };
+            let map = prepared.around(c.sensor, c.radius_m, min_points).map_err(|e| LocalizeError::Invalid(format!("prior_camera_from_map: {e}")))?;
+            match maps.config.crop_embeddings {
+                CropEmbeddings::Stored => Ok(map),
+                CropEmbeddings::Encode => maps.reencode(&map).map(Arc::new).map_err(LocalizeError::from),
             }
         })
         .await

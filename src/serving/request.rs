@@ -52,7 +52,7 @@ pub struct LocalizeRequest {
     pub hypotheses: Option<u32>,
     /// In a tiled region (more points than one scan): the map points within this ground-plane
     /// distance of the prior's camera position are used, sampled to the model's N; metres,
-    /// 1..=500. Default: the server's `default_radius_m` (40). Ignored by whole regions.
+    /// 1..=500. Default: the server's `default_radius_m` (60). Ignored by whole regions.
     #[serde(default)]
     #[schema(minimum = 1, maximum = 500)]
     pub radius_m: Option<f64>,
@@ -71,11 +71,11 @@ pub struct RequestDefaults {
     pub radius_m: f64,
 }
 
-/// Which points of a tiled region a request uses: those within `radius_m` of `centre` (the prior
-/// camera's ground position, local frame).
+/// Which points of a tiled region a request uses: a virtual scan from `sensor` (the prior
+/// camera's position, local frame) of the points within `radius_m` of it.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Crop {
-    pub centre: [f64; 2],
+    pub sensor: [f64; 3],
     pub radius_m: f64,
 }
 
@@ -138,7 +138,7 @@ impl ValidLocalizeRequest {
                     format!("the prior camera position ({:.2}, {:.2}) m lies outside map {:?}'s extent ({})", c.x, c.y, map.id, map.extent),
                 ));
             }
-            Some(Crop { centre: [c.x - frame.origin.x, c.y - frame.origin.y], radius_m })
+            Some(Crop { sensor: [c.x - frame.origin.x, c.y - frame.origin.y, c.z - frame.origin.z], radius_m })
         } else {
             None
         };
@@ -209,7 +209,7 @@ mod tiled_tests {
         let json = serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": prior.to_rows(), "radius_m": 30.0});
         let ok = ValidLocalizeRequest::new(&request(json), &defaults, entry.clone(), true).unwrap();
         let crop = ok.crop.unwrap();
-        assert!((crop.centre[0] - 10.0).abs() < 1e-6 && (crop.centre[1] - 20.0).abs() < 1e-6 && crop.radius_m == 30.0, "{crop:?}");
+        assert!((crop.sensor[0] - 10.0).abs() < 1e-6 && (crop.sensor[1] - 20.0).abs() < 1e-6 && (crop.sensor[2] - 100.0).abs() < 1e-6 && crop.radius_m == 30.0, "{crop:?}");
         let local = ok.prior.camera_position_in_map();
         assert!((local - nalgebra::Vector3::new(10.0, 20.0, 100.0)).norm() < 1e-6, "{local}");
         let outside = Pose::from_rt(r, -(r * nalgebra::Vector3::new(400_000.0, 5_400_020.0, 100.0)));

@@ -202,6 +202,9 @@ pub struct Limits {
     pub max_points: usize,
     /// The largest |x|, |y| or |z| accepted, metres.
     pub max_abs_coordinate: f64,
+    /// The frame to store the points in ([`Parsed::origin`]); default: the first finite point
+    /// rounded to 1 km. Given, each point is converted once, from float64.
+    pub frame: Option<LocalFrame>,
 }
 
 /// 10,000 km ([`crate::geometry::MAX_COORDINATE_M`], the bound of every map-frame coordinate):
@@ -213,7 +216,7 @@ impl Default for Limits {
     /// 20 million points (a dense multi-scan map region, about 320 MB as KITTI `.bin`) within
     /// ±[`MAX_ABS_COORDINATE_M`].
     fn default() -> Self {
-        Limits { max_points: 20_000_000, max_abs_coordinate: MAX_ABS_COORDINATE_M }
+        Limits { max_points: 20_000_000, max_abs_coordinate: MAX_ABS_COORDINATE_M, frame: None }
     }
 }
 
@@ -265,8 +268,11 @@ impl CloudBuilder {
             xyz: Vec::with_capacity(capacity_hint),
             intensity: with_intensity.then(|| Vec::with_capacity(capacity_hint)),
         };
-        let parsed = Parsed { cloud, origin: [0.0; 3], min: [f64::INFINITY; 3], max: [f64::NEG_INFINITY; 3], dropped_non_finite: 0 };
-        CloudBuilder { parsed, frame: None, max_abs: limits.max_abs_coordinate, index: 0 }
+        let mut parsed = Parsed { cloud, origin: [0.0; 3], min: [f64::INFINITY; 3], max: [f64::NEG_INFINITY; 3], dropped_non_finite: 0 };
+        if let Some(f) = limits.frame {
+            parsed.origin = f.origin();
+        }
+        CloudBuilder { parsed, frame: limits.frame, max_abs: limits.max_abs_coordinate, index: 0 }
     }
 
     /// Adds the file's next point (`x, y, z` in metres).
