@@ -10,7 +10,7 @@
 //!
 //! The file is binary PLY with `double x, y, z` and `float intensity` ([`write_ply_f64`]).
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
@@ -154,9 +154,4 @@ pub fn run(args: MapArgs) -> Result<()> {
             Ok(())
         }
     }
-}
-
-/// The frame indices `build` uses for `step` (for tests that hold the others out).
-pub fn used_frames(sequence_dir: &Path, step: usize) -> Result<Vec<usize>> {
-    Ok(Sequence::open(sequence_dir, None)?.frame_indices.into_iter().step_by(step.max(1)).collect())
 }

@@ -94,11 +94,12 @@ impl Prepared {
 
     /// What one localize uses: the whole region's sample, or the model's N points of a virtual
     /// scan from `sensor` (local frame) within `radius_m` with their stored embeddings
-    /// ([`TiledMap::around`]). Errors: a crop with fewer than `min_points` points.
-    pub fn around(&self, sensor: [f64; 3], radius_m: f64, min_points: usize) -> Result<Arc<PreparedMap>, SparseCrop> {
+    /// ([`TiledMap::around`]; empty features without `stored_features`, for the caller to
+    /// encode). Errors: a crop with fewer than `min_points` points.
+    pub fn around(&self, sensor: [f64; 3], radius_m: f64, min_points: usize, stored_features: bool) -> Result<Arc<PreparedMap>, SparseCrop> {
         match self {
             Prepared::Whole(m) => Ok(m.clone()),
-            Prepared::Tiled(t) => t.around(sensor, radius_m, min_points).map(Arc::new),
+            Prepared::Tiled(t) => t.around(sensor, radius_m, min_points, stored_features).map(Arc::new),
         }
     }
 }

@@ -318,8 +318,10 @@ impl TiledMap {
     /// [`SCAN_ELEVATION_DEG`]), so the crop has a scan's occlusion and its density falling with
     /// range, what the point encoder was trained on; then the model's N of them, drawn by
     /// ChaCha8(seed 0), with their stored embeddings: a prepared map like a whole region's, pivot
-    /// at its centroid. Errors: fewer than `min_points` points in the virtual scan.
-    pub fn around(&self, sensor: [f64; 3], radius_m: f64, min_points: usize) -> Result<PreparedMap, SparseCrop> {
+    /// at its centroid. Without `stored_features` the features are left empty (the caller
+    /// encodes the crop), and no page of the embeddings is touched.
+    /// Errors: fewer than `min_points` points in the virtual scan.
+    pub fn around(&self, sensor: [f64; 3], radius_m: f64, min_points: usize, stored_features: bool) -> Result<PreparedMap, SparseCrop> {
         let mut candidates = Vec::new();
         within(&self.cells, |i| self.point(i), self.config.tile_m, [sensor[0], sensor[1]], radius_m, &mut candidates);
         let visible = virtual_scan(&candidates, |i| self.point(i as usize), sensor);
@@ -328,8 +330,8 @@ impl TiledMap {
         }
         let chosen = sample_indices(&visible, self.n, 0);
         let points: Vec<[f32; 3]> = chosen.iter().map(|&i| self.point(i as usize)).collect();
-        let mut features = Vec::with_capacity(chosen.len() * self.d);
-        for &i in &chosen {
+        let mut features = Vec::with_capacity(if stored_features { chosen.len() * self.d } else { 0 });
+        for &i in chosen.iter().filter(|_| stored_features) {
             let at = self.features_at + i as usize * self.d * 2;
             features.extend(self.map[at..at + self.d * 2].chunks_exact(2).map(|b| f16::from_le_bytes([b[0], b[1]]).to_f32()));
         }
@@ -389,14 +391,14 @@ mod tests {
         given.sort();
         assert_eq!(stored, given);
         // The fake encoder's features depend on the point only: the stored f16 ones match.
-        let crop = tiled.around([15.0, 10.0, 1.0], 6.0, 10).unwrap();
+        let crop = tiled.around([15.0, 10.0, 1.0], 6.0, 10, true).unwrap();
         assert_eq!(crop.points.len(), 64);
         let direct = backend.encode_points(&crop.points).unwrap();
         let worst = direct.iter().zip(&crop.features).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
         assert!(worst < 2e-3, "f16 round trip {worst}");
         assert!(crop.points.iter().all(|p| (p[0] as f64 - 15.0).hypot(p[1] as f64 - 10.0) <= 6.0));
-        assert_eq!(tiled.around([15.0, 10.0, 1.0], 6.0, 10).unwrap().points, crop.points, "deterministic");
-        let sparse = tiled.around([500.0, 500.0, 1.0], 40.0, 10).unwrap_err();
+        assert_eq!(tiled.around([15.0, 10.0, 1.0], 6.0, 10, false).unwrap().points, crop.points, "deterministic");
+        let sparse = tiled.around([500.0, 500.0, 1.0], 40.0, 10, true).unwrap_err();
         assert_eq!(sparse.found, 0);
     }
 }

@@ -204,8 +204,9 @@ impl Localizer {
         let min_points = self.manifest.points.num_state_points;
         blocking(move || {
             let prepared = maps.prepared_for(&entry).map_err(LocalizeError::from)?;
-            let Some(c) = crop else { return prepared.around([0.0; 3], 0.0, 0).map_err(|e| LocalizeError::Internal(e.to_string())) };
-            let map = prepared.around(c.sensor, c.radius_m, min_points).map_err(|e| LocalizeError::Invalid(format!("prior_camera_from_map: {e}")))?;
+            let Some(c) = crop else { return prepared.around([0.0; 3], 0.0, 0, true).map_err(|e| LocalizeError::Internal(e.to_string())) };
+            let stored = maps.config.crop_embeddings == CropEmbeddings::Stored;
+            let map = prepared.around(c.sensor, c.radius_m, min_points, stored).map_err(|e| LocalizeError::Invalid(format!("prior_camera_from_map: {e}")))?;
             match maps.config.crop_embeddings {
                 CropEmbeddings::Stored => Ok(map),
                 CropEmbeddings::Encode => maps.reencode(&map).map(Arc::new).map_err(LocalizeError::from),

@@ -438,11 +438,10 @@ fn double_ply_keeps_utm_precision_relative_to_its_origin() {
     write_ply_f64(&mut bytes, 2, points.iter().copied()).unwrap();
     let parsed = parse_counted(&bytes, CloudFormat::Ply, Limits::default()).unwrap();
     assert_eq!(parsed.origin, [500_000.0, 5_400_000.0, 0.0], "the first point rounded to 1 km");
-    for ((p, i), q) in points.iter().zip(&parsed.cloud.xyz) {
+    for ((p, _), q) in points.iter().zip(&parsed.cloud.xyz) {
         for c in 0..3 {
             assert!((q[c] as f64 + parsed.origin[c] - p[c]).abs() < 1e-5, "{p:?} vs {q:?}");
         }
-        let _ = i;
     }
     assert_eq!(parsed.min, [500_000.125, 5_399_950.002, 100.5]);
     assert_eq!(parsed.cloud.intensity, Some(vec![0.5, 0.25]));
