@@ -1,7 +1,10 @@
 //! Regions larger than one scan: point embeddings computed once for the whole region, tile by
 //! tile, stored as float16 next to the region (`<id>.emb`, magic `CMRTIL01`) and memory-mapped;
-//! a localize takes the points within a radius of its prior camera position, sampled to the
-//! model's N, with their stored embeddings ([`TiledMap::around`]).
+//! a localize takes a virtual LiDAR scan of the points within a radius of its prior camera
+//! position, sampled to the model's N ([`TiledMap::around`]), with their stored embeddings or
+//! (the server's default, `CropEmbeddings::Encode`) embeddings the point encoder computes for
+//! that crop: the shipped encoder's embeddings depend on where its input's centre is, so the
+//! stored ones, computed around each cell's centre, do not serve it (measured in docs/server.md).
 //!
 //! Why tiles, and what a tile's context is: the point encoder (`training/cmr/models.py`,
 //! `PointEncoder`) centres its input on the input's mean and scatters it into a 96 × 0.8 m
