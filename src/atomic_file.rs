@@ -20,24 +20,71 @@ const TEMP_MARKER: &str = ".tmp-";
 /// `path`, then fsyncs the directory so the rename itself is durable.
 /// Errors name the file, so callers can pass them on as they are.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
-    let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
-    let named = |e: std::io::Error| std::io::Error::new(e.kind(), format!("writing {}: {e}", path.display()));
-    let (mut file, tmp) = create_locked_temp(dir, name).map_err(named)?;
-    let result = (|| {
-        file.write_all(bytes)?;
-        file.sync_all()?;
-        std::fs::rename(&tmp, path)?;
-        if let Ok(d) = File::open(dir) {
-            let _ = d.sync_all();
-        }
-        Ok(())
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
+    let mut writer = AtomicWriter::create(path)?;
+    writer.write_all(bytes).map_err(|e| std::io::Error::new(e.kind(), format!("writing {}: {e}", path.display())))?;
+    writer.commit()
+}
+
+/// A file written in pieces (too large to hold in memory) that replaces `path` only on
+/// [`AtomicWriter::commit`]: the same locked temp file, fsync and renames as [`write_atomic`].
+/// Dropped without a commit, it removes its temp file and `path` is untouched.
+pub struct AtomicWriter {
+    file: Option<std::io::BufWriter<File>>,
+    tmp: PathBuf,
+    path: PathBuf,
+}
+
+impl AtomicWriter {
+    pub fn create(path: &Path) -> std::io::Result<Self> {
+        let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+        let name = path.file_name().and_then(|n| n.to_str()).unwrap_or("file");
+        let (file, tmp) = create_locked_temp(dir, name).map_err(|e| std::io::Error::new(e.kind(), format!("writing {}: {e}", path.display())))?;
+        Ok(Self { file: Some(std::io::BufWriter::with_capacity(1 << 20, file)), tmp, path: path.to_path_buf() })
     }
-    drop(file); // releases the lock, once the temp name is gone
-    result.map_err(named)
+
+    /// The file this will replace.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Flushes, fsyncs, renames over the target and fsyncs the directory.
+    pub fn commit(mut self) -> std::io::Result<()> {
+        let named = |e: std::io::Error| std::io::Error::new(e.kind(), format!("writing {}: {e}", self.path.display()));
+        let buffered = self.file.take().expect("not yet committed");
+        let result = (|| {
+            let file = buffered.into_inner().map_err(|e| e.into_error())?;
+            file.sync_all()?;
+            std::fs::rename(&self.tmp, &self.path)?;
+            let dir = self.path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+            if let Ok(d) = File::open(dir) {
+                let _ = d.sync_all();
+            }
+            drop(file); // releases the lock, once the temp name is gone
+            Ok(())
+        })();
+        if result.is_err() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+        result.map_err(named)
+    }
+}
+
+impl Write for AtomicWriter {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.file.as_mut().expect("not yet committed").write(buf)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.file.as_mut().expect("not yet committed").flush()
+    }
+}
+
+impl Drop for AtomicWriter {
+    fn drop(&mut self) {
+        if self.file.take().is_some() {
+            let _ = std::fs::remove_file(&self.tmp);
+        }
+    }
 }
 
 /// A new, exclusively created and locked temp file for `name` in `dir`. A sweep may take a file
@@ -123,6 +170,11 @@ mod tests {
         write_atomic(&p, b"two").unwrap();
         assert_eq!(std::fs::read(&p).unwrap(), b"two");
         assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1);
+        let mut abandoned = AtomicWriter::create(&p).unwrap();
+        abandoned.write_all(b"three").unwrap();
+        drop(abandoned);
+        assert_eq!(std::fs::read(&p).unwrap(), b"two", "an uncommitted writer leaves the file alone");
+        assert_eq!(std::fs::read_dir(dir.path()).unwrap().count(), 1, "and its temp file is gone");
     }
 
     #[test]

@@ -21,6 +21,8 @@ enum Command {
     Localize(cmr_agent::api::offline::LocalizeArgs),
     /// Follow a KITTI-layout drive in a stored map region, frame after frame; writes the trajectory, ATE/RPE, latency, plot.
     Track(cmr_agent::api::track::TrackArgs),
+    /// Map regions: `map build` fuses a KITTI-layout sequence's scans into one map file.
+    Map(cmr_agent::maps::build::MapArgs),
     /// Print the OpenAPI document (the committed openapi/openapi.json).
     PrintSchema,
 }
@@ -37,6 +39,7 @@ fn main() -> anyhow::Result<()> {
         Command::Eval(args) => cmr_agent::eval::cli::main(args),
         Command::Localize(args) => cmr_agent::api::offline::run(args),
         Command::Track(args) => cmr_agent::api::track::run(args),
+        Command::Map(args) => cmr_agent::maps::build::run(args),
         Command::PrintSchema => {
             print!("{}", cmr_agent::api::openapi::schema_json());
             Ok(())

@@ -110,7 +110,8 @@ async fn an_explicit_pose_is_drawn_without_the_agent_and_large_images_are_scaled
     let state = server.state.clone();
     let map = tokio::task::spawn_blocking(move || {
         let entry = state.maps.store.get("street").unwrap();
-        state.maps.prepared_for(&entry).unwrap()
+        // A whole region: the crop is the region's sample.
+        state.maps.prepared_for(&entry).unwrap().around([0.0; 3], 0.0, 0, true).unwrap()
     })
     .await
     .unwrap();

@@ -507,7 +507,11 @@ async fn two_replicas_on_one_map_directory_stay_consistent() {
     assert_eq!(count(&b).await, (200, Some(7000)));
     let (status, _, _) = b.localize("yard", &kitti_request(2)).await;
     assert_eq!(status, 200);
-    assert_eq!(b.state.maps.cache.get("yard").map(|m| m.source_points), Some(7000), "B re-prepared the new cloud");
+    let source_points = |p: cmr_agent::maps::Prepared| match p {
+        cmr_agent::maps::Prepared::Whole(m) => m.source_points,
+        cmr_agent::maps::Prepared::Tiled(t) => t.points,
+    };
+    assert_eq!(b.state.maps.cache.get("yard").map(source_points), Some(7000), "B re-prepared the new cloud");
     // Deleted through one replica: gone on the other.
     let r = a.client.delete(a.url("/v1/maps/yard")).send().await.unwrap();
     assert_eq!(r.status(), 204);

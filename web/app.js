@@ -22,7 +22,7 @@ const $ = (id) => document.getElementById(id);
 const state = {
   maps: [],
   mapId: null,
-  points: null, // Float32Array x,y,z,... in the map frame, metres
+  points: null, // Float64Array x,y,z,... in the map frame, metres
   pointsFor: null,
   image: null, // { base64, el: HTMLImageElement, width, height, label }
   result: null, // the localize response
@@ -126,19 +126,22 @@ async function selectMap(id) {
   if (state.pointsFor !== id) {
     state.points = null;
     const r = await api(`/v1/maps/${encodeURIComponent(id)}/points?max=${POINTS_MAX}`);
-    state.points = decodePoints(await r.arrayBuffer());
+    state.points = decodePoints(await r.arrayBuffer(), r.headers.get('x-map-origin'));
     state.pointsFor = id;
   }
   if (state.result && state.result.map_id !== id) clearResult();
   draw();
 }
 
-// The points route's body: count × (x, y, z) little-endian float32, map frame, metres.
-function decodePoints(buffer) {
+// The points route's body: count × (x, y, z) little-endian float32, metres, relative to the
+// region's origin (header x-map-origin "x,y,z"); returned in the map frame as float64, so
+// regions at UTM-size coordinates keep centimetres.
+function decodePoints(buffer, originHeader) {
   const view = new DataView(buffer);
   const n = Math.floor(buffer.byteLength / 12);
-  const out = new Float32Array(n * 3);
-  for (let i = 0; i < n * 3; i++) out[i] = view.getFloat32(i * 4, true);
+  const origin = (originHeader || '0,0,0').split(',').map(Number);
+  const out = new Float64Array(n * 3);
+  for (let i = 0; i < n * 3; i++) out[i] = view.getFloat32(i * 4, true) + origin[i % 3];
   return out;
 }
 

@@ -64,6 +64,18 @@ impl Localization {
         at[best_of(at.iter().map(|(_, score)| *score))].0
     }
 
+    /// Applies `f` to every pose it holds (prior, starts, steps): how serving moves a result from
+    /// the region's local frame to the map frame (`geometry::LocalFrame`).
+    pub fn map_poses(&mut self, f: impl Fn(&Pose) -> Pose) {
+        self.prior = f(&self.prior);
+        for h in &mut self.hypotheses {
+            h.start = f(&h.start);
+            for s in &mut h.steps {
+                s.camera_from_map = f(&s.camera_from_map);
+            }
+        }
+    }
+
     /// Steps taken by the longest hypothesis.
     pub fn iterations(&self) -> usize {
         self.hypotheses.iter().map(|h| h.steps.len()).max().unwrap_or(0)

@@ -3,6 +3,7 @@
 use std::path::PathBuf;
 
 use crate::agent::search::{DEFAULT_HYPOTHESES, SearchTuning};
+use crate::maps::{CropEmbeddings, RegionConfig};
 use crate::serving::{ImageLimits, LocalizerConfig, RequestDefaults, SchedulerConfig};
 
 #[derive(Debug, Clone, clap::Args)]
@@ -54,6 +55,23 @@ pub struct ServeArgs {
     /// Largest map upload, bytes.
     #[arg(long, env = "CMR_MAX_MAP_BYTES", default_value_t = 256 * 1024 * 1024)]
     pub max_map_bytes: usize,
+    /// Most points an uploaded map file may hold (before any `voxel_m` downsampling); more is 413.
+    #[arg(long, env = "CMR_MAX_MAP_POINTS", default_value_t = 10_000_000)]
+    pub max_map_points: usize,
+    /// Regions with more points than this are tiled: embeddings computed once per 20 m ground
+    /// cell at upload (stored as float16, memory-mapped), and each localize uses the points
+    /// within `radius_m` of its prior. Smaller regions are sampled whole, as one scan.
+    #[arg(long, env = "CMR_TILE_ABOVE_POINTS", default_value_t = 300_000)]
+    pub tile_above_points: usize,
+    /// Default crop radius of a localize in a tiled region, metres: the virtual scan from the
+    /// prior keeps points within this ground distance (a single scan of the training rig has 90 %
+    /// of its points within 20 m and reaches 80 m).
+    #[arg(long, env = "CMR_DEFAULT_RADIUS_M", default_value_t = 60.0)]
+    pub default_radius_m: f64,
+    /// Where a tiled region's crop gets its embeddings: `encode` (the point encoder on each
+    /// request's crop) or `stored` (the per-tile float16 embeddings computed at upload).
+    #[arg(long, env = "CMR_CROP_EMBEDDINGS", value_enum, default_value_t = CropEmbeddings::Encode)]
+    pub crop_embeddings: CropEmbeddings,
     /// Largest accepted image width or height, pixels.
     #[arg(long, env = "CMR_MAX_IMAGE_SIDE", default_value_t = 8192)]
     pub max_image_side: u32,
@@ -109,10 +127,22 @@ impl ServeArgs {
     pub fn localizer(&self) -> LocalizerConfig {
         LocalizerConfig {
             image: ImageLimits { max_side: self.max_image_side, max_pixels: self.max_image_pixels },
-            defaults: RequestDefaults { max_iterations: self.default_max_iterations, hypotheses: self.default_hypotheses, search: self.search },
+            defaults: RequestDefaults {
+                max_iterations: self.default_max_iterations,
+                hypotheses: self.default_hypotheses,
+                search: self.search,
+                radius_m: self.default_radius_m,
+            },
             request_timeout: std::time::Duration::from_millis(self.request_timeout_ms),
             decode_permits: if self.decode_concurrency > 0 { self.decode_concurrency } else { cores() },
         }
+    }
+}
+
+impl ServeArgs {
+    /// How regions are stored and prepared.
+    pub fn regions(&self) -> RegionConfig {
+        RegionConfig { tile_above_points: self.tile_above_points, max_points: self.max_map_points, crop_embeddings: self.crop_embeddings, ..RegionConfig::default() }
     }
 }
 

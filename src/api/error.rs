@@ -107,7 +107,7 @@ impl From<MapError> for ApiError {
         match &e {
             MapError::InvalidId(_) => ApiError::BadRequest(e.to_string()),
             MapError::NotFound(_) => ApiError::NotFound(e.to_string()),
-            MapError::BadCloud(_) | MapError::BadMetadata(_) => ApiError::Invalid(e.to_string()),
+            MapError::BadCloud(_) | MapError::BadMetadata(_) | MapError::BadOption(_) => ApiError::Invalid(e.to_string()),
             MapError::Unsupported(_) => ApiError::UnsupportedMediaType(e.to_string()),
             MapError::TooLarge(_) => ApiError::PayloadTooLarge(e.to_string()),
             MapError::Io(_) | MapError::Inference(_) => ApiError::Internal(e.to_string()),

@@ -55,7 +55,7 @@ pub fn run(args: LocalizeArgs) -> Result<()> {
     let (store, _) = MapStore::open(dir.path()).map_err(|e| anyhow!("{e}"))?;
     let offline = OfflineLocalizer::new(&args.serve, store)?;
     let id = "map";
-    offline.localizer.maps.register(id, Upload { bytes: &bytes, format, gzip: false, max_bytes: usize::MAX }, metadata).map_err(|e| anyhow!("{}: {e}", args.map.display()))?;
+    offline.localizer.maps.register(id, Upload { bytes: &bytes, format, gzip: false, max_bytes: usize::MAX }, Default::default(), metadata).map_err(|e| anyhow!("{}: {e}", args.map.display()))?;
     let done = offline.localize(id, &request, image).map_err(|e| anyhow!("{e}"))?;
     drop(offline);
     let loc = &done.localization;
@@ -79,7 +79,7 @@ impl OfflineLocalizer {
     /// (one worker). Errors: the models or ONNX Runtime cannot be loaded.
     pub fn new(config: &ServeArgs, store: MapStore) -> Result<Self> {
         let models = ModelSet::load(&config.models, BackendOptions { intra_threads: config.intra_threads(), ort_lib: config.ort_lib.clone() })?;
-        let maps = Arc::new(Maps::new(store, MapCache::new(config.cache_mb.saturating_mul(1024 * 1024)), Box::new(models.backend()?)));
+        let maps = Arc::new(Maps::new(store, MapCache::new(config.cache_mb.saturating_mul(1024 * 1024)), Box::new(models.backend()?), config.regions()));
         let scheduler = Arc::new(Scheduler::start(&models.factory(), ServeArgs { workers: 1, ..config.clone() }.scheduler())?);
         let lifecycle = Arc::new(Lifecycle::default());
         lifecycle.set_ready();

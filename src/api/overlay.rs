@@ -47,6 +47,10 @@ pub struct OverlayRequest {
     #[serde(default)]
     #[schema(minimum = 1, maximum = 16)]
     pub hypotheses: Option<u32>,
+    /// Crop radius in a tiled region, metres (as in localize).
+    #[serde(default)]
+    #[schema(minimum = 1, maximum = 500)]
+    pub radius_m: Option<f64>,
     /// Draw this pose (a rigid camera_from_map within ±1e7 m, validated as the prior is) and do
     /// not run the agent; leave `prior_camera_from_map`, `max_iterations` and `hypotheses` out
     /// with it.
@@ -74,6 +78,9 @@ pub struct OverlayParams {
     /// Starts of the multi-start search, 1..=16; with a raw image body.
     #[param(minimum = 1, maximum = 16)]
     pub hypotheses: Option<u32>,
+    /// Crop radius in a tiled region, metres; with a raw image body.
+    #[param(minimum = 1, maximum = 500)]
+    pub radius_m: Option<f64>,
     /// Also draw a strip of every iteration of the chosen start (small panels, 4 per row).
     #[serde(default)]
     pub iterations: Option<bool>,
@@ -169,6 +176,11 @@ fn iteration_panels(loc: &Localization) -> Vec<PosePanel> {
 }
 
 fn draw(picture: &PictureInput, panels: Vec<PosePanel>, strip: Vec<PosePanel>) -> Result<Bytes, ApiError> {
+    // The points are in the region's local frame; the panels' poses in the map frame.
+    let local = |panels: Vec<PosePanel>| -> Vec<PosePanel> {
+        panels.into_iter().map(|p| PosePanel { camera_from_map: picture.frame.camera_from_local(&p.camera_from_map), ..p }).collect()
+    };
+    let (panels, strip) = (local(panels), local(strip));
     let overlay = Overlay { image: &picture.image, intrinsics: picture.intrinsics, points: &picture.map.points, panels, strip };
     overlay.png().map(Bytes::from).map_err(|e| ApiError::Internal(format!("drawing the overlay: {e:#}")))
 }
@@ -180,7 +192,14 @@ fn read_overlay_request(q: &OverlayParams, headers: &HeaderMap, body: Bytes) -> 
     if ct.starts_with("image/jpeg") || ct.starts_with("image/png") {
         let need = |v: Option<f64>, name: &str| v.ok_or_else(|| ApiError::Invalid(format!("query parameter {name} is required with a raw image body")));
         let intrinsics = IntrinsicsBody { fx: need(q.fx, "fx")?, fy: need(q.fy, "fy")?, cx: need(q.cx, "cx")?, cy: need(q.cy, "cy")? };
-        let request = LocalizeRequest { image: String::new(), intrinsics, prior_camera_from_map: None, max_iterations: q.max_iterations, hypotheses: q.hypotheses };
+        let request = LocalizeRequest {
+            image: String::new(),
+            intrinsics,
+            prior_camera_from_map: None,
+            max_iterations: q.max_iterations,
+            hypotheses: q.hypotheses,
+            radius_m: q.radius_m,
+        };
         return Ok((Wanted::Localize(request), ImagePayload::Raw(body)));
     }
     if !(ct.is_empty() || ct.starts_with("application/json")) {
@@ -193,6 +212,7 @@ fn read_overlay_request(q: &OverlayParams, headers: &HeaderMap, body: Bytes) -> 
         prior_camera_from_map: r.prior_camera_from_map,
         max_iterations: r.max_iterations,
         hypotheses: r.hypotheses,
+        radius_m: r.radius_m,
     };
     let payload = ImagePayload::Base64(r.image);
     match r.camera_from_map {
@@ -204,6 +224,8 @@ fn read_overlay_request(q: &OverlayParams, headers: &HeaderMap, body: Bytes) -> 
                 ));
             }
             let pose = m.pose().map_err(|e| ApiError::Invalid(format!("camera_from_map: {e}")))?;
+            // A tiled region draws the points around the drawn pose.
+            let request = LocalizeRequest { prior_camera_from_map: Some(m), ..request };
             Ok((Wanted::Pose(request, pose), payload))
         }
     }

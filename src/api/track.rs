@@ -85,6 +85,7 @@ impl FrameLocalizer for StoredRegion<'_> {
             prior_camera_from_map: Some(Matrix4x4::from_rows(prior.to_rows())),
             max_iterations: Some(search.max_iterations),
             hypotheses: Some(search.hypotheses),
+            radius_m: None,
         };
         let started = std::time::Instant::now();
         let done = self
@@ -159,7 +160,11 @@ pub fn run(args: TrackArgs) -> Result<()> {
         prior_noise_deg: args.prior_noise_deg,
         seed: args.seed,
     };
-    let summary = run.write(&args.out, &map.points)?;
+    // The plot's points, map frame (stored relative to the region's origin).
+    let (local, _) = map.drawing_sample(40_960);
+    let o = entry.origin;
+    let points: Vec<[f32; 3]> = local.iter().map(|p| [(p[0] as f64 + o[0]) as f32, (p[1] as f64 + o[1]) as f32, (p[2] as f64 + o[2]) as f32]).collect();
+    let summary = run.write(&args.out, &points)?;
     println!("{}", serde_json::to_string_pretty(&summary)?);
     Ok(())
 }

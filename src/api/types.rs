@@ -5,8 +5,10 @@ use utoipa::ToSchema;
 
 use crate::agent::{Localization, Step};
 use crate::geometry::Pose;
-use crate::maps::{MapEntry, MapMetadata};
+use crate::maps::{Extent, MapEntry, MapMetadata, Maps};
 use crate::serving::Matrix4x4;
+
+use super::error::ApiError;
 
 /// A row-major 4x4 rigid transform (its JSON schema is `serving::Matrix4x4`).
 pub type Rows4x4 = [[f64; 4]; 4];
@@ -220,17 +222,62 @@ pub struct MapList {
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct MapSummary {
     pub id: String,
+    /// Points stored (after any voxel downsampling at upload).
     pub num_points: usize,
+    /// Bytes of the stored cloud (`<id>.bin`).
     pub file_bytes: u64,
     pub source_sha256: String,
     /// Whether the prepared embeddings are in memory now.
     pub cached: bool,
     pub metadata: MapMetadata,
+    /// Map-frame coordinates (metres, float64) of the region's local frame: stored points are
+    /// relative to it; requests and responses use the map frame.
+    pub origin: [f64; 3],
+    /// The box of the stored points, map frame, metres.
+    pub extent: Extent,
+    /// Whether the region is tiled (more points than one scan: a localize crops `radius_m`
+    /// around its prior, and needs one).
+    pub tiled: bool,
+    /// Ground cells with embeddings (1 for a whole region; 0 when none are stored yet).
+    pub tiles: usize,
+    pub memory: MapMemory,
+}
+
+/// Where a region's bytes are.
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct MapMemory {
+    /// Heap held by the prepared-map cache for it now (a tiled region's embeddings are
+    /// memory-mapped, not heap: only its cell table counts).
+    pub cache_bytes: u64,
+    /// Bytes of `<id>.emb` (embeddings, float32 for a whole region's sample, float16 per point
+    /// for a tiled one); 0 when absent.
+    pub embeddings_file_bytes: u64,
 }
 
 impl MapSummary {
-    pub fn new(e: MapEntry, cached: bool) -> Self {
-        MapSummary { id: e.id, num_points: e.num_points, file_bytes: e.file_bytes, source_sha256: e.source_sha256, cached, metadata: e.metadata }
+    /// Blocking: reads the embeddings file's header.
+    pub fn new(e: MapEntry, maps: &Maps) -> Self {
+        let cached = maps.cache.peek(&e.id);
+        let file = maps.store.embeddings_file(&e.id);
+        let tiles = match (&cached, file) {
+            (Some(p), _) => p.tiles(),
+            (None, Some((_, Some(cells)))) => cells,
+            (None, Some((_, None))) => 1,
+            (None, None) => 0,
+        };
+        MapSummary {
+            tiled: maps.is_tiled(e.num_points),
+            tiles,
+            memory: MapMemory { cache_bytes: cached.as_ref().map_or(0, |p| p.size_bytes() as u64), embeddings_file_bytes: file.map_or(0, |f| f.0) },
+            id: e.id,
+            num_points: e.num_points,
+            file_bytes: e.file_bytes,
+            source_sha256: e.source_sha256,
+            cached: cached.is_some(),
+            metadata: e.metadata,
+            origin: e.origin,
+            extent: e.extent,
+        }
     }
 }
 
@@ -257,6 +304,25 @@ pub struct UploadParams {
     pub format: Option<String>,
     /// Optional description stored in the sidecar (metadata can also be set with PUT .../metadata).
     pub description: Option<String>,
+    /// The region's local-frame origin, map frame, metres: `x,y,z` (e.g. `500000,5400000,0`).
+    /// Points are stored relative to it (float32); default: the cloud's box centre rounded to a
+    /// multiple of 1 km (so a region near the map frame's origin keeps origin 0,0,0).
+    pub origin: Option<String>,
+    /// Voxel downsampling before storing: one point (the centroid) per cube of this side,
+    /// metres, 0.01..=100. Default: none.
+    pub voxel_m: Option<f64>,
+}
+
+impl UploadParams {
+    /// `origin` as three numbers. Errors: 422 naming the parameter.
+    pub fn origin(&self) -> Result<Option<[f64; 3]>, ApiError> {
+        let Some(text) = self.origin.as_deref().filter(|t| !t.is_empty()) else { return Ok(None) };
+        let values: Vec<f64> = text.split(',').map(|v| v.trim().parse::<f64>()).collect::<Result<_, _>>().map_err(|e| ApiError::Invalid(format!("origin: {e} in {text:?}; give x,y,z in metres")))?;
+        match values.as_slice() {
+            [x, y, z] => Ok(Some([*x, *y, *z])),
+            _ => Err(ApiError::Invalid(format!("origin: {text:?} has {} numbers; give x,y,z in metres", values.len()))),
+        }
+    }
 }
 
 /// Query of the raw-image variant of localize (body = the JPEG/PNG bytes, `content-type:
@@ -281,6 +347,9 @@ pub struct RawLocalizeParams {
     /// Starts of the multi-start search, 1..=16; default: the server's `default_hypotheses`.
     #[param(minimum = 1, maximum = 16)]
     pub hypotheses: Option<u32>,
+    /// Crop radius in a tiled region, metres, 1..=500; default: the server's `default_radius_m`.
+    #[param(minimum = 1, maximum = 500)]
+    pub radius_m: Option<f64>,
 }
 
 /// Query of `GET /v1/maps/{id}/points`.
@@ -324,6 +393,12 @@ pub struct Limits {
     /// How long a client may take to send a whole request body.
     pub body_timeout_ms: u64,
     pub cache_budget_bytes: u64,
+    /// Most points an uploaded map file may hold.
+    pub max_map_points: usize,
+    /// Regions with more points are tiled.
+    pub tile_above_points: usize,
+    /// Default crop radius in tiled regions, metres.
+    pub default_radius_m: f64,
 }
 
 #[derive(Debug, Serialize, Deserialize, ToSchema)]

@@ -37,14 +37,16 @@ impl Pose {
         out
     }
 
-    /// From a row-major 4x4 matrix; the last row must be (0, 0, 0, 1), R orthonormal and each
-    /// translation component within ±[`MAX_COORDINATE_M`].
+    /// From a row-major 4x4 matrix (a map-frame camera_from_map); the last row must be
+    /// (0, 0, 0, 1), R orthonormal and the camera's position −Rᵀt within ±[`MAX_COORDINATE_M`]
+    /// on each axis, the bound of every map-frame coordinate.
     pub fn from_matrix(m: &[[f64; 4]; 4]) -> Result<Self, String> {
         if m.iter().flatten().any(|v| !v.is_finite()) {
             return Err("pose contains a non-finite value".into());
         }
-        if (0..3).any(|r| m[r][3].abs() > MAX_COORDINATE_M) {
-            return Err(format!("pose's translation is beyond ±{MAX_COORDINATE_M:e} m"));
+        // Checked before the rotation so a huge translation is named as such.
+        if (0..3).any(|r| m[r][3].abs() > MAX_COORDINATE_M * 3f64.sqrt()) {
+            return Err(format!("pose's translation is beyond ±{:e} m", MAX_COORDINATE_M * 3f64.sqrt()));
         }
         let last = m[3];
         if (last[0].abs() + last[1].abs() + last[2].abs() + (last[3] - 1.0).abs()) > 1e-6 {
@@ -55,11 +57,17 @@ impl Pose {
         if orthonormality > 1e-3 || r.determinant() < 0.0 {
             return Err("pose's rotation block is not a rotation matrix".into());
         }
-        Ok(Self::from_rt(r, Vector3::new(m[0][3], m[1][3], m[2][3])))
+        let pose = Self::from_rt(r, Vector3::new(m[0][3], m[1][3], m[2][3]));
+        let c = pose.camera_position_in_map();
+        if c.iter().any(|v| v.abs() > MAX_COORDINATE_M) {
+            return Err(format!("pose's camera position ({:.1}, {:.1}, {:.1}) m is beyond ±{MAX_COORDINATE_M:e} m", c.x, c.y, c.z));
+        }
+        Ok(pose)
     }
 
     /// Finite, with every translation component within ±[`MAX_COORDINATE_M`]: what the agent
-    /// can step from (the step loop checks every pose it reaches).
+    /// can step from (the step loop checks every pose it reaches, in the region's local frame,
+    /// where coordinates are small: see `geometry::frame`).
     pub fn is_sane(&self) -> bool {
         let t = self.0.translation.vector;
         let q = self.0.rotation.coords;
@@ -118,8 +126,10 @@ impl Pose {
     }
 }
 
-/// The largest coordinate (metres, any axis) a map point or a pose translation may have: UTM-size
-/// eastings and northings (< 1e7 m) pass; anything larger is an error in the input, not a place.
+/// The largest map-frame coordinate (metres, any axis) of a map point, a region's origin or a
+/// camera position: UTM-size eastings and northings (< 1e7 m) pass; anything larger is an error
+/// in the input, not a place. A camera_from_map's translation (−R·position) may then reach
+/// √3 times this.
 pub const MAX_COORDINATE_M: f64 = 1e7;
 
 /// The JSON shape of a pose in the API and in manifests: a row-major 4x4 matrix.

@@ -6,10 +6,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use moka::notification::RemovalCause;
 use moka::sync::Cache;
 
-use super::PreparedMap;
+use super::Prepared;
 
 pub struct MapCache {
-    inner: Cache<String, Arc<PreparedMap>>,
+    inner: Cache<String, Prepared>,
     budget_bytes: u64,
     /// This cache's own counters (the Prometheus ones are process-wide).
     pub evictions: Arc<AtomicU64>,
@@ -24,7 +24,7 @@ impl MapCache {
             .max_capacity((budget_bytes / 1024).max(1))
             // Plain LRU: a freshly uploaded map is always admitted (TinyLFU could refuse it).
             .eviction_policy(moka::policy::EvictionPolicy::lru())
-            .weigher(|_id: &String, map: &Arc<PreparedMap>| (map.size_bytes() / 1024).clamp(1, u32::MAX as usize) as u32)
+            .weigher(|_id: &String, map: &Prepared| (map.size_bytes() / 1024).clamp(1, u32::MAX as usize) as u32)
             .eviction_listener(move |_id, _map, cause| {
                 if matches!(cause, RemovalCause::Size | RemovalCause::Expired) {
                     counter.fetch_add(1, Ordering::Relaxed);
@@ -35,7 +35,7 @@ impl MapCache {
         Self { inner, budget_bytes, evictions }
     }
 
-    pub fn get(&self, id: &str) -> Option<Arc<PreparedMap>> {
+    pub fn get(&self, id: &str) -> Option<Prepared> {
         let hit = self.inner.get(id);
         metrics::counter!(if hit.is_some() { "cmr_cache_hits_total" } else { "cmr_cache_misses_total" }).increment(1);
         hit
@@ -45,8 +45,8 @@ impl MapCache {
     pub fn get_or_load<E: Send + Sync + 'static>(
         &self,
         id: &str,
-        load: impl FnOnce() -> Result<Arc<PreparedMap>, E>,
-    ) -> Result<Arc<PreparedMap>, Arc<E>> {
+        load: impl FnOnce() -> Result<Prepared, E>,
+    ) -> Result<Prepared, Arc<E>> {
         if let Some(hit) = self.get(id) {
             return Ok(hit);
         }
@@ -55,7 +55,7 @@ impl MapCache {
         result
     }
 
-    pub fn insert(&self, id: &str, map: Arc<PreparedMap>) {
+    pub fn insert(&self, id: &str, map: Prepared) {
         self.inner.insert(id.to_string(), map);
         self.publish();
     }
@@ -63,6 +63,11 @@ impl MapCache {
     pub fn invalidate(&self, id: &str) {
         self.inner.invalidate(id);
         self.publish();
+    }
+
+    /// The cached region, if any, without counting a hit or a miss (for reports).
+    pub fn peek(&self, id: &str) -> Option<Prepared> {
+        self.inner.get(id)
     }
 
     pub fn contains(&self, id: &str) -> bool {

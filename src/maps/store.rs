@@ -1,25 +1,30 @@
 //! Map regions on disk: `<id>.bin` (KITTI float32 x, y, z, intensity: the one canonical format
-//! whatever was uploaded), `<id>.json` (metadata sidecar) and `<id>.emb` (cached embeddings).
-//! Every write is atomic, so a failed upload leaves the previous region intact.
+//! whatever was uploaded, in the region's local frame), `<id>.json` (metadata sidecar, plus the
+//! server's `origin` of the local frame when it is not zero) and `<id>.emb` (cached embeddings:
+//! a whole region's, or a tiled region's, see `tiles`). Every write is atomic, so a failed upload
+//! leaves the previous region intact.
 //!
 //! The directory may be shared by several replicas (DESIGN §9): the in-memory registry is a cache
 //! of the files, checked against each region's file stamps (size and modification times) on
 //! every lookup, so a region another replica registered, replaced or deleted is seen at once.
 
 use std::collections::BTreeMap;
+use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, RwLock};
 use std::time::SystemTime;
 
 use serde::{Deserialize, Serialize};
 
+use sha2::Digest;
+
 use super::PreparedMap;
 use crate::geometry::pose::PoseMatrix;
-use crate::geometry::Pose;
+use crate::geometry::{LocalFrame, Pose};
 use crate::model::manifest::sha256_hex;
 
-use crate::atomic_file::write_atomic;
-use super::formats::{CloudFormat, PointCloud, parse, write_kitti_bin};
+use crate::atomic_file::{AtomicWriter, write_atomic};
+use super::formats::{CloudFormat, PointCloud, parse};
 use super::{MapError, embeddings};
 
 /// Map ids: `^[a-z0-9][a-z0-9_-]{0,63}$`, so they are safe as file names and URL segments.
@@ -109,6 +114,39 @@ impl MapMetadata {
     }
 }
 
+/// The axis-aligned box holding a region's points, map frame, metres.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct Extent {
+    pub min: [f64; 3],
+    pub max: [f64; 3],
+}
+
+impl Extent {
+    /// The box of `points` (local frame) in the map frame; `None` for no points.
+    pub fn of(points: &[[f32; 3]], frame: LocalFrame) -> Option<Self> {
+        let mut min = [f64::INFINITY; 3];
+        let mut max = [f64::NEG_INFINITY; 3];
+        for p in points {
+            for c in 0..3 {
+                min[c] = min[c].min(p[c] as f64);
+                max[c] = max[c].max(p[c] as f64);
+            }
+        }
+        (!points.is_empty()).then(|| Extent { min: frame.point_to_map([min[0] as f32, min[1] as f32, min[2] as f32]), max: frame.point_to_map([max[0] as f32, max[1] as f32, max[2] as f32]) })
+    }
+
+    /// Whether the ground-plane position (x, y) lies inside the box's x-y rectangle.
+    pub fn contains_xy(&self, x: f64, y: f64) -> bool {
+        (self.min[0]..=self.max[0]).contains(&x) && (self.min[1]..=self.max[1]).contains(&y)
+    }
+}
+
+impl std::fmt::Display for Extent {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "x {:.2}..{:.2}, y {:.2}..{:.2}, z {:.2}..{:.2} m", self.min[0], self.max[0], self.min[1], self.max[1], self.min[2], self.max[2])
+    }
+}
+
 /// One stored region, as listed by the API.
 #[derive(Debug, Clone, Serialize, utoipa::ToSchema)]
 pub struct MapEntry {
@@ -119,6 +157,58 @@ pub struct MapEntry {
     /// sha256 of `<id>.bin`.
     pub source_sha256: String,
     pub metadata: MapMetadata,
+    /// Map-frame coordinates (float64, metres) of the local frame the points are stored in:
+    /// p_map = p_stored + origin.
+    pub origin: [f64; 3],
+    /// The box of the stored points, map frame.
+    pub extent: Extent,
+}
+
+impl MapEntry {
+    pub fn frame(&self) -> LocalFrame {
+        LocalFrame { origin: self.origin.into() }
+    }
+}
+
+/// A region's cloud written to a temp file (not yet in place), by [`MapStore::stage`].
+pub struct Staged {
+    bin: AtomicWriter,
+    sha256: String,
+    file_bytes: u64,
+    num_points: usize,
+    frame: LocalFrame,
+    extent: Extent,
+}
+
+impl Staged {
+    /// sha256 of the `<id>.bin` it will become (what embeddings files name as their source).
+    pub fn sha256(&self) -> &str {
+        &self.sha256
+    }
+}
+
+/// The sidecar's text: the metadata, plus `origin` when the local frame is not the map frame.
+fn sidecar_bytes(metadata: &MapMetadata, origin: [f64; 3]) -> Vec<u8> {
+    let mut value = serde_json::to_value(metadata).expect("metadata serialises");
+    if origin != [0.0; 3] {
+        if let Some(fields) = value.as_object_mut() {
+            fields.insert("origin".into(), serde_json::json!(origin));
+        }
+    }
+    serde_json::to_vec_pretty(&value).expect("sidecar serialises")
+}
+
+/// The `origin` a sidecar records (zero when absent). Errors: not three finite numbers within
+/// the coordinate bound.
+fn sidecar_origin(text: &[u8]) -> Result<[f64; 3], String> {
+    let value: serde_json::Value = serde_json::from_slice(text).map_err(|e| e.to_string())?;
+    match value.get("origin") {
+        None | Some(serde_json::Value::Null) => Ok([0.0; 3]),
+        Some(v) => {
+            let origin: [f64; 3] = serde_json::from_value(v.clone()).map_err(|e| format!("origin: {e}"))?;
+            LocalFrame::new(origin).map(|f| f.origin())
+        }
+    }
 }
 
 /// What changes when any replica rewrites a region: `<id>.bin` (size, mtime) and `<id>.json` (mtime).
@@ -169,16 +259,19 @@ impl MapStore {
 
     fn load_entry(&self, id: &str) -> Result<MapEntry, MapError> {
         let (cloud, sha, bytes) = self.read_cloud(id)?;
-        let metadata = match std::fs::read(self.path(id, "json")) {
+        let (metadata, origin) = match std::fs::read(self.path(id, "json")) {
             Ok(text) => {
                 let m = MapMetadata::from_sidecar(&text).map_err(|e| MapError::BadMetadata(format!("{id}.json: {e}")))?;
                 m.validate()?;
-                m
+                let origin = sidecar_origin(&text).map_err(|e| MapError::BadMetadata(format!("{id}.json: {e}")))?;
+                (m, origin)
             }
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => MapMetadata::default(),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => (MapMetadata::default(), [0.0; 3]),
             Err(e) => return Err(MapError::Io(format!("{id}.json: {e}"))),
         };
-        Ok(MapEntry { id: id.to_string(), num_points: cloud.len(), file_bytes: bytes, source_sha256: sha, metadata })
+        let frame = LocalFrame { origin: origin.into() };
+        let extent = Extent::of(&cloud, frame).ok_or_else(|| MapError::BadCloud(format!("{id}.bin has no points")))?;
+        Ok(MapEntry { id: id.to_string(), num_points: cloud.len(), file_bytes: bytes, source_sha256: sha, metadata, origin, extent })
     }
 
     /// The stored cloud's points and the sha256 of its file.
@@ -237,8 +330,62 @@ impl MapStore {
         }
     }
 
-    /// Stores a region: cloud, embeddings, then metadata (each atomically), then registers it.
-    /// `metadata: None` keeps an existing region's metadata.
+    /// Writes `cloud` (points in `frame`) as `<id>.bin` to a temp file, hashing it as it goes;
+    /// nothing is in place until [`MapStore::commit`].
+    pub fn stage(&self, id: &str, cloud: &PointCloud, frame: LocalFrame) -> Result<Staged, MapError> {
+        validate_id(id)?;
+        let io = |e: std::io::Error| MapError::Io(e.to_string());
+        let extent = Extent::of(&cloud.xyz, frame).ok_or_else(|| MapError::BadCloud("the cloud has no points".into()))?;
+        let mut bin = AtomicWriter::create(&self.path(id, "bin")).map_err(io)?;
+        let mut hasher = sha2::Sha256::new();
+        let mut record = [0u8; 16];
+        for (i, p) in cloud.xyz.iter().enumerate() {
+            let intensity = cloud.intensity.as_ref().and_then(|v| v.get(i).copied()).unwrap_or(0.0);
+            for (k, value) in [p[0], p[1], p[2], intensity].into_iter().enumerate() {
+                record[4 * k..4 * k + 4].copy_from_slice(&value.to_le_bytes());
+            }
+            hasher.update(record);
+            bin.write_all(&record).map_err(io)?;
+        }
+        let sha256 = hasher.finalize().iter().map(|b| format!("{b:02x}")).collect();
+        Ok(Staged { bin, sha256, file_bytes: cloud.xyz.len() as u64 * 16, num_points: cloud.xyz.len(), frame, extent })
+    }
+
+    /// A temp file that becomes `<id>.emb` on [`MapStore::commit`].
+    pub fn stage_embeddings(&self, id: &str) -> Result<AtomicWriter, MapError> {
+        validate_id(id)?;
+        AtomicWriter::create(&self.path(id, "emb")).map_err(|e| MapError::Io(e.to_string()))
+    }
+
+    /// Puts a staged region in place: cloud, embeddings, then metadata (each an atomic rename or
+    /// write), then registers it. `metadata: None` keeps an existing region's metadata.
+    pub fn commit(&self, id: &str, staged: Staged, embeddings: AtomicWriter, metadata: Option<MapMetadata>) -> Result<MapEntry, MapError> {
+        validate_id(id)?;
+        let _guard = self.writes.lock().expect("writes");
+        let metadata = match metadata {
+            Some(m) => m,
+            None => self.get(id).map(|e| e.metadata).unwrap_or_default(),
+        };
+        let io = |e: std::io::Error| MapError::Io(e.to_string());
+        let origin = staged.frame.origin();
+        staged.bin.commit().map_err(io)?;
+        embeddings.commit().map_err(io)?;
+        write_atomic(&self.path(id, "json"), &sidecar_bytes(&metadata, origin)).map_err(io)?;
+        let entry = MapEntry {
+            id: id.to_string(),
+            num_points: staged.num_points,
+            file_bytes: staged.file_bytes,
+            source_sha256: staged.sha256,
+            metadata,
+            origin,
+            extent: staged.extent,
+        };
+        self.register(id, &entry);
+        Ok(entry)
+    }
+
+    /// Stores a whole region (points in the map frame) with its prepared embeddings: stage,
+    /// embeddings, commit.
     pub fn put(
         &self,
         id: &str,
@@ -247,29 +394,17 @@ impl MapStore {
         prepared: &PreparedMap,
         model_sha: &str,
     ) -> Result<MapEntry, MapError> {
-        validate_id(id)?;
-        let _guard = self.writes.lock().expect("writes");
-        let bin = write_kitti_bin(cloud);
-        let sha = sha256_hex(&bin);
-        let metadata = match metadata {
-            Some(m) => m,
-            None => self.get(id).map(|e| e.metadata).unwrap_or_default(),
-        };
-        let io = |e: std::io::Error| MapError::Io(e.to_string());
-        write_atomic(&self.path(id, "bin"), &bin).map_err(io)?;
-        write_atomic(&self.path(id, "emb"), &embeddings::encode(prepared, model_sha, &sha)).map_err(io)?;
-        write_atomic(&self.path(id, "json"), &serde_json::to_vec_pretty(&metadata).expect("metadata serialises")).map_err(io)?;
-        let entry = MapEntry { id: id.to_string(), num_points: cloud.xyz.len(), file_bytes: bin.len() as u64, source_sha256: sha, metadata };
-        self.register(id, &entry);
-        Ok(entry)
+        let staged = self.stage(id, cloud, LocalFrame::default())?;
+        let mut emb = self.stage_embeddings(id)?;
+        emb.write_all(&embeddings::encode(prepared, model_sha, staged.sha256())).map_err(|e| MapError::Io(e.to_string()))?;
+        self.commit(id, staged, emb, metadata)
     }
 
     pub fn set_metadata(&self, id: &str, metadata: MapMetadata) -> Result<MapEntry, MapError> {
         metadata.validate()?;
         let _guard = self.writes.lock().expect("writes");
         let mut entry = self.get(id)?;
-        write_atomic(&self.path(id, "json"), &serde_json::to_vec_pretty(&metadata).expect("metadata serialises"))
-            .map_err(|e| MapError::Io(e.to_string()))?;
+        write_atomic(&self.path(id, "json"), &sidecar_bytes(&metadata, entry.origin)).map_err(|e| MapError::Io(e.to_string()))?;
         entry.metadata = metadata;
         self.register(id, &entry);
         Ok(entry)
@@ -292,10 +427,35 @@ impl MapStore {
         Ok(())
     }
 
-    /// The persisted embeddings, when they match this model and the stored cloud.
+    /// The persisted embeddings of a whole region, when they match this model and the stored
+    /// cloud.
     pub fn load_embeddings(&self, id: &str, model_sha: &str, source_sha: &str) -> Option<PreparedMap> {
         let bytes = std::fs::read(self.path(id, "emb")).ok()?;
         embeddings::decode(&bytes, model_sha, source_sha)
+    }
+
+    /// The persisted tiles of a large region, memory-mapped, when they match this model, the
+    /// stored cloud and `config`.
+    pub fn load_tiles(&self, id: &str, model_sha: &str, source_sha: &str, config: super::tiles::TileConfig) -> Option<super::tiles::TiledMap> {
+        match super::tiles::TiledMap::open(&self.path(id, "emb"), model_sha, source_sha) {
+            Ok(Some(t)) if t.config == config => Some(t),
+            Ok(_) => None,
+            Err(e) => {
+                tracing::warn!("{id}.emb: {e:#}; recomputing");
+                None
+            }
+        }
+    }
+
+    /// What `<id>.emb` holds, from its header: (file bytes, tiled cell count or `None` for a
+    /// whole region's file). `None` when there is no file.
+    pub fn embeddings_file(&self, id: &str) -> Option<(u64, Option<usize>)> {
+        use std::io::Read;
+        let mut file = std::fs::File::open(self.path(id, "emb")).ok()?;
+        let len = file.metadata().ok()?.len();
+        let mut head = vec![0u8; super::tiles::HEADER_BYTES];
+        let read = file.read(&mut head).ok()?;
+        Some((len, super::tiles::header_cells(&head[..read])))
     }
 
     pub fn save_embeddings(&self, id: &str, prepared: &PreparedMap, model_sha: &str, source_sha: &str) -> Result<(), MapError> {

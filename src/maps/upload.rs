@@ -3,7 +3,8 @@
 //!
 //! Refusals, as [`MapError`]s: a body recognised as something other than a point cloud (PNG,
 //! JPEG, zip, LAZ, gzip inside gzip, ...) is `Unsupported` (HTTP 415) and says what it looks like
-//! and what is accepted; gzip that inflates past the bound is `TooLarge` (413); bytes with no known
+//! and what is accepted; gzip that inflates past the bound, or a file with more points than `limits.max_points`, is
+//! `TooLarge` (413); bytes with no known
 //! signature that are not KITTI `.bin` either, a cloud that does not parse, corrupt gzip, or a
 //! `format` that contradicts the body's own header are `BadCloud` (422).
 
@@ -56,5 +57,10 @@ pub fn read_upload(upload: Upload, limits: Limits) -> Result<Parsed, MapError> {
             ))
         })?,
     };
-    formats::parse_counted(bytes, format, limits).map_err(|e| MapError::BadCloud(format!("{}: {e}", format.label())))
+    formats::parse_counted(bytes, format, limits).map_err(|e| match e {
+        FormatError::TooManyPoints { count, max } => {
+            MapError::TooLarge(format!("the {} file holds {count} points; this server accepts at most {max} per region (--max-map-points)", format.label()))
+        }
+        e => MapError::BadCloud(format!("{}: {e}", format.label())),
+    })
 }

@@ -16,12 +16,12 @@ use tokio::sync::{Semaphore, oneshot};
 use tracing::Instrument;
 
 use crate::agent::{Localization, Start, ms};
-use crate::maps::{Maps, validate_id};
+use crate::maps::{CropEmbeddings, Maps, validate_id};
 use crate::model::Manifest;
 
 use image::RgbImage;
 
-use crate::geometry::Intrinsics;
+use crate::geometry::{Intrinsics, LocalFrame};
 use crate::maps::PreparedMap;
 
 use super::decode::{ImageLimits, ImagePayload, decode_payload, prepare_request_image};
@@ -58,11 +58,13 @@ pub struct Localized {
 
 /// What a picture of a request is drawn from: the decoded image at its own resolution, the
 /// request's intrinsics (for that resolution, not the model's crop) and the region's prepared
-/// map (its N sampled points).
+/// map (its N sampled points, in the region's local `frame`: map-frame poses are drawn through
+/// `frame.camera_from_local`).
 pub struct PictureInput {
     pub image: RgbImage,
     pub intrinsics: Intrinsics,
     pub map: Arc<PreparedMap>,
+    pub frame: LocalFrame,
 }
 
 pub struct Localizer {
@@ -130,7 +132,7 @@ impl Localizer {
             })
             .await?;
             let map = self.prepared(&valid).await?;
-            Ok(PictureInput { image: decoded, intrinsics: valid.intrinsics, map })
+            Ok(PictureInput { image: decoded, intrinsics: valid.intrinsics, map, frame: valid.frame })
         };
         let result = tokio::time::timeout_at(deadline.into(), work).await.map_err(|_| LocalizeError::DeadlineExceeded)?;
         drop(admission);
@@ -163,7 +165,7 @@ impl Localizer {
 
         let map = self.prepared(&valid).await?;
         let (reply, answer) = oneshot::channel();
-        let picture = decoded.map(|image| PictureInput { image, intrinsics, map: map.clone() });
+        let picture = decoded.map(|image| PictureInput { image, intrinsics, map: map.clone(), frame: valid.frame });
         let start = Start { map, image_tensor: tensor, intrinsics: crop_k, prior: valid.prior, search: valid.search };
         self.scheduler.submit(Job { start, deadline, span, reply }, admission.slot)?;
         let wait = deadline.saturating_duration_since(Instant::now()) + Duration::from_millis(500);
@@ -172,7 +174,11 @@ impl Localizer {
             Ok(Err(_)) => return Err(LocalizeError::Internal("the worker dropped the request".into())),
             Err(_) => return Err(LocalizeError::DeadlineExceeded),
         };
-        let done = Localized { localization: finished.localization, queue_ms: finished.queue_ms, decode_ms, total_ms: ms(admission.started) };
+        let mut localization = finished.localization;
+        if !valid.frame.is_identity() {
+            localization.map_poses(|p| valid.frame.camera_from_map(p));
+        }
+        let done = Localized { localization, queue_ms: finished.queue_ms, decode_ms, total_ms: ms(admission.started) };
         Ok((done, picture))
     }
 }
@@ -184,14 +190,29 @@ impl Localizer {
         let maps = self.maps.clone();
         let id = map_id.to_string();
         let entry = blocking(move || maps.store.get(&id).map_err(LocalizeError::from)).await?;
-        ValidLocalizeRequest::new(request, &self.config.defaults, entry)
+        let tiled = self.maps.is_tiled(entry.num_points);
+        ValidLocalizeRequest::new(request, &self.config.defaults, entry, tiled)
     }
 
-    /// The region's prepared map (cache, else `<id>.emb`, else the point encoder).
+    /// The points and embeddings this request uses, in the region's local frame: a whole
+    /// region's prepared sample (cache, else `<id>.emb`, else the point encoder), or a tiled
+    /// region's crop around the prior (422 when it holds fewer than the agent's M points).
     async fn prepared(&self, valid: &ValidLocalizeRequest) -> Result<Arc<PreparedMap>, LocalizeError> {
         let maps = self.maps.clone();
         let entry = valid.map.clone();
-        blocking(move || maps.prepared_for(&entry).map_err(LocalizeError::from)).await
+        let crop = valid.crop;
+        let min_points = self.manifest.points.num_state_points;
+        blocking(move || {
+            let prepared = maps.prepared_for(&entry).map_err(LocalizeError::from)?;
+            let Some(c) = crop else { return prepared.around([0.0; 3], 0.0, 0, true).map_err(|e| LocalizeError::Internal(e.to_string())) };
+            let stored = maps.config.crop_embeddings == CropEmbeddings::Stored;
+            let map = prepared.around(c.sensor, c.radius_m, min_points, stored).map_err(|e| LocalizeError::Invalid(format!("prior_camera_from_map: {e}")))?;
+            match maps.config.crop_embeddings {
+                CropEmbeddings::Stored => Ok(map),
+                CropEmbeddings::Encode => maps.reencode(&map).map(Arc::new).map_err(LocalizeError::from),
+            }
+        })
+        .await
     }
 }
 

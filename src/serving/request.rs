@@ -7,7 +7,7 @@ use utoipa::ToSchema;
 
 use crate::agent::search::{MAX_HYPOTHESES, MAX_ITERATIONS, SearchConfig, SearchTuning};
 use crate::geometry::pose::Matrix4x4;
-use crate::geometry::{Intrinsics, Pose};
+use crate::geometry::{Intrinsics, LocalFrame, Pose};
 use crate::maps::MapEntry;
 
 use super::error::LocalizeError;
@@ -50,7 +50,16 @@ pub struct LocalizeRequest {
     #[serde(default)]
     #[schema(minimum = 1, maximum = 16)]
     pub hypotheses: Option<u32>,
+    /// In a tiled region (more points than one scan): the map points within this ground-plane
+    /// distance of the prior's camera position are used, sampled to the model's N; metres,
+    /// 1..=500. Default: the server's `default_radius_m` (60). Ignored by whole regions.
+    #[serde(default)]
+    #[schema(minimum = 1, maximum = 500)]
+    pub radius_m: Option<f64>,
 }
+
+/// The range of `radius_m`, metres.
+pub const RADIUS_RANGE_M: std::ops::RangeInclusive<f64> = 1.0..=500.0;
 
 /// What the server fills in when a request leaves it out.
 #[derive(Debug, Clone, Copy)]
@@ -58,6 +67,16 @@ pub struct RequestDefaults {
     pub max_iterations: u32,
     pub hypotheses: u32,
     pub search: SearchTuning,
+    /// Crop radius in tiled regions, metres.
+    pub radius_m: f64,
+}
+
+/// Which points of a tiled region a request uses: a virtual scan from `sensor` (the prior
+/// camera's position, local frame) of the points within `radius_m` of it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Crop {
+    pub sensor: [f64; 3],
+    pub radius_m: f64,
 }
 
 /// A localize request every later stage can trust.
@@ -65,13 +84,21 @@ pub struct RequestDefaults {
 pub struct ValidLocalizeRequest {
     pub map: MapEntry,
     pub intrinsics: Intrinsics,
+    /// The region's local frame: `prior` and everything the agent computes are in it.
+    pub frame: LocalFrame,
+    /// camera_from_local of the starting pose.
     pub prior: Pose,
     pub search: SearchConfig,
+    /// Set for a tiled region.
+    pub crop: Option<Crop>,
 }
 
 impl ValidLocalizeRequest {
     /// Checks the request's numbers against the limits (422 `invalid_input` naming the field).
-    pub fn new(request: &LocalizeRequest, defaults: &RequestDefaults, map: MapEntry) -> Result<Self, LocalizeError> {
+    /// `tiled`: the region is larger than one scan (`Maps::is_tiled`), so the request needs a
+    /// prior (its own or the region's `initial_camera_from_map`) whose camera position lies within
+    /// the region's x-y extent.
+    pub fn new(request: &LocalizeRequest, defaults: &RequestDefaults, map: MapEntry, tiled: bool) -> Result<Self, LocalizeError> {
         let invalid = |field: &str, e: String| LocalizeError::Invalid(format!("{field}: {e}"));
         let k = request.intrinsics;
         let intrinsics = Intrinsics { fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy };
@@ -84,12 +111,39 @@ impl ValidLocalizeRequest {
         if !(1..=MAX_HYPOTHESES).contains(&hypotheses) {
             return Err(invalid("hypotheses", format!("must be in 1..={MAX_HYPOTHESES}, got {hypotheses}")));
         }
-        let prior = match &request.prior_camera_from_map {
-            Some(m) => m.pose().map_err(|e| invalid("prior_camera_from_map", e))?,
-            None => map.metadata.initial_pose().unwrap_or_else(Pose::identity),
+        let radius_m = request.radius_m.unwrap_or(defaults.radius_m);
+        if !(radius_m.is_finite() && RADIUS_RANGE_M.contains(&radius_m)) {
+            return Err(invalid("radius_m", format!("must be within {}..={} m, got {radius_m}", RADIUS_RANGE_M.start(), RADIUS_RANGE_M.end())));
+        }
+        let prior = match (&request.prior_camera_from_map, map.metadata.initial_pose()) {
+            (Some(m), _) => m.pose().map_err(|e| invalid("prior_camera_from_map", e))?,
+            (None, Some(initial)) => initial,
+            (None, None) if tiled => {
+                return Err(invalid(
+                    "prior_camera_from_map",
+                    format!(
+                        "map {:?} is larger than one scan ({} points): a localize in it needs a prior to choose the points around it; send prior_camera_from_map, or set the region's initial_camera_from_map",
+                        map.id, map.num_points
+                    ),
+                ));
+            }
+            (None, None) => Pose::identity(),
+        };
+        let frame = map.frame();
+        let crop = if tiled {
+            let c = prior.camera_position_in_map();
+            if !map.extent.contains_xy(c.x, c.y) {
+                return Err(invalid(
+                    "prior_camera_from_map",
+                    format!("the prior camera position ({:.2}, {:.2}) m lies outside map {:?}'s extent ({})", c.x, c.y, map.id, map.extent),
+                ));
+            }
+            Some(Crop { sensor: [c.x - frame.origin.x, c.y - frame.origin.y, c.z - frame.origin.z], radius_m })
+        } else {
+            None
         };
         let search = defaults.search.search(hypotheses, max_iterations as usize);
-        Ok(Self { map, intrinsics, prior, search })
+        Ok(Self { map, intrinsics, frame, prior: frame.camera_from_local(&prior), search, crop })
     }
 }
 
@@ -102,15 +156,17 @@ mod tests {
     }
 
     fn entry() -> MapEntry {
-        MapEntry { id: "m".into(), num_points: 1, file_bytes: 16, source_sha256: String::new(), metadata: Default::default() }
+        let extent = crate::maps::Extent { min: [-50.0, -50.0, -3.0], max: [50.0, 50.0, 10.0] };
+        MapEntry { id: "m".into(), num_points: 1, file_bytes: 16, source_sha256: String::new(), metadata: Default::default(), origin: [0.0; 3], extent }
     }
 
-    const DEFAULTS: RequestDefaults = RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true } };
+    const DEFAULTS: RequestDefaults =
+        RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true }, radius_m: 40.0 };
 
     #[test]
     fn every_field_is_checked_with_its_name() {
         let k = serde_json::json!({"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0});
-        let ok = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &DEFAULTS, entry()).unwrap();
+        let ok = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &DEFAULTS, entry(), false).unwrap();
         assert_eq!((ok.search.hypotheses, ok.search.max_iterations), (4, 10));
         assert_eq!(ok.prior, Pose::identity());
         let cases = [
@@ -119,10 +175,47 @@ mod tests {
             (serde_json::json!({"image": "", "intrinsics": k, "hypotheses": 17}), "hypotheses"),
             (serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": [[1, 0, 0, 0, 9], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}), "row 0 must have 4 numbers"),
             (serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": [[1, 0, 0, 3e38], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}), "beyond"),
+            (serde_json::json!({"image": "", "intrinsics": k, "radius_m": 0.5}), "radius_m"),
         ];
         for (json, needle) in cases {
-            let e = ValidLocalizeRequest::new(&request(json), &DEFAULTS, entry()).unwrap_err();
+            let e = ValidLocalizeRequest::new(&request(json), &DEFAULTS, entry(), false).unwrap_err();
             assert!(matches!(&e, LocalizeError::Invalid(m) if m.contains(needle)), "{e} should name {needle}");
         }
+    }
+}
+
+#[cfg(test)]
+mod tiled_tests {
+    use super::*;
+    use crate::maps::Extent;
+
+    fn request(json: serde_json::Value) -> LocalizeRequest {
+        serde_json::from_value(json).unwrap()
+    }
+
+    #[test]
+    fn a_tiled_region_needs_a_prior_inside_its_extent_and_works_in_its_local_frame() {
+        let origin = [500_000.0, 5_400_000.0, 0.0];
+        let extent = Extent { min: [499_900.0, 5_399_950.0, 90.0], max: [500_200.0, 5_400_050.0, 120.0] };
+        let entry = MapEntry { id: "big".into(), num_points: 5_000_000, file_bytes: 0, source_sha256: String::new(), metadata: Default::default(), origin, extent };
+        let defaults = RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true }, radius_m: 40.0 };
+        let k = serde_json::json!({"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0});
+        let e = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &defaults, entry.clone(), true).unwrap_err();
+        assert!(e.to_string().contains("needs a prior"), "{e}");
+        // Camera at (500010, 5400020, 100) looking along +x (KITTI-like rig rotation).
+        let c = nalgebra::Vector3::new(500_010.0, 5_400_020.0, 100.0);
+        let r = nalgebra::Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
+        let prior = Pose::from_rt(r, -(r * c));
+        let json = serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": prior.to_rows(), "radius_m": 30.0});
+        let ok = ValidLocalizeRequest::new(&request(json), &defaults, entry.clone(), true).unwrap();
+        let crop = ok.crop.unwrap();
+        assert!((crop.sensor[0] - 10.0).abs() < 1e-6 && (crop.sensor[1] - 20.0).abs() < 1e-6 && (crop.sensor[2] - 100.0).abs() < 1e-6 && crop.radius_m == 30.0, "{crop:?}");
+        let local = ok.prior.camera_position_in_map();
+        assert!((local - nalgebra::Vector3::new(10.0, 20.0, 100.0)).norm() < 1e-6, "{local}");
+        let outside = Pose::from_rt(r, -(r * nalgebra::Vector3::new(400_000.0, 5_400_020.0, 100.0)));
+        let json = serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": outside.to_rows()});
+        let e = ValidLocalizeRequest::new(&request(json.clone()), &defaults, entry.clone(), true).unwrap_err();
+        assert!(e.to_string().contains("outside map \"big\"'s extent (x 499900.00..500200.00"), "{e}");
+        assert!(ValidLocalizeRequest::new(&request(json), &defaults, entry, false).is_ok(), "a whole region keeps today's rules");
     }
 }

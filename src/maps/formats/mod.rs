@@ -31,7 +31,10 @@ pub mod sniff;
 
 use std::io::Write;
 
+use crate::geometry::LocalFrame;
+
 pub use kitti_bin::write_kitti_bin;
+pub use ply::write_ply_f64;
 
 /// A point-cloud file format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -133,12 +136,38 @@ impl PointCloud {
     }
 }
 
-/// A parsed cloud and what was left out of it.
+/// A parsed cloud and what was left out of it. Coordinates are read as float64 and stored as
+/// float32 **relative to `origin`** (a multiple of 1 km near the first point, see
+/// [`crate::geometry::frame`]), so a cloud at UTM-size coordinates keeps its full precision;
+/// [`Parsed::rebase`] moves it to another origin.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Parsed {
+    /// Points relative to `origin`.
     pub cloud: PointCloud,
+    /// Map-frame coordinates of the cloud's frame origin, metres.
+    pub origin: [f64; 3],
+    /// Bounding box of the kept points in the file's frame (map frame), metres.
+    pub min: [f64; 3],
+    pub max: [f64; 3],
     /// Points dropped because x, y or z was NaN or infinite.
     pub dropped_non_finite: usize,
+}
+
+impl Parsed {
+    /// The cloud's points relative to `frame` instead (exact when the origin does not change).
+    pub fn rebase(&mut self, frame: LocalFrame) {
+        let to = frame.origin();
+        if to == self.origin {
+            return;
+        }
+        let shift = [self.origin[0] - to[0], self.origin[1] - to[1], self.origin[2] - to[2]];
+        for p in &mut self.cloud.xyz {
+            for c in 0..3 {
+                p[c] = (p[c] as f64 + shift[c]) as f32;
+            }
+        }
+        self.origin = to;
+    }
 }
 
 /// Why a point-cloud file was refused.
@@ -173,17 +202,21 @@ pub struct Limits {
     pub max_points: usize,
     /// The largest |x|, |y| or |z| accepted, metres.
     pub max_abs_coordinate: f64,
+    /// The frame to store the points in ([`Parsed::origin`]); default: the first finite point
+    /// rounded to 1 km. Given, each point is converted once, from float64.
+    pub frame: Option<LocalFrame>,
 }
 
-/// 10,000 km: every UTM easting/northing (northing ≤ 10,000,000 m) and ECEF coordinate passes,
-/// while garbage read as floats (3e38, 1e20) does not.
-pub const MAX_ABS_COORDINATE_M: f64 = 1.0e7;
+/// 10,000 km ([`crate::geometry::MAX_COORDINATE_M`], the bound of every map-frame coordinate):
+/// every UTM easting/northing (northing ≤ 10,000,000 m) and ECEF coordinate passes, while
+/// garbage read as floats (3e38, 1e20) does not.
+pub const MAX_ABS_COORDINATE_M: f64 = crate::geometry::MAX_COORDINATE_M;
 
 impl Default for Limits {
     /// 20 million points (a dense multi-scan map region, about 320 MB as KITTI `.bin`) within
     /// ±[`MAX_ABS_COORDINATE_M`].
     fn default() -> Self {
-        Limits { max_points: 20_000_000, max_abs_coordinate: MAX_ABS_COORDINATE_M }
+        Limits { max_points: 20_000_000, max_abs_coordinate: MAX_ABS_COORDINATE_M, frame: None }
     }
 }
 
@@ -192,12 +225,16 @@ pub fn parse(bytes: &[u8], format: CloudFormat) -> Result<PointCloud, FormatErro
     parse_with_limits(bytes, format, Limits::default())
 }
 
-/// Parses `bytes` as `format` within `limits` (points, coordinate range).
+/// Parses `bytes` as `format` within `limits` (points, coordinate range), as float32 in the
+/// file's own frame (use [`parse_counted`] to keep the precision of large coordinates).
 pub fn parse_with_limits(bytes: &[u8], format: CloudFormat, limits: Limits) -> Result<PointCloud, FormatError> {
-    parse_counted(bytes, format, limits).map(|p| p.cloud)
+    let mut parsed = parse_counted(bytes, format, limits)?;
+    parsed.rebase(LocalFrame::default());
+    Ok(parsed.cloud)
 }
 
-/// Like [`parse_with_limits`], also saying how many non-finite points were dropped.
+/// Like [`parse_with_limits`], keeping float64 precision (points relative to [`Parsed::origin`])
+/// and saying how many non-finite points were dropped.
 pub fn parse_counted(bytes: &[u8], format: CloudFormat, limits: Limits) -> Result<Parsed, FormatError> {
     if bytes.is_empty() {
         return Err(FormatError::Empty);
@@ -218,6 +255,8 @@ pub fn parse_counted(bytes: &[u8], format: CloudFormat, limits: Limits) -> Resul
 /// ones beyond the coordinate bound.
 pub(crate) struct CloudBuilder {
     parsed: Parsed,
+    /// Set by the first finite point: its coordinates rounded to 1 km.
+    frame: Option<LocalFrame>,
     max_abs: f64,
     index: usize,
 }
@@ -229,7 +268,11 @@ impl CloudBuilder {
             xyz: Vec::with_capacity(capacity_hint),
             intensity: with_intensity.then(|| Vec::with_capacity(capacity_hint)),
         };
-        CloudBuilder { parsed: Parsed { cloud, dropped_non_finite: 0 }, max_abs: limits.max_abs_coordinate, index: 0 }
+        let mut parsed = Parsed { cloud, origin: [0.0; 3], min: [f64::INFINITY; 3], max: [f64::NEG_INFINITY; 3], dropped_non_finite: 0 };
+        if let Some(f) = limits.frame {
+            parsed.origin = f.origin();
+        }
+        CloudBuilder { parsed, frame: limits.frame, max_abs: limits.max_abs_coordinate, index: 0 }
     }
 
     /// Adds the file's next point (`x, y, z` in metres).
@@ -240,13 +283,22 @@ impl CloudBuilder {
         if let Some((axis, value)) = out_of_range {
             return Err(FormatError::OutOfRange { index, axis, value, max: self.max_abs });
         }
-        let p = [x as f32, y as f32, z as f32];
-        if !p.iter().all(|c| c.is_finite()) {
+        if !(x.is_finite() && y.is_finite() && z.is_finite()) {
             self.parsed.dropped_non_finite += 1;
             return Ok(());
         }
+        let xyz = [x, y, z];
+        let frame = *self.frame.get_or_insert_with(|| {
+            let origin = LocalFrame::centred_on(xyz, xyz);
+            self.parsed.origin = origin.origin();
+            origin
+        });
+        for c in 0..3 {
+            self.parsed.min[c] = self.parsed.min[c].min(xyz[c]);
+            self.parsed.max[c] = self.parsed.max[c].max(xyz[c]);
+        }
         let cloud = &mut self.parsed.cloud;
-        cloud.xyz.push(p);
+        cloud.xyz.push(frame.point_to_local(xyz));
         if let Some(i) = cloud.intensity.as_mut() {
             i.push(intensity as f32);
         }

@@ -248,3 +248,28 @@ fn parse_header(bytes: &[u8]) -> Result<(Encoding, Vec<Element>, usize), FormatE
         }
     }
 }
+
+/// Writes a binary little-endian PLY of `count` vertices with `double x, y, z` (metres, full
+/// precision at any coordinate this server accepts) and `float intensity`: the map file
+/// `cmr-agent map build` produces, readable by this module, CloudCompare, Open3D and PDAL.
+/// `points` must yield exactly `count` items.
+pub fn write_ply_f64(out: &mut dyn std::io::Write, count: usize, points: impl Iterator<Item = ([f64; 3], f32)>) -> std::io::Result<()> {
+    write!(
+        out,
+        "ply\nformat binary_little_endian 1.0\ncomment written by cmr-agent\nelement vertex {count}\nproperty double x\nproperty double y\nproperty double z\nproperty float intensity\nend_header\n"
+    )?;
+    let mut written = 0usize;
+    let mut record = [0u8; 28];
+    for (p, intensity) in points {
+        for (k, v) in p.iter().enumerate() {
+            record[8 * k..8 * k + 8].copy_from_slice(&v.to_le_bytes());
+        }
+        record[24..28].copy_from_slice(&intensity.to_le_bytes());
+        out.write_all(&record)?;
+        written += 1;
+    }
+    if written != count {
+        return Err(std::io::Error::other(format!("PLY header says {count} vertices, {written} were written")));
+    }
+    Ok(())
+}

@@ -430,3 +430,23 @@ fn mutated_files_never_panic() {
         }
     }
 }
+
+#[test]
+fn double_ply_keeps_utm_precision_relative_to_its_origin() {
+    let points: Vec<([f64; 3], f32)> = vec![([500_000.125, 5_400_000.0625, 100.5], 0.5), ([500_120.001, 5_399_950.002, 101.25], 0.25)];
+    let mut bytes = Vec::new();
+    write_ply_f64(&mut bytes, 2, points.iter().copied()).unwrap();
+    let parsed = parse_counted(&bytes, CloudFormat::Ply, Limits::default()).unwrap();
+    assert_eq!(parsed.origin, [500_000.0, 5_400_000.0, 0.0], "the first point rounded to 1 km");
+    for ((p, _), q) in points.iter().zip(&parsed.cloud.xyz) {
+        for c in 0..3 {
+            assert!((q[c] as f64 + parsed.origin[c] - p[c]).abs() < 1e-5, "{p:?} vs {q:?}");
+        }
+    }
+    assert_eq!(parsed.min, [500_000.125, 5_399_950.002, 100.5]);
+    assert_eq!(parsed.cloud.intensity, Some(vec![0.5, 0.25]));
+    // The float32 view of the same file loses what float32 cannot hold at 5.4e6 m.
+    let flat = parse(&bytes, CloudFormat::Ply).unwrap();
+    assert_eq!(flat.xyz[0][1], 5_400_000.0);
+    assert!(write_ply_f64(&mut Vec::new(), 3, points.iter().copied()).is_err());
+}

@@ -1,0 +1,414 @@
+//! Regions larger than one scan: point embeddings computed once for the whole region, tile by
+//! tile, stored as float16 next to the region (`<id>.emb`, magic `CMRTIL01`) and memory-mapped;
+//! a localize takes a virtual LiDAR scan of the points within a radius of its prior camera
+//! position, sampled to the model's N ([`TiledMap::around`]), with their stored embeddings or
+//! (the server's default, `CropEmbeddings::Encode`) embeddings the point encoder computes for
+//! that crop: the shipped encoder's embeddings depend on where its input's centre is, so the
+//! stored ones, computed around each cell's centre, do not serve it (measured in docs/server.md).
+//!
+//! Why tiles, and what a tile's context is: the point encoder (`training/cmr/models.py`,
+//! `PointEncoder`) centres its input on the input's mean and scatters it into a 96 × 0.8 m
+//! bird's-eye grid (±38.4 m; farther points are clamped to the border cells) read by a small 2D
+//! CNN, so a point's embedding depends on its neighbourhood within a few metres and, through
+//! the centring, on where the input's centre is. It was trained on single scans (the sensor near
+//! the centre) and is served on N = 40,960 points. So the region is cut into square ground cells
+//! of `tile_m`; each cell's points are encoded in passes of N points: up to N/2 of the cell's own
+//! points plus the rest drawn from every point within `context_m` of the cell's centre (the disc a
+//! request around that place would also crop). Each pass keeps the embeddings of its cell points
+//! only, so every point gets exactly one embedding, computed with the context a camera near it
+//! would see, and memory stays at one pass (N points) however large the region.
+//!
+//! Layout (little-endian): magic `CMRTIL01`, 64 ASCII hex model sha, 64 ASCII hex source sha,
+//! u64 N, u64 D, u64 point count P, u64 cell count C, f64 tile_m, f64 context_m; C cells of
+//! (i32 ix, i32 iy, u64 first point, u64 count) sorted by (ix, iy); P × 3 f32 points (local frame,
+//! grouped by cell; within a cell in a seeded random order); P × D f16 embeddings, same order.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use half::f16;
+use nalgebra::Point3;
+use rand::SeedableRng;
+use rand::seq::SliceRandom;
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+
+use super::prepared::centroid;
+use super::PreparedMap;
+use crate::model::Backend;
+
+const MAGIC: &[u8; 8] = b"CMRTIL01";
+const HEADER: usize = 8 + 64 + 64 + 8 * 4 + 8 * 2;
+const CELL_BYTES: usize = 24;
+
+/// How a large region is tiled and cropped.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TileConfig {
+    /// Side of a ground cell, metres.
+    pub tile_m: f64,
+    /// Radius of the context encoded with a cell, metres (about a request's crop radius).
+    pub context_m: f64,
+}
+
+impl Default for TileConfig {
+    /// 20 m cells with the 40 m context of a default localize crop.
+    fn default() -> Self {
+        TileConfig { tile_m: 20.0, context_m: 40.0 }
+    }
+}
+
+/// What building the tiles did.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct BuildStats {
+    pub points: usize,
+    pub cells: usize,
+    /// Point-encoder calls (each on N points).
+    pub passes: usize,
+}
+
+#[derive(Debug, Clone, Copy)]
+struct Cell {
+    ix: i32,
+    iy: i32,
+    start: usize,
+    count: usize,
+}
+
+fn cell_of(p: &[f32; 3], tile_m: f64) -> (i32, i32) {
+    let c = |v: f32| ((v as f64) / tile_m).floor().clamp(i32::MIN as f64, i32::MAX as f64) as i32;
+    (c(p[0]), c(p[1]))
+}
+
+/// Indices (into `cells`' point order) of the points within `radius` (ground-plane distance) of
+/// `centre`, cell by cell in (ix, iy) order.
+fn within(cells: &HashMap<(i32, i32), Cell>, points: impl Fn(usize) -> [f32; 3], tile_m: f64, centre: [f64; 2], radius: f64, out: &mut Vec<u32>) {
+    out.clear();
+    let lo = |v: f64| ((v - radius) / tile_m).floor() as i64;
+    let hi = |v: f64| ((v + radius) / tile_m).floor() as i64;
+    let r2 = radius * radius;
+    for ix in lo(centre[0])..=hi(centre[0]) {
+        for iy in lo(centre[1])..=hi(centre[1]) {
+            let (Ok(ix), Ok(iy)) = (i32::try_from(ix), i32::try_from(iy)) else { continue };
+            let Some(cell) = cells.get(&(ix, iy)) else { continue };
+            for i in cell.start..cell.start + cell.count {
+                let p = points(i);
+                let (dx, dy) = (p[0] as f64 - centre[0], p[1] as f64 - centre[1]);
+                if dx * dx + dy * dy <= r2 {
+                    out.push(i as u32);
+                }
+            }
+        }
+    }
+}
+
+/// The virtual scan's grid: beams (elevation rows), columns (azimuth) and the elevation span,
+/// degrees (an HDL-64E-like sensor, the rig the model was trained with).
+pub const SCAN_BEAMS: usize = 64;
+pub const SCAN_COLUMNS: usize = 2048;
+pub const SCAN_ELEVATION_DEG: (f64, f64) = (-25.0, 3.0);
+
+/// Of `candidates`, the nearest to `sensor` in each elevation × azimuth cell, in cell order.
+fn virtual_scan(candidates: &[u32], point: impl Fn(u32) -> [f32; 3], sensor: [f64; 3]) -> Vec<u32> {
+    let mut nearest = vec![(f32::INFINITY, u32::MAX); SCAN_BEAMS * SCAN_COLUMNS];
+    let (low, high) = SCAN_ELEVATION_DEG;
+    for &i in candidates {
+        let p = point(i);
+        let d = [p[0] as f64 - sensor[0], p[1] as f64 - sensor[1], p[2] as f64 - sensor[2]];
+        let ground = d[0].hypot(d[1]);
+        let elevation = d[2].atan2(ground).to_degrees();
+        let row = ((elevation - low) / (high - low) * SCAN_BEAMS as f64).floor();
+        if !(0.0..SCAN_BEAMS as f64).contains(&row) {
+            continue;
+        }
+        let column = (((d[1].atan2(d[0]) + std::f64::consts::PI) / std::f64::consts::TAU * SCAN_COLUMNS as f64) as usize).min(SCAN_COLUMNS - 1);
+        let range = (ground * ground + d[2] * d[2]).sqrt() as f32;
+        let cell = &mut nearest[row as usize * SCAN_COLUMNS + column];
+        if range < cell.0 {
+            *cell = (range, i);
+        }
+    }
+    nearest.into_iter().filter(|c| c.1 != u32::MAX).map(|c| c.1).collect()
+}
+
+/// `n` of `candidates` (ChaCha8 with `seed`): distinct ones when there are enough, else every one
+/// and the rest drawn with replacement (as [`super::sample_points`] fills a small cloud).
+fn sample_indices(candidates: &[u32], n: usize, seed: u64) -> Vec<u32> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    if candidates.len() >= n {
+        return rand::seq::index::sample(&mut rng, candidates.len(), n).into_iter().map(|k| candidates[k]).collect();
+    }
+    let mut out = candidates.to_vec();
+    out.shuffle(&mut rng);
+    while out.len() < n && !candidates.is_empty() {
+        out.push(candidates[rng.random_range(0..candidates.len())]);
+    }
+    out
+}
+
+/// Encodes a region (`points` in its local frame) tile by tile and writes the `CMRTIL01` file to
+/// `out`. Memory: the points twice (as given and grouped by cell), a cell's context indices and
+/// one encoder pass. Errors: the encoder's, or the writer's.
+pub fn build(backend: &mut dyn Backend, points: &[[f32; 3]], config: TileConfig, model_sha: &str, source_sha: &str, out: &mut dyn Write) -> Result<BuildStats> {
+    let n = backend.manifest().points.num_points;
+    let d = backend.manifest().features.dim;
+    if points.is_empty() {
+        bail!("the region has no points");
+    }
+    if points.len() > u32::MAX as usize {
+        bail!("a region holds at most {} points", u32::MAX);
+    }
+    // A seeded shuffle, then a stable sort by cell: each cell's points in random order, so any
+    // prefix of a cell is a fair sample of it.
+    let mut order: Vec<u32> = (0..points.len() as u32).collect();
+    order.shuffle(&mut ChaCha8Rng::seed_from_u64(1));
+    order.sort_by_key(|&i| cell_of(&points[i as usize], config.tile_m));
+    let sorted: Vec<[f32; 3]> = order.iter().map(|&i| points[i as usize]).collect();
+    drop(order);
+    let mut cells: Vec<Cell> = Vec::new();
+    for (i, p) in sorted.iter().enumerate() {
+        let (ix, iy) = cell_of(p, config.tile_m);
+        match cells.last_mut() {
+            Some(c) if (c.ix, c.iy) == (ix, iy) => c.count += 1,
+            _ => cells.push(Cell { ix, iy, start: i, count: 1 }),
+        }
+    }
+    let lookup: HashMap<(i32, i32), Cell> = cells.iter().map(|c| ((c.ix, c.iy), *c)).collect();
+
+    out.write_all(MAGIC)?;
+    out.write_all(&fixed_hex(model_sha))?;
+    out.write_all(&fixed_hex(source_sha))?;
+    for v in [n as u64, d as u64, sorted.len() as u64, cells.len() as u64] {
+        out.write_all(&v.to_le_bytes())?;
+    }
+    out.write_all(&config.tile_m.to_le_bytes())?;
+    out.write_all(&config.context_m.to_le_bytes())?;
+    for c in &cells {
+        out.write_all(&c.ix.to_le_bytes())?;
+        out.write_all(&c.iy.to_le_bytes())?;
+        out.write_all(&(c.start as u64).to_le_bytes())?;
+        out.write_all(&(c.count as u64).to_le_bytes())?;
+    }
+    for p in &sorted {
+        for v in p {
+            out.write_all(&v.to_le_bytes())?;
+        }
+    }
+
+    let core_max = (n / 2).max(1);
+    let mut context = Vec::new();
+    let mut input: Vec<[f32; 3]> = Vec::with_capacity(n);
+    let mut row = vec![0u8; core_max * d * 2];
+    let mut stats = BuildStats { points: sorted.len(), cells: cells.len(), passes: 0 };
+    for (k, cell) in cells.iter().enumerate() {
+        let centre = [(cell.ix as f64 + 0.5) * config.tile_m, (cell.iy as f64 + 0.5) * config.tile_m];
+        within(&lookup, |i| sorted[i], config.tile_m, centre, config.context_m, &mut context);
+        let mut first = cell.start;
+        while first < cell.start + cell.count {
+            let last = (first + core_max).min(cell.start + cell.count);
+            let others: Vec<u32> = context.iter().copied().filter(|&i| !(first..last).contains(&(i as usize))).collect();
+            input.clear();
+            input.extend_from_slice(&sorted[first..last]);
+            let fill = sample_indices(if others.is_empty() { &[] } else { &others }, n - input.len(), (k as u64) << 32 | first as u64);
+            input.extend(fill.iter().map(|&i| sorted[i as usize]));
+            while input.len() < n {
+                input.push(input[input.len() % (last - first)]);
+            }
+            let features = backend.encode_points(&input).with_context(|| format!("point encoder on cell ({}, {})", cell.ix, cell.iy))?;
+            stats.passes += 1;
+            let keep = (last - first) * d;
+            for (o, v) in row.chunks_exact_mut(2).zip(&features[..keep]) {
+                o.copy_from_slice(&f16::from_f32(*v).to_le_bytes());
+            }
+            out.write_all(&row[..keep * 2])?;
+            first = last;
+        }
+    }
+    out.flush()?;
+    Ok(stats)
+}
+
+/// A tiled region's `<id>.emb`, memory-mapped: the cell table in memory, points and embeddings
+/// read from the mapping when a request crops them.
+pub struct TiledMap {
+    map: memmap2::Mmap,
+    cells: HashMap<(i32, i32), Cell>,
+    pub n: usize,
+    pub d: usize,
+    pub points: usize,
+    pub config: TileConfig,
+    points_at: usize,
+    features_at: usize,
+}
+
+/// Why a crop could not be made.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error("only {found} map points lie within {radius_m} m of the prior camera position ({x:.1}, {y:.1}) in the region's local frame; at least {needed} are needed (a larger radius_m, or a prior inside the mapped area)")]
+pub struct SparseCrop {
+    pub found: usize,
+    pub needed: usize,
+    pub radius_m: f64,
+    pub x: f64,
+    pub y: f64,
+}
+
+impl TiledMap {
+    /// Opens and checks a tiled `<id>.emb`: `Ok(None)` when it is another model's or another
+    /// cloud's, or a whole-region file; `Err` when it cannot be read or is damaged.
+    pub fn open(path: &Path, model_sha: &str, source_sha: &str) -> Result<Option<TiledMap>> {
+        let file = std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
+        // SAFETY: the store replaces `<id>.emb` only by renaming a new file over it, never by
+        // writing into it, so the mapped file does not change under us.
+        let map = unsafe { memmap2::Mmap::map(&file) }.with_context(|| format!("mapping {}", path.display()))?;
+        if map.len() < HEADER || &map[..8] != MAGIC || map[8..72] != fixed_hex(model_sha) || map[72..136] != fixed_hex(source_sha) {
+            return Ok(None);
+        }
+        let u = |at: usize| u64::from_le_bytes(map[at..at + 8].try_into().unwrap()) as usize;
+        let f = |at: usize| f64::from_le_bytes(map[at..at + 8].try_into().unwrap());
+        let (n, d, points, count) = (u(136), u(144), u(152), u(160));
+        let config = TileConfig { tile_m: f(168), context_m: f(176) };
+        let points_at = count.checked_mul(CELL_BYTES).and_then(|c| c.checked_add(HEADER)).context("cell table overflows")?;
+        let features_at = points.checked_mul(12).and_then(|p| p.checked_add(points_at)).context("points overflow")?;
+        let end = points.checked_mul(d * 2).and_then(|f| f.checked_add(features_at)).context("features overflow")?;
+        if end != map.len() || !(config.tile_m > 0.0) {
+            bail!("{}: {} bytes, the header says {end}", path.display(), map.len());
+        }
+        let mut cells = HashMap::with_capacity(count);
+        let mut next = 0;
+        for k in 0..count {
+            let at = HEADER + k * CELL_BYTES;
+            let ix = i32::from_le_bytes(map[at..at + 4].try_into().unwrap());
+            let iy = i32::from_le_bytes(map[at + 4..at + 8].try_into().unwrap());
+            let (start, count) = (u(at + 8), u(at + 16));
+            if start != next || count == 0 {
+                bail!("{}: cell {k} is out of order", path.display());
+            }
+            next = start + count;
+            cells.insert((ix, iy), Cell { ix, iy, start, count });
+        }
+        if next != points {
+            bail!("{}: the cells hold {next} of {points} points", path.display());
+        }
+        #[cfg(unix)]
+        let _ = map.advise(memmap2::Advice::Random);
+        Ok(Some(TiledMap { map, cells, n, d, points, config, points_at, features_at }))
+    }
+
+    fn point(&self, i: usize) -> [f32; 3] {
+        let at = self.points_at + i * 12;
+        let f = |k: usize| f32::from_le_bytes(self.map[at + 4 * k..at + 4 * k + 4].try_into().unwrap());
+        [f(0), f(1), f(2)]
+    }
+
+    pub fn cells(&self) -> usize {
+        self.cells.len()
+    }
+
+    /// Up to `max` stored points (local frame) spread over the whole region: every k-th point of
+    /// the file, k = ceil(points / max). For drawing the region.
+    pub fn spread(&self, max: usize) -> Vec<[f32; 3]> {
+        let step = self.points.div_ceil(max.max(1)).max(1);
+        (0..self.points).step_by(step).map(|i| self.point(i)).collect()
+    }
+
+    /// Bytes of the mapped file.
+    pub fn file_bytes(&self) -> usize {
+        self.map.len()
+    }
+
+    /// Heap memory held (the cell table), for the cache's byte budget.
+    pub fn heap_bytes(&self) -> usize {
+        self.cells.capacity() * (CELL_BYTES + 16) + std::mem::size_of::<Self>()
+    }
+
+    /// A virtual LiDAR scan of the region from `sensor` (local frame, metres; the prior camera's
+    /// position): of the points within `radius_m` (ground-plane distance), the nearest one in
+    /// each cell of a [`SCAN_BEAMS`] × [`SCAN_COLUMNS`] elevation × azimuth grid (elevations
+    /// [`SCAN_ELEVATION_DEG`]), so the crop has a scan's occlusion and its density falling with
+    /// range, what the point encoder was trained on; then the model's N of them, drawn by
+    /// ChaCha8(seed 0), with their stored embeddings: a prepared map like a whole region's, pivot
+    /// at its centroid. Without `stored_features` the features are left empty (the caller
+    /// encodes the crop), and no page of the embeddings is touched.
+    /// Errors: fewer than `min_points` points in the virtual scan.
+    pub fn around(&self, sensor: [f64; 3], radius_m: f64, min_points: usize, stored_features: bool) -> Result<PreparedMap, SparseCrop> {
+        let mut candidates = Vec::new();
+        within(&self.cells, |i| self.point(i), self.config.tile_m, [sensor[0], sensor[1]], radius_m, &mut candidates);
+        let visible = virtual_scan(&candidates, |i| self.point(i as usize), sensor);
+        if visible.len() < min_points.max(1) {
+            return Err(SparseCrop { found: visible.len(), needed: min_points.max(1), radius_m, x: sensor[0], y: sensor[1] });
+        }
+        let chosen = sample_indices(&visible, self.n, 0);
+        let points: Vec<[f32; 3]> = chosen.iter().map(|&i| self.point(i as usize)).collect();
+        let mut features = Vec::with_capacity(if stored_features { chosen.len() * self.d } else { 0 });
+        for &i in chosen.iter().filter(|_| stored_features) {
+            let at = self.features_at + i as usize * self.d * 2;
+            features.extend(self.map[at..at + self.d * 2].chunks_exact(2).map(|b| f16::from_le_bytes([b[0], b[1]]).to_f32()));
+        }
+        let pivot: Point3<f64> = centroid(&points);
+        Ok(PreparedMap { points, features, pivot, source_points: candidates.len() })
+    }
+}
+
+/// Whether `bytes` (the start of an `<id>.emb`) is a tiled file.
+pub fn is_tiled(bytes: &[u8]) -> bool {
+    bytes.starts_with(MAGIC)
+}
+
+/// The cell count in a tiled file's header, when `bytes` holds it.
+pub fn header_cells(bytes: &[u8]) -> Option<usize> {
+    (is_tiled(bytes) && bytes.len() >= HEADER).then(|| u64::from_le_bytes(bytes[160..168].try_into().unwrap()) as usize)
+}
+
+pub const HEADER_BYTES: usize = HEADER;
+
+fn fixed_hex(s: &str) -> [u8; 64] {
+    let mut out = [b'0'; 64];
+    for (o, b) in out.iter_mut().zip(s.to_ascii_lowercase().bytes()) {
+        *o = b;
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::{FakeBackend, Manifest};
+
+    #[test]
+    fn every_point_gets_one_embedding_and_crops_read_them_back() {
+        let mut manifest = Manifest::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model")).unwrap();
+        manifest.points.num_points = 64;
+        manifest.points.num_state_points = 8;
+        let mut backend = FakeBackend::new(std::sync::Arc::new(manifest));
+        // 3 × 2 cells of 10 m, 150 points each.
+        let points: Vec<[f32; 3]> = (0..900).map(|i| [(i % 30) as f32 + 0.5, ((i / 30) % 20) as f32 + 0.25, (i % 7) as f32 * 0.1]).collect();
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("r.emb");
+        let mut file = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
+        let config = TileConfig { tile_m: 10.0, context_m: 12.0 };
+        let stats = build(&mut backend, &points, config, "aa", "bb", &mut file).unwrap();
+        drop(file);
+        assert_eq!((stats.points, stats.cells), (900, 6));
+        assert!(stats.passes >= 6);
+        assert!(TiledMap::open(&path, "other", "bb").unwrap().is_none());
+        let tiled = TiledMap::open(&path, "aa", "bb").unwrap().unwrap();
+        assert_eq!((tiled.points, tiled.cells(), tiled.n), (900, 6, 64));
+        // Every stored point is one of the region's, once.
+        let mut stored: Vec<[u32; 3]> = (0..900).map(|i| tiled.point(i).map(f32::to_bits)).collect();
+        let mut given: Vec<[u32; 3]> = points.iter().map(|p| p.map(f32::to_bits)).collect();
+        stored.sort();
+        given.sort();
+        assert_eq!(stored, given);
+        // The fake encoder's features depend on the point only: the stored f16 ones match.
+        let crop = tiled.around([15.0, 10.0, 1.0], 6.0, 10, true).unwrap();
+        assert_eq!(crop.points.len(), 64);
+        let direct = backend.encode_points(&crop.points).unwrap();
+        let worst = direct.iter().zip(&crop.features).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        assert!(worst < 2e-3, "f16 round trip {worst}");
+        assert!(crop.points.iter().all(|p| (p[0] as f64 - 15.0).hypot(p[1] as f64 - 10.0) <= 6.0));
+        assert_eq!(tiled.around([15.0, 10.0, 1.0], 6.0, 10, false).unwrap().points, crop.points, "deterministic");
+        let sparse = tiled.around([500.0, 500.0, 1.0], 40.0, 10, true).unwrap_err();
+        assert_eq!(sparse.found, 0);
+    }
+}
