@@ -22,10 +22,11 @@ pub struct ServeArgs {
     /// libonnxruntime.so (default: ORT_DYLIB_PATH, then ./runtime/, then <exe>/../../runtime/).
     #[arg(long)]
     pub ort_lib: Option<PathBuf>,
-    /// Agent workers, each with its own ONNX Runtime sessions.
-    #[arg(long, env = "CMR_WORKERS", default_value_t = 1)]
+    /// Agent workers, each with its own ONNX Runtime sessions (0 = one per CPU core: measured
+    /// the faster default, docs/server.md "Workers x threads").
+    #[arg(long, env = "CMR_WORKERS", default_value_t = 0)]
     pub workers: usize,
-    /// ONNX Runtime intra-op threads per session (0 = number of CPU cores).
+    /// ONNX Runtime intra-op threads per worker session (0 = CPU cores / workers, at least 1).
     #[arg(long, env = "CMR_INTRA_THREADS", default_value_t = 0)]
     pub intra_threads: usize,
     /// Most hypotheses (rows of the batched policy call) one worker steps together: a request
@@ -116,12 +117,18 @@ impl ServeArgs {
         ServeArgs::from_arg_matches(&matches)
     }
 
+    /// Agent workers: `--workers`, or one per CPU core.
+    pub fn workers(&self) -> usize {
+        if self.workers > 0 { self.workers } else { cores() }
+    }
+
+    /// Intra-op threads of each worker's sessions: `--intra-threads`, or the cores shared out.
     pub fn intra_threads(&self) -> usize {
-        if self.intra_threads > 0 { self.intra_threads } else { cores() }
+        if self.intra_threads > 0 { self.intra_threads } else { (cores() / self.workers()).max(1) }
     }
 
     pub fn scheduler(&self) -> SchedulerConfig {
-        SchedulerConfig { workers: self.workers, max_batch: self.max_batch, queue_capacity: self.queue_capacity }
+        SchedulerConfig { workers: self.workers(), max_batch: self.max_batch, queue_capacity: self.queue_capacity }
     }
 
     pub fn localizer(&self) -> LocalizerConfig {

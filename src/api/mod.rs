@@ -98,7 +98,9 @@ pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
         tracing::warn!("map store: {w}");
     }
     let cache = MapCache::new(config.cache_mb.saturating_mul(1024 * 1024));
-    let maps = Arc::new(Maps::new(store, cache, Box::new(models.backend()?), config.regions()));
+    // Registering a map runs the point encoder once, rarely and one at a time: all cores for it.
+    let encoder = ModelSet { options: BackendOptions { intra_threads: config::cores(), ..models.options.clone() }, ..models.clone() };
+    let maps = Arc::new(Maps::new(store, cache, Box::new(encoder.backend()?), config.regions()));
     let scheduler = Arc::new(Scheduler::start(&models.factory(), config.scheduler())?);
     let lifecycle = Arc::new(Lifecycle::default());
     let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), config.localizer());

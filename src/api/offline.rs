@@ -78,9 +78,11 @@ impl OfflineLocalizer {
     /// Loads `config.models` and serves from `store` with `config`'s limits and search defaults
     /// (one worker). Errors: the models or ONNX Runtime cannot be loaded.
     pub fn new(config: &ServeArgs, store: MapStore) -> Result<Self> {
-        let models = ModelSet::load(&config.models, BackendOptions { intra_threads: config.intra_threads(), ort_lib: config.ort_lib.clone() })?;
+        // One request at a time: one worker, with the cores its threads (unless given).
+        let one = ServeArgs { workers: 1, ..config.clone() };
+        let models = ModelSet::load(&config.models, BackendOptions { intra_threads: one.intra_threads(), ort_lib: config.ort_lib.clone() })?;
         let maps = Arc::new(Maps::new(store, MapCache::new(config.cache_mb.saturating_mul(1024 * 1024)), Box::new(models.backend()?), config.regions()));
-        let scheduler = Arc::new(Scheduler::start(&models.factory(), ServeArgs { workers: 1, ..config.clone() }.scheduler())?);
+        let scheduler = Arc::new(Scheduler::start(&models.factory(), one.scheduler())?);
         let lifecycle = Arc::new(Lifecycle::default());
         lifecycle.set_ready();
         let localizer = Localizer::new(maps, scheduler.clone(), lifecycle, models.manifest.clone(), config.localizer());

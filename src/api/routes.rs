@@ -43,7 +43,7 @@ pub async fn health() -> Json<Health> {
 #[utoipa::path(get, path = "/ready", responses((status = 200, body = Readiness), (status = 503, body = Readiness)))]
 pub async fn ready(State(st): Shared) -> Response {
     let ready = st.is_ready();
-    let body = Readiness { ready, draining: st.lifecycle.is_draining(), workers: st.config.workers.max(1) };
+    let body = Readiness { ready, draining: st.lifecycle.is_draining(), workers: st.config.workers() };
     let status = if ready { StatusCode::OK } else { StatusCode::SERVICE_UNAVAILABLE };
     (status, Json(body)).into_response()
 }
@@ -84,7 +84,7 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             tile_above_points: c.tile_above_points,
             default_radius_m: c.default_radius_m,
         },
-        workers: c.workers.max(1),
+        workers: c.workers(),
         onnxruntime_library: crate::model::runtime::loaded_library().map(|p| p.display().to_string()),
     })
 }
