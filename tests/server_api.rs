@@ -106,14 +106,16 @@ async fn points_route_page_files_and_hypothesis_starts() {
     assert_eq!(r.headers()["content-type"], "application/octet-stream");
     assert_eq!(r.headers()["x-point-count"], "100");
     assert_eq!(r.headers()["x-points-total"], (200 * 90).to_string().as_str());
+    let r_origin = r.headers()["x-map-origin"].to_str().unwrap().to_string();
     let bytes = r.bytes().await.unwrap();
     assert_eq!(bytes.len(), 100 * 12);
     let got: Vec<f32> = bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
-    let want: Vec<f32> = prepared.points[..100].iter().flatten().copied().collect();
+    let want: Vec<f32> = prepared.drawing_sample(100).0.iter().flatten().copied().collect();
     assert_eq!(got, want, "the first 100 points of the prepared sample, x y z little-endian");
+    assert_eq!(r_origin, "0,0,0", "a region near the map origin is stored unshifted");
 
     let r = c.get(server.url("/v1/maps/street/points")).send().await.unwrap();
-    let count = prepared.points.len().min(20_000);
+    let count = prepared.drawing_sample(usize::MAX).0.len().min(20_000);
     assert_eq!(r.headers()["x-point-count"], count.to_string().as_str());
     assert_eq!(r.bytes().await.unwrap().len(), count * 12, "default max 20000, at most the sample");
     for (query, status, kind) in [

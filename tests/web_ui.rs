@@ -276,7 +276,7 @@ async fn web_page_in_chromium() {
     let k = cmr_agent::geometry::Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 };
     assert_eq!(serde_json::to_value(k).unwrap(), demo["intrinsics"]);
     let pose = cmr_agent::geometry::Pose::from_matrix(&rows).unwrap();
-    let rust_points = cmr_agent::render::project_points(&prepared.points[..n_points], &k, &pose, 1241, 376);
+    let rust_points = cmr_agent::render::project_points(&prepared.drawing_sample(n_points).0, &k, &pose, 1241, 376);
     assert!(rust_points.len() > 500, "{} points in view", rust_points.len());
     assert_eq!(page_points.len(), rust_points.len(), "points in view: page {}, Rust {}", page_points.len(), rust_points.len());
     let key = |p: &[f64; 3]| ((p[0] * 1e3).round() as i64, (p[1] * 1e3).round() as i64);
