@@ -25,6 +25,7 @@ use super::AppState;
 use super::error::{ApiError, ErrorBody};
 use super::extract::{MapId, MapIdParam};
 use super::routes::{parse_json, read_body, serde_urlencoded_query};
+use super::types::RawLocalizeParams;
 
 /// The overlay's JSON body: localize's request, or an image, its intrinsics and an explicit
 /// `camera_from_map` to draw without running the agent.
@@ -190,16 +191,8 @@ fn draw(picture: &PictureInput, panels: Vec<PosePanel>, strip: Vec<PosePanel>) -
 fn read_overlay_request(q: &OverlayParams, headers: &HeaderMap, body: Bytes) -> Result<(Wanted, ImagePayload), ApiError> {
     let ct = headers.get(header::CONTENT_TYPE).map(|v| v.to_str().unwrap_or("").to_ascii_lowercase()).unwrap_or_default();
     if ct.starts_with("image/jpeg") || ct.starts_with("image/png") {
-        let need = |v: Option<f64>, name: &str| v.ok_or_else(|| ApiError::Invalid(format!("query parameter {name} is required with a raw image body")));
-        let intrinsics = IntrinsicsBody { fx: need(q.fx, "fx")?, fy: need(q.fy, "fy")?, cx: need(q.cx, "cx")?, cy: need(q.cy, "cy")? };
-        let request = LocalizeRequest {
-            image: String::new(),
-            intrinsics,
-            prior_camera_from_map: None,
-            max_iterations: q.max_iterations,
-            hypotheses: q.hypotheses,
-            radius_m: q.radius_m,
-        };
+        let raw = RawLocalizeParams { fx: q.fx, fy: q.fy, cx: q.cx, cy: q.cy, max_iterations: q.max_iterations, hypotheses: q.hypotheses, radius_m: q.radius_m };
+        let request = raw.request()?;
         return Ok((Wanted::Localize(request), ImagePayload::Raw(body)));
     }
     if !(ct.is_empty() || ct.starts_with("application/json")) {

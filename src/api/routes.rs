@@ -13,7 +13,7 @@ use axum::response::{IntoResponse, Response};
 use crate::agent::search::{MAX_HYPOTHESES, MAX_ITERATIONS};
 use crate::maps::formats::CloudFormat;
 use crate::maps::{MapMetadata, Upload, UploadOptions, validate_id};
-use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest};
+use crate::serving::{ImagePayload, LocalizeRequest};
 
 use super::AppState;
 use super::error::{ApiError, ErrorBody};
@@ -295,16 +295,7 @@ fn read_request(query: Option<&str>, headers: &HeaderMap, body: Bytes) -> Result
     let ct = headers.get(header::CONTENT_TYPE).map(|v| v.to_str().unwrap_or("").to_ascii_lowercase()).unwrap_or_default();
     if ct.starts_with("image/jpeg") || ct.starts_with("image/png") {
         let q: RawLocalizeParams = serde_urlencoded_query(query.unwrap_or(""))?;
-        let need = |v: Option<f64>, name: &str| v.ok_or_else(|| ApiError::Invalid(format!("query parameter {name} is required with a raw image body")));
-        let intrinsics = IntrinsicsBody { fx: need(q.fx, "fx")?, fy: need(q.fy, "fy")?, cx: need(q.cx, "cx")?, cy: need(q.cy, "cy")? };
-        let request = LocalizeRequest {
-            image: String::new(),
-            intrinsics,
-            prior_camera_from_map: None,
-            max_iterations: q.max_iterations,
-            hypotheses: q.hypotheses,
-            radius_m: q.radius_m,
-        };
+        let request = q.request()?;
         return Ok((request, ImagePayload::Raw(body)));
     }
     if !(ct.is_empty() || ct.starts_with("application/json")) {

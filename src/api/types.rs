@@ -352,6 +352,22 @@ pub struct RawLocalizeParams {
     pub radius_m: Option<f64>,
 }
 
+impl RawLocalizeParams {
+    /// The localize request a raw image body with these parameters stands for (the image is the
+    /// body; the prior is the map's `initial_camera_from_map`). Errors: an intrinsic is missing.
+    pub fn request(&self) -> Result<crate::serving::LocalizeRequest, ApiError> {
+        let need = |v: Option<f64>, name: &str| v.ok_or_else(|| ApiError::Invalid(format!("query parameter {name} is required with a raw image body")));
+        Ok(crate::serving::LocalizeRequest {
+            image: String::new(),
+            intrinsics: crate::serving::IntrinsicsBody { fx: need(self.fx, "fx")?, fy: need(self.fy, "fy")?, cx: need(self.cx, "cx")?, cy: need(self.cy, "cy")? },
+            prior_camera_from_map: None,
+            max_iterations: self.max_iterations,
+            hypotheses: self.hypotheses,
+            radius_m: self.radius_m,
+        })
+    }
+}
+
 /// Query of `GET /v1/maps/{id}/points`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[serde(deny_unknown_fields)]

@@ -60,7 +60,8 @@ pub fn decode(bytes: &[u8], model_sha: &str, source_sha: &str) -> Option<Prepare
     Some(PreparedMap { points, features, pivot, source_points })
 }
 
-fn fixed_hex(s: &str) -> [u8; 64] {
+/// A sha256 hex string as the 64 fixed bytes the embedding files' headers hold (lower case).
+pub(crate) fn fixed_hex(s: &str) -> [u8; 64] {
     let mut out = [b'0'; 64];
     for (o, b) in out.iter_mut().zip(s.to_ascii_lowercase().bytes()) {
         *o = b;

@@ -35,6 +35,7 @@ use rand::seq::SliceRandom;
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 
+use super::embeddings::fixed_hex;
 use super::prepared::centroid;
 use super::PreparedMap;
 use crate::model::Backend;
@@ -361,14 +362,6 @@ pub fn header_cells(bytes: &[u8]) -> Option<usize> {
 }
 
 pub const HEADER_BYTES: usize = HEADER;
-
-fn fixed_hex(s: &str) -> [u8; 64] {
-    let mut out = [b'0'; 64];
-    for (o, b) in out.iter_mut().zip(s.to_ascii_lowercase().bytes()) {
-        *o = b;
-    }
-    out
-}
 
 #[cfg(test)]
 mod tests {
