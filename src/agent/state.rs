@@ -533,27 +533,27 @@ mod timing {
         let pose = Pose::from_rt(r, nalgebra::Vector3::new(0.0, -0.08, -0.27));
         let correlation = Form2d::Correlation(Shifts::new(&[-24, -16, -10, -6, -3, -1, 0, 1, 3, 6, 10, 16, 24], &[-4, -2, 2, 4]));
         for layout in [features_form, StateLayout { form: correlation, ..features_form }] {
-        let image = ImageGrid::new(&layout, (0..layout.image_feature_len()).map(|i| (i % 13) as f32 * 0.01).collect());
-        let mut s2 = vec![0f32; layout.state_2d_len()];
-        let mut s3 = vec![0f32; layout.state_3d_len()];
-        let mut scratch = ScatterScratch::default();
-        // CPU time of this thread (the machine is shared, so wall time overstates the cost).
-        let cpu_ms = || -> f64 {
-            let stat = std::fs::read_to_string("/proc/thread-self/stat").unwrap_or_default();
-            let fields: Vec<&str> = stat.rsplit(')').next().unwrap_or("").split_whitespace().collect();
-            fields.get(11).and_then(|v| v.parse::<f64>().ok()).unwrap_or(f64::NAN) * 10.0
-        };
-        let (t, c) = (std::time::Instant::now(), cpu_ms());
-        let reps = 200;
-        for _ in 0..reps {
-            write_state(&layout, &points, &features, &probs, &image, &k, &pose, &mut scratch, &mut s2, &mut s3);
-        }
-        println!(
-            "write_state (N = 40960, {:?}): {:.3} ms wall, {:.3} ms CPU per state",
-            layout.form,
-            t.elapsed().as_secs_f64() * 1000.0 / reps as f64,
-            (cpu_ms() - c) / reps as f64
-        );
+            let image = ImageGrid::new(&layout, (0..layout.image_feature_len()).map(|i| (i % 13) as f32 * 0.01).collect());
+            let mut s2 = vec![0f32; layout.state_2d_len()];
+            let mut s3 = vec![0f32; layout.state_3d_len()];
+            let mut scratch = ScatterScratch::default();
+            // CPU time of this thread (the machine is shared, so wall time overstates the cost).
+            let cpu_ms = || -> f64 {
+                let stat = std::fs::read_to_string("/proc/thread-self/stat").unwrap_or_default();
+                let fields: Vec<&str> = stat.rsplit(')').next().unwrap_or("").split_whitespace().collect();
+                fields.get(11).and_then(|v| v.parse::<f64>().ok()).unwrap_or(f64::NAN) * 10.0
+            };
+            let (t, c) = (std::time::Instant::now(), cpu_ms());
+            let reps = 200;
+            for _ in 0..reps {
+                write_state(&layout, &points, &features, &probs, &image, &k, &pose, &mut scratch, &mut s2, &mut s3);
+            }
+            println!(
+                "write_state (N = 40960, {} form): {:.3} ms wall, {:.3} ms CPU per state",
+                if layout.form == Form2d::Features { "features" } else { "correlation" },
+                t.elapsed().as_secs_f64() * 1000.0 / reps as f64,
+                (cpu_ms() - c) / reps as f64
+            );
         }
     }
 }
