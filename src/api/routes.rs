@@ -195,11 +195,13 @@ pub async fn put_map(
     _admin: Admin,
     State(st): Shared,
     MapId(id): MapId,
-    Query(params): Query<UploadParams>,
+    query: axum::extract::RawQuery,
     headers: HeaderMap,
     body: Result<Bytes, BytesRejection>,
 ) -> Result<Response, ApiError> {
     validate_id(&id)?;
+    // Parsed here, not by axum's `Query`, so a bad parameter is a JSON 422 like every refusal.
+    let params: UploadParams = serde_urlencoded_query(query.0.as_deref().unwrap_or(""))?;
     let gzip = gzip_encoded(&headers)?;
     let format = match params.format.as_deref() {
         None | Some("") => None,

@@ -298,6 +298,7 @@ pub struct RegisterTimingsMs {
 }
 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 pub struct UploadParams {
     /// `kitti_bin`, `pcd`, `ply` or `las`; sniffed from the bytes when absent (a body whose own
     /// header names another format is refused with 422).
