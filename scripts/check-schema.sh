@@ -10,17 +10,8 @@ if ! .tools/st/bin/schemathesis --version 2>/dev/null | grep -q "$version"; then
   python3 -m venv .tools/st
   .tools/st/bin/pip install --quiet "schemathesis==$version"
 fi
-maps=$(mktemp -d)
-cp maps/demo.bin maps/demo.json "$maps"/
-port=$((20000 + RANDOM % 10000))
-./target/release/cmr-agent serve --host 127.0.0.1 --port "$port" --maps "$maps" \
-  --models tests/fixtures/tiny-model --admin-token schema-check 2>"$maps/server.log" &
-server=$!
-trap 'kill $server 2>/dev/null; wait $server 2>/dev/null; rm -rf "$maps"' EXIT
-for _ in $(seq 1 300); do
-  curl -fs "http://127.0.0.1:$port/ready" >/dev/null 2>&1 && break
-  sleep 0.2
-done
+source scripts/demo-server.sh
+start_demo_server --models tests/fixtures/tiny-model --admin-token schema-check
 # The coverage phase is left out: with CPython 3.11.7 it stops on an internal error of
 # hypothesis' lambda descriptions ("AST constructor recursion depth mismatch"), not on the API.
 .tools/st/bin/schemathesis --config-file tests/schemathesis/schemathesis.toml run openapi/openapi.json \

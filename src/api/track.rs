@@ -162,8 +162,8 @@ pub fn run(args: TrackArgs) -> Result<()> {
     };
     // The plot's points, map frame (stored relative to the region's origin).
     let (local, _) = map.drawing_sample(40_960);
-    let o = entry.origin;
-    let points: Vec<[f32; 3]> = local.iter().map(|p| [(p[0] as f64 + o[0]) as f32, (p[1] as f64 + o[1]) as f32, (p[2] as f64 + o[2]) as f32]).collect();
+    let frame = entry.frame();
+    let points: Vec<[f32; 3]> = local.iter().map(|&p| frame.point_to_map(p).map(|v| v as f32)).collect();
     let summary = run.write(&args.out, &points)?;
     println!("{}", serde_json::to_string_pretty(&summary)?);
     Ok(())
