@@ -18,7 +18,7 @@
 
 use nalgebra::Point3;
 
-use crate::geometry::{Intrinsics, Pose};
+use crate::geometry::{Intrinsics, MIN_DEPTH_M, Pose};
 use crate::model::{MAX_CORRELATION_SHIFTS, Manifest};
 
 /// The 2D half of the state the model reads (the manifest's `state_2d.form`).
@@ -164,6 +164,12 @@ pub struct ScatterScratch {
     counts: Vec<u32>,
     /// Cells that received a point in this call.
     touched: Vec<u32>,
+    /// Every point's cell (`OUT_OF_VIEW` outside the frustum).
+    cells: Vec<u32>,
+    /// (point index, cell) of the points in view, in point order.
+    visible: Vec<(u32, u32)>,
+    /// The alignment's per-channel sums (correlation form).
+    channel_dots: Vec<f64>,
     /// One cell's unit point feature (correlation form).
     unit: Vec<f32>,
 }
@@ -186,15 +192,13 @@ pub fn write_state(
 ) -> f32 {
     let scale = layout.xyz_scale_m;
     let m = layout.num_state_points.min(points.len());
-    scatter(layout, points, point_features, k, camera_from_map, scratch, |i, p_cam, in_view| {
-        if i < m {
-            let row = &mut state_3d[i * 5..(i + 1) * 5];
-            row[0] = (p_cam.x / scale) as f32;
-            row[1] = (p_cam.y / scale) as f32;
-            row[2] = (p_cam.z / scale) as f32;
-            row[3] = frustum_probs[i];
-            row[4] = if in_view { 1.0 } else { 0.0 };
-        }
+    scatter(layout, points, point_features, k, camera_from_map, scratch, m, |i, p_cam, in_view| {
+        let row = &mut state_3d[i * 5..(i + 1) * 5];
+        row[0] = (p_cam.x / scale) as f32;
+        row[1] = (p_cam.y / scale) as f32;
+        row[2] = (p_cam.z / scale) as f32;
+        row[3] = frustum_probs[i];
+        row[4] = if in_view { 1.0 } else { 0.0 };
     });
     match layout.form {
         Form2d::Features => {
@@ -205,17 +209,17 @@ pub fn write_state(
         }
         Form2d::Correlation(shifts) => {
             state_2d.fill(0.0);
-            write_correlation(layout, shifts, &image.cell_major, scratch, state_2d);
-            drain(layout, &image.channel_major, scratch, None)
+            write_correlation(layout, shifts, &image.cell_major, scratch, state_2d)
         }
     }
 }
 
-/// The correlation-form 2D state from a `scatter`'s sums (before `drain` clears them) into
-/// `out` [S + 1, cells], which must be all zero. Twin of `Agent.correlate` in
-/// `training/cmr/models.py`: the per-cell mean, its norm n, occupancy n > 1e-6, unit = mean /
-/// (n + 1e-6), and one dot product with a shifted image cell per shift.
-fn write_correlation(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) {
+/// Ends a `scatter` in the correlation form: writes the 2D state into `out` [S + 1, cells],
+/// which must be all zero, zeroes the scratch again and returns the alignment score, as `drain`
+/// would (the same products summed in the same order), in one cell-major pass. Twin of
+/// `Agent.correlate` in `training/cmr/models.py`: the per-cell mean, its norm n, occupancy n >
+/// 1e-6, unit = mean / (n + 1e-6), and one dot product with a shifted image cell per shift.
+fn write_correlation(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) -> f32 {
     // The feature width of every model so far, unrolled; any other width takes the general loop.
     match layout.dim {
         64 => correlate_cells::<64>(layout, shifts, image_cells, scratch, out),
@@ -227,24 +231,37 @@ fn write_correlation(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], 
 /// Compiled also for AVX2 and chosen at run time where the CPU has it (`multiversion`): wider
 /// vectors for the same operations in the same order (no FMA), so the same results.
 #[multiversion::multiversion(targets("x86_64+avx2"))]
-fn correlate_cells<const D: usize>(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) {
+fn correlate_cells<const D: usize>(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) -> f32 {
     let (d, w, h, cells) = (layout.dim, layout.grid_width, layout.grid_height, layout.cells());
     debug_assert!(D == 0 || D == d);
     debug_assert_eq!(image_cells.len(), d * cells);
     debug_assert_eq!(out.len(), shifts.channels() * cells);
-    let ScatterScratch { sums, counts, touched, unit } = scratch;
-    // Ascending cells keep the writes to each output plane moving forward.
+    let ScatterScratch { sums, counts, touched, unit, channel_dots, .. } = scratch;
+    // Ascending cells keep the writes to each output plane moving forward (and give the
+    // alignment sums `drain`'s order).
     touched.sort_unstable();
     unit.resize(d, 0.0);
     let image_cell = |cell: usize| &image_cells[cell * d..(cell + 1) * d];
     let occupancy = shifts.channels() - 1;
+    // The alignment's per-channel sums, each over the cells in ascending order, as in `drain`.
+    channel_dots.clear();
+    channel_dots.resize(d, 0.0);
+    let mut in_view = 0u64;
     for &cell in touched.iter() {
         let cell = cell as usize;
-        let count = counts[cell] as f32;
+        let count = counts[cell];
+        in_view += count as u64;
+        counts[cell] = 0;
+        let sum = &mut sums[cell * d..(cell + 1) * d];
+        for ((acc, s), i) in channel_dots.iter_mut().zip(sum.iter()).zip(image_cell(cell)) {
+            *acc += (s * i) as f64;
+        }
+        let count = count as f32;
         let mut squares = 0f32;
-        for (u, s) in unit.iter_mut().zip(&sums[cell * d..(cell + 1) * d]) {
-            *u = s / count;
+        for (u, s) in unit.iter_mut().zip(sum.iter_mut()) {
+            *u = *s / count;
             squares += *u * *u;
+            *s = 0.0;
         }
         let norm = squares.sqrt();
         if !(norm > 1e-6) {
@@ -266,6 +283,8 @@ fn correlate_cells<const D: usize>(layout: &StateLayout, shifts: Shifts, image_c
         }
         out[occupancy * cells + cell] = 1.0;
     }
+    touched.clear();
+    if in_view == 0 { -1.0 } else { (channel_dots.iter().sum::<f64>() / in_view as f64) as f32 }
 }
 
 /// f32 dot product in eight independent lanes (so the compiler can use SIMD); `D` > 0 fixes the
@@ -307,13 +326,12 @@ pub fn alignment(
     camera_from_map: &Pose,
     scratch: &mut ScatterScratch,
 ) -> f32 {
-    scatter(layout, points, point_features, k, camera_from_map, scratch, |_, _, _| {});
+    scatter(layout, points, point_features, k, camera_from_map, scratch, 0, |_, _, _| {});
     drain(layout, image_features, scratch, None)
 }
 
-/// One pass over the points: transform with a plain matrix (cheaper than the quaternion),
-/// project once, and add each in-view point's feature to its cell's sum. `each` sees every point
-/// with its camera-frame position and whether it is in view.
+/// Adds each in-view point's feature to its cell's sum. `each` sees the first `first` points
+/// with their camera-frame position and whether they are in view.
 #[allow(clippy::too_many_arguments)]
 fn scatter(
     layout: &StateLayout,
@@ -322,6 +340,7 @@ fn scatter(
     k: &Intrinsics,
     camera_from_map: &Pose,
     scratch: &mut ScatterScratch,
+    first: usize,
     mut each: impl FnMut(usize, &Point3<f64>, bool),
 ) {
     let (d, cells) = (layout.dim, layout.cells());
@@ -333,28 +352,83 @@ fn scatter(
         scratch.counts = vec![0; cells];
     }
     scratch.touched.clear();
-    let r = camera_from_map.rotation();
-    let t = camera_from_map.translation();
-    for (i, p) in points.iter().enumerate() {
-        let (x, y, z) = (p[0] as f64, p[1] as f64, p[2] as f64);
-        let p_cam = Point3::new(
-            r[(0, 0)] * x + r[(0, 1)] * y + r[(0, 2)] * z + t.x,
-            r[(1, 0)] * x + r[(1, 1)] * y + r[(1, 2)] * z + t.y,
-            r[(2, 0)] * x + r[(2, 1)] * y + r[(2, 2)] * z + t.z,
-        );
-        let cell = layout.cell_of(k, &p_cam);
-        if let Some(cell) = cell {
-            if scratch.counts[cell] == 0 {
-                scratch.touched.push(cell as u32);
-            }
-            scratch.counts[cell] += 1;
-            let sum = &mut scratch.sums[cell * d..(cell + 1) * d];
-            for (s, f) in sum.iter_mut().zip(&point_features[i * d..(i + 1) * d]) {
-                *s += f;
-            }
-        }
-        each(i, &p_cam, cell.is_some());
+    scratch.visible.clear();
+    // A plain matrix (cheaper than the quaternion).
+    let (r, t) = (camera_from_map.rotation(), camera_from_map.translation());
+    let rows = [[r[(0, 0)], r[(0, 1)], r[(0, 2)], t.x], [r[(1, 0)], r[(1, 1)], r[(1, 2)], t.y], [r[(2, 0)], r[(2, 1)], r[(2, 2)], t.z]];
+    // Pass 1: where every point lands (no feature reads, vector lanes).
+    scratch.cells.resize(points.len(), 0);
+    cells_of(layout, k, &rows, points, &mut scratch.cells);
+    for (i, p) in points.iter().take(first).enumerate() {
+        each(i, &transform(&rows, p), scratch.cells[i] != OUT_OF_VIEW);
     }
+    scratch.visible.extend(scratch.cells.iter().enumerate().filter(|(_, c)| **c != OUT_OF_VIEW).map(|(i, c)| (i as u32, *c)));
+    // Pass 2: add the features of the points in view, in point order (so every cell's sum is the
+    // same as in one pass). The feature rows are scattered through a map-sized array, so the
+    // rows a few points ahead are fetched while this one is added.
+    let ScatterScratch { sums, counts, touched, visible, .. } = scratch;
+    for (n, &(i, cell)) in visible.iter().enumerate() {
+        if let Some(&(ahead, _)) = visible.get(n + PREFETCH_POINTS_AHEAD) {
+            prefetch(&point_features[ahead as usize * d..(ahead as usize + 1) * d]);
+        }
+        let (i, cell) = (i as usize, cell as usize);
+        if counts[cell] == 0 {
+            touched.push(cell as u32);
+        }
+        counts[cell] += 1;
+        for (s, f) in sums[cell * d..(cell + 1) * d].iter_mut().zip(&point_features[i * d..(i + 1) * d]) {
+            *s += f;
+        }
+    }
+}
+
+/// `cells_of`'s mark for a point outside the view.
+const OUT_OF_VIEW: u32 = u32::MAX;
+
+/// A map point in the camera frame: `rows` = [R | t] of camera_from_map.
+#[inline(always)]
+fn transform(rows: &[[f64; 4]; 3], p: &[f32; 3]) -> Point3<f64> {
+    let (x, y, z) = (p[0] as f64, p[1] as f64, p[2] as f64);
+    let row = |k: usize| rows[k][0] * x + rows[k][1] * y + rows[k][2] * z + rows[k][3];
+    Point3::new(row(0), row(1), row(2))
+}
+
+/// The feature cell of every point (`OUT_OF_VIEW` outside the frustum), with the arithmetic of
+/// `StateLayout::cell_of` written without branches so the compiler can use vector lanes; also
+/// compiled for AVX2 and AVX-512 and chosen at run time. No fused multiply-adds (Rust does not
+/// contract), so every build gives the same cells as `cell_of`.
+#[multiversion::multiversion(targets("x86_64+avx512f+avx512vl+avx512dq", "x86_64+avx2"))]
+fn cells_of(layout: &StateLayout, k: &Intrinsics, rows: &[[f64; 4]; 3], points: &[[f32; 3]], cells: &mut [u32]) {
+    let (right, bottom) = (layout.image_width as f64 - 0.5, layout.image_height as f64 - 0.5);
+    let stride = layout.stride as f64;
+    let (last_row, last_col) = ((layout.grid_height - 1) as f64, (layout.grid_width - 1) as f64);
+    let width = layout.grid_width as u32;
+    for (p, out) in points.iter().zip(cells.iter_mut()) {
+        let c = transform(rows, p);
+        let (u, v) = (k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy);
+        let inside = c.z >= MIN_DEPTH_M && u >= -0.5 && v >= -0.5 && u < right && v < bottom;
+        // In view, (u + 0.5) / stride is in [0, grid width]: clamping before the cast is the
+        // same as `cell_of`'s cast then min.
+        let row = ((v + 0.5) / stride).floor().clamp(0.0, last_row) as u32;
+        let col = ((u + 0.5) / stride).floor().clamp(0.0, last_col) as u32;
+        *out = if inside { row * width + col } else { OUT_OF_VIEW };
+    }
+}
+
+/// How many points in view ahead `scatter` asks for feature rows.
+const PREFETCH_POINTS_AHEAD: usize = 6;
+
+/// Asks the CPU to bring `row` into its caches (a hint: no effect on results; a no-op off x86-64).
+#[inline(always)]
+fn prefetch(row: &[f32]) {
+    #[cfg(target_arch = "x86_64")]
+    for line in row.chunks(16) {
+        // SAFETY: `_mm_prefetch` only hints the cache about an address; it never faults, and the
+        // pointer comes from a live slice.
+        unsafe { std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(line.as_ptr().cast()) };
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = row;
 }
 
 /// Ends a `scatter`: writes the per-cell means into `means` ([D, cells], channel-major) when
@@ -501,6 +575,44 @@ mod tests {
             let p = Point3::new(rng.random_range(-30.0..30.0), rng.random_range(-5.0..5.0), rng.random_range(-2.0..40.0));
             assert_eq!(layout.cell_of(&k, &p).is_some(), k.in_frustum(&p, 512, 160), "{p:?}");
         }
+    }
+
+    #[test]
+    fn vector_cells_equal_cell_of_for_every_point() {
+        // Random points, points on the frustum's edges (cell boundaries, the depth limit, the
+        // image border) and non-finite ones, through a turned and shifted pose.
+        use rand::{Rng, SeedableRng};
+        let layout = StateLayout { grid_height: 40, grid_width: 128, image_width: 512, image_height: 160, ..layout() };
+        let k = Intrinsics { fx: 359.4, fy: 341.7, cx: 249.8, cy: 78.1 };
+        let pose = Pose::from_rt(
+            nalgebra::Rotation3::from_euler_angles(0.02, -0.7, 0.01).into_inner(),
+            nalgebra::Vector3::new(0.4, -0.08, 1.3),
+        );
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let inverse = pose.inverse();
+        let mut points: Vec<[f32; 3]> = (0..20000)
+            .map(|_| {
+                let p_cam = Point3::new(rng.random_range(-30.0..30.0), rng.random_range(-5.0..5.0), rng.random_range(-2.0..40.0));
+                let p = inverse.transform(&p_cam);
+                [p.x as f32, p.y as f32, p.z as f32]
+            })
+            .collect();
+        for (u, v, z) in [(-0.5, 10.0, 5.0), (511.5, 10.0, 5.0), (3.5, 3.5, 7.0), (100.0, -0.5, 2.0), (100.0, 159.5, 2.0), (10.0, 10.0, MIN_DEPTH_M)] {
+            let p = inverse.transform(&k.back_project(u, v, z));
+            points.push([p.x as f32, p.y as f32, p.z as f32]);
+        }
+        points.extend([[f32::NAN, 0.0, 0.0], [f32::INFINITY, 1.0, 1.0], [0.0, 0.0, f32::NEG_INFINITY]]);
+        let (r, t) = (pose.rotation(), pose.translation());
+        let rows = [[r[(0, 0)], r[(0, 1)], r[(0, 2)], t.x], [r[(1, 0)], r[(1, 1)], r[(1, 2)], t.y], [r[(2, 0)], r[(2, 1)], r[(2, 2)], t.z]];
+        let mut cells = vec![0u32; points.len()];
+        cells_of(&layout, &k, &rows, &points, &mut cells);
+        let mut in_view = 0;
+        for (p, c) in points.iter().zip(&cells) {
+            let want = layout.cell_of(&k, &transform(&rows, p)).map_or(OUT_OF_VIEW, |c| c as u32);
+            assert_eq!(*c, want, "{p:?}");
+            in_view += (want != OUT_OF_VIEW) as usize;
+        }
+        assert!(in_view > 1000, "{in_view} points in view: the test would not test much");
     }
 
     #[test]
