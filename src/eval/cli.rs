@@ -73,6 +73,11 @@ pub struct Args {
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
+    /// Record every hypothesis's trajectory of the agent's search in `cases.json` (pose,
+    /// alignment score and errors after each step, how it stopped): what search rules are tried
+    /// on offline (`scripts/search-rules.py`).
+    #[arg(long)]
+    pub record_hypotheses: bool,
 }
 
 pub fn main(args: Args) -> Result<()> {
@@ -100,6 +105,7 @@ pub fn main(args: Args) -> Result<()> {
         progress: !args.quiet,
         command: std::env::args().collect::<Vec<_>>().join(" "),
         worst: args.worst,
+        record_hypotheses: args.record_hypotheses,
     };
     let report = run(&config)?;
     print!("{}", report.markdown());

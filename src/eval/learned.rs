@@ -15,6 +15,7 @@ use serde_json::json;
 use std::sync::Arc;
 
 use crate::agent::{self, SearchConfig, ms};
+use crate::geometry::{Pose, PoseError};
 use crate::maps::{PreparedMap, prepare_map};
 use crate::model::Backend;
 
@@ -34,11 +35,13 @@ pub struct Learned {
     search: SearchConfig,
     ransac: RansacOptions,
     matching: MatchStrategy,
+    /// Every hypothesis's trajectory in the notes (`hypothesis_trajectories`).
+    record_hypotheses: bool,
 }
 
 impl Learned {
-    pub fn new(backend: Box<dyn Backend>, search: SearchConfig, ransac: RansacOptions, matching: MatchStrategy) -> Self {
-        Learned { backend, search, ransac, matching }
+    pub fn new(backend: Box<dyn Backend>, search: SearchConfig, ransac: RansacOptions, matching: MatchStrategy, record_hypotheses: bool) -> Self {
+        Learned { backend, search, ransac, matching, record_hypotheses }
     }
 
     /// Parameters each method runs: the agent all four graphs, the baseline all but the agent.
@@ -66,6 +69,18 @@ impl Learned {
         let poses = (1..=k).map(|i| loc.pose_after(i)).collect();
         let elapsed_ms = (1..=k).map(|i| before_loop + per_step * i.min(loc.iterations()) as f64).collect();
         let best = loc.best();
+        let mut notes = json!({
+            "iterations_run": best.steps.len(),
+            "converged": best.converged,
+            "confidence": loc.confidence.score,
+            "chosen_start_yaw_offset_deg": best.start_yaw_offset_deg,
+            "alignment": loc.hypotheses.iter().map(|h| h.alignment()).collect::<Vec<_>>(),
+            // Policy rows this case cost: steps over all hypotheses (the search's price).
+            "policy_rows": loc.hypotheses.iter().map(|h| h.steps.len()).sum::<usize>(),
+        });
+        if self.record_hypotheses && method == AGENT {
+            notes["hypotheses"] = hypothesis_trajectories(&loc, &case.truth);
+        }
         Ok(MethodRun {
             method: method.into(),
             poses,
@@ -77,15 +92,7 @@ impl Learned {
                 ("agent steps".into(), t.agent_steps_ms),
                 ("agent steps: state building".into(), t.state_build_ms),
             ],
-            notes: json!({
-                "iterations_run": best.steps.len(),
-                "converged": best.converged,
-                "confidence": loc.confidence.score,
-                "chosen_start_yaw_offset_deg": best.start_yaw_offset_deg,
-                "alignment": loc.hypotheses.iter().map(|h| h.alignment()).collect::<Vec<_>>(),
-                // Policy rows this case cost: steps over all hypotheses (the search's price).
-                "policy_rows": loc.hypotheses.iter().map(|h| h.steps.len()).sum::<usize>(),
-            }),
+            notes,
         })
     }
 
@@ -261,4 +268,32 @@ mod tests {
             assert!(e.rte_m < 0.1 && e.rre_geodesic_deg < 0.2, "{strategy:?}: {e:?}");
         }
     }
+}
+
+/// Every hypothesis of a search as JSON: its start, and after each step the pose
+/// (camera_from_map, row-major 3×4), the alignment score and the errors against `truth`; how it
+/// stopped. What `scripts/search-rules.py` replays search rules on.
+fn hypothesis_trajectories(loc: &agent::Localization, truth: &Pose) -> serde_json::Value {
+    let at = |pose: &Pose, alignment: f32| {
+        let e = PoseError::between(pose, truth);
+        json!({
+            "camera_from_map": pose.to_row_major_3x4(),
+            "alignment": alignment,
+            "rte_m": e.rte_m,
+            "rre_geodesic_deg": e.rre_geodesic_deg,
+            "rre_euler_deg": e.rre_euler_deg,
+        })
+    };
+    loc.hypotheses
+        .iter()
+        .map(|h| {
+            json!({
+                "start_yaw_offset_deg": h.start_yaw_offset_deg,
+                "start": at(&h.start, h.start_alignment),
+                "steps": h.steps.iter().map(|s| at(&s.camera_from_map, s.alignment)).collect::<Vec<_>>(),
+                "converged": h.converged,
+                "dropped": h.dropped,
+            })
+        })
+        .collect()
 }

@@ -56,6 +56,8 @@ pub struct EvalConfig {
     pub command: String,
     /// Overlays of this many worst cases (by final RTE) into `<out>/worst/`; 0: none.
     pub worst: usize,
+    /// Every hypothesis's trajectory in the agent's case records (`Learned::run_agent`).
+    pub record_hypotheses: bool,
 }
 
 impl EvalConfig {
@@ -143,7 +145,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
             graph_parameters = map.iter().filter_map(|(k, v)| v.as_u64().map(|n| (k.clone(), n))).collect();
         }
         learned_index = Some(methods.len());
-        methods.push(Box::new(Learned::new(Box::new(set.backend()?), config.search(), config.ransac, config.matching)));
+        methods.push(Box::new(Learned::new(Box::new(set.backend()?), config.search(), config.ransac, config.matching, config.record_hypotheses)));
     }
     if let Some(frame) = config.action_frame {
         actions = actions.with_frame(frame);
@@ -333,6 +335,7 @@ pub(crate) mod tests {
             progress: false,
             command: "test".into(),
             worst: 2,
+            record_hypotheses: false,
         }
     }
 

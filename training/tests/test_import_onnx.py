@@ -58,3 +58,28 @@ def test_a_set_no_architecture_explains_is_refused(tmp_path):
     shutil.copy(tmp_path / doc["graphs"]["image_encoder"]["file"], tmp_path / doc["graphs"]["point_encoder"]["file"])
     with pytest.raises(ValueError, match="no architecture"):
         import_models(tmp_path)
+
+
+def test_the_shipped_model_fine_tunes_on_a_drive(tmp_path, tiny_dataset):
+    """The documented fine-tuning path: import `models/`, train its agent a step on a generated
+    drive in the map_z frame with maps from neighbouring scans, export again."""
+    from pathlib import Path
+
+    from cmr import import_onnx
+    from cmr.export import load_models
+    from cmr.train import main
+
+    shipped = Path(__file__).resolve().parents[2] / "models"
+    ckpt = tmp_path / "shipped.pt"
+    import_onnx.main([str(shipped), "--out", str(ckpt)])
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    main(["--data", str(tiny_dataset), "--out", str(tmp_path / "ft"), "--set", f"init_from={ckpt}", "embed_steps=0",
+          "agent_iters=1", "action_frame=map_z", "map_window=2", "num_points=4096", "agent_envs=2", "pool_size=2",
+          "pool_refresh=1", "rollout_steps=3", "minibatch=8", "eval_frames=1", "holdout_every=4", "eval_every=0"])
+    tuned, meta = load_models(tmp_path / "ft" / "last.pt")
+    assert meta["config"]["action_frame"] == "map_z" and meta["training"]["agent_iters"] == 1
+    # The encoders are the shipped ones (stage 1 did not run); the agent moved.
+    for k, v in tuned["image_encoder"].state_dict().items():
+        assert torch.equal(v, state["models"]["image_encoder"][k]), k
+    moved = [k for k, v in tuned["agent"].state_dict().items() if not torch.equal(v, state["models"]["agent"][k])]
+    assert moved
