@@ -7,8 +7,8 @@ every start ran its whole trajectory (up to K steps or until the agent chose the
 rule only stops hypotheses earlier, and hypotheses do not influence each other's steps, so any
 rule's search is a truncation of those trajectories and its answer can be replayed exactly: the
 hypotheses that are still running after each step take one step (one policy row each), then the
-server's duplicate merging (`src/agent/search.rs`: within 1 m / 5 deg of an earlier, not dropped
-hypothesis) and the rule under test stop some, and at the end the best alignment score wins (first
+server's duplicate merging (`src/agent/search.rs`: within DUPLICATE_M / DUPLICATE_DEG of an
+earlier, not dropped hypothesis; `--duplicate M,DEG` replays another radius) and the rule under test stop some, and at the end the best alignment score wins (first
 on ties). `--check` compares the replay of today's search with the answer the server gave
 (`cmr-agent eval` without the two flags, its `cases.json`).
 
@@ -17,9 +17,12 @@ next observation, so they cost no extra work):
   margin D after K: from step K on, a hypothesis whose current score is more than D below the
                     best current score stops (D = 0: only the leader goes on, `--narrow-after`).
   start margin D:   before the first step, starts scoring more than D below the best start stop.
+  duplicates M / D: another duplicate radius (metres, degrees).
+  converged leader D: once the best-scoring hypothesis has stopped on its own (zero step) and
+                    leads every other by at least D, the others stop.
 
     python3 scripts/search-rules.py /tmp/rec/synth-val/cases.json /tmp/rec/real-dev/cases.json \
-        [--check DIR_WITH_DEFAULT_CASES_JSON ...]
+        [--check CASES_JSON_OF_TODAYS_SEARCH ... --duplicate 1,5]
 """
 
 import argparse
@@ -27,22 +30,23 @@ import itertools
 import json
 import math
 
-import numpy as np
-
 RR_DEG, RR_M = 10.0, 5.0
-DUPLICATE_M, DUPLICATE_DEG = 1.0, 5.0
+DUPLICATE = (4.0, 20.0)  # src/agent/search.rs: DUPLICATE_RTE_M, DUPLICATE_RRE_DEG
 
 
 def pose(rows):
-    m = np.array(rows, dtype=float).reshape(3, 4)
-    return m[:, :3], m[:, 3]
+    """(R as 9 row-major values, t) from camera_from_map's row-major 3x4."""
+    return [rows[4 * i + j] for i in range(3) for j in range(3)], [rows[3], rows[7], rows[11]]
 
 
-def close(a, b):
+def close(a, b, radius):
+    """The server's duplicate test: PoseError::between(b, a) within radius = (metres, degrees
+    geodesic)."""
     (ra, ta), (rb, tb) = a, b
-    rte = np.linalg.norm(tb - ta)
-    cos = np.clip((np.trace(rb.T @ ra) - 1.0) / 2.0, -1.0, 1.0)
-    return rte < DUPLICATE_M and math.degrees(math.acos(cos)) < DUPLICATE_DEG
+    rte = math.dist(ta, tb)
+    trace = sum(x * y for x, y in zip(ra, rb))  # trace(Rbᵀ Ra)
+    cos = min(1.0, max(-1.0, (trace - 1.0) / 2.0))
+    return rte < radius[0] and math.degrees(math.acos(cos)) < radius[1]
 
 
 def load(path):
@@ -58,7 +62,8 @@ def load(path):
     return cases
 
 
-def replay(case, iterations=10, merge=True, margin=None, after=1, start_margin=None):
+def replay(case, iterations=10, merge=True, margin=None, after=1, start_margin=None, duplicate=DUPLICATE,
+           converged_lead=None):
     """(final state of the chosen hypothesis, policy rows)."""
     hyps = case["hyps"]
     n = len(hyps)
@@ -89,12 +94,19 @@ def replay(case, iterations=10, merge=True, margin=None, after=1, start_margin=N
                 if done(j):
                     continue
                 pj = hyps[j]["poses"][taken[j]]
-                dropped[j] |= any(not dropped[i] and close(pj, hyps[i]["poses"][taken[i]]) for i in range(j))
+                dropped[j] |= any(not dropped[i] and close(pj, hyps[i]["poses"][taken[i]], duplicate)
+                                  for i in range(j))
         if margin is not None and k >= after:
             best = max(score(h) for h in range(n))
             for h in range(n):
                 if not done(h) and score(h) < best - margin:
                     dropped[h] = True
+        if converged_lead is not None:
+            scores = [score(h) for h in range(n)]
+            leader = max(range(n), key=lambda h: (scores[h], -h))
+            stopped = taken[leader] >= len(hyps[leader]["states"]) - 1 and hyps[leader]["converged"]
+            if stopped and all(scores[leader] - scores[h] >= converged_lead for h in range(n) if h != leader):
+                dropped = [d or h != leader for h, d in enumerate(dropped)]
     scores = [score(h) for h in range(n)]
     chosen = max(range(n), key=lambda h: (scores[h], -h))
     return hyps[chosen]["states"][taken[chosen]], rows
@@ -117,18 +129,25 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("recorded", nargs="+", help="cases.json files of recorded runs (one per data set)")
     ap.add_argument("--check", nargs="*", default=[], help="cases.json of the same sets run with today's search")
+    ap.add_argument("--duplicate", default=",".join(f"{v:g}" for v in DUPLICATE),
+                    help="duplicate radius 'metres,degrees' of today's search (what --check ran with)")
     args = ap.parse_args()
+    today = tuple(float(v) for v in args.duplicate.split(","))
     sets = [(p, load(p)) for p in args.recorded]
     for (path, cases), check in itertools.zip_longest(sets, args.check):
         if check is None:
             continue
         served = dict(enumerate(r for r in json.load(open(check)) if r["method"] == "cmr-agent"))
-        same = sum(1 for c in cases if registered(replay(c)[0]) == (served[c["key"]]["errors"][-1]["rre_euler_deg"] < RR_DEG
+        same = sum(1 for c in cases if registered(replay(c, duplicate=today)[0]) == (served[c["key"]]["errors"][-1]["rre_euler_deg"] < RR_DEG
                                                                     and served[c["key"]]["errors"][-1]["rte_m"] < RR_M))
         print(f"check {path}: replay of today's search agrees with the server on {same}/{len(cases)} cases")
-    rules = [("today (merge duplicates)", {}), ("no merging", dict(merge=False))]
+    rules = [(f"today (merge duplicates within {today[0]:g} m / {today[1]:g} deg)", dict(duplicate=today)),
+             ("no merging", dict(merge=False))]
     rules += [(f"margin {d} after {k}", dict(margin=d, after=k)) for k in (1, 2, 3, 4) for d in (0.0, 0.02, 0.05, 0.1)]
     rules += [(f"start margin {d}", dict(start_margin=d)) for d in (0.05, 0.1, 0.2)]
+    rules += [(f"duplicates within {m:g} m / {d:g} deg", dict(duplicate=(m, d)))
+              for m, d in ((1, 5), (1, 10), (1, 25), (2, 10), (3, 15), (4, 20), (5, 25), (7, 35), (10, 50), (3, 30))]
+    rules += [(f"converged leader {d} ahead stops the rest", dict(converged_lead=d)) for d in (0.0, 0.02, 0.05, 0.1)]
     header = " | ".join(f"{p.split('/')[-2]} RR (rows/case)" for p, _ in sets)
     print(f"| rule | {header} |")
     print("|---|" + "---|" * len(sets))

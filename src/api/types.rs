@@ -117,7 +117,7 @@ pub struct HypothesisBody {
     pub camera_from_map: Rows4x4,
     pub iterations: usize,
     pub converged: bool,
-    /// Stopped early: it came within 1 m / 5° of an earlier hypothesis (`merge_duplicates`), or
+    /// Stopped early: it came within 4 m / 20° of an earlier hypothesis (`merge_duplicates`), or
     /// another scored better after `narrow_after` steps.
     pub dropped: bool,
 }
@@ -402,7 +402,7 @@ pub struct Limits {
     pub default_hypotheses: u32,
     /// Steps after which a search keeps only its best-scoring hypothesis (0 = never).
     pub narrow_after: u32,
-    /// Whether a hypothesis stops once it comes within 1 m / 5° of an earlier one.
+    /// Whether a hypothesis stops once it comes within 4 m / 20° of an earlier one.
     pub merge_duplicates: bool,
     pub queue_capacity: usize,
     pub max_batch: usize,
