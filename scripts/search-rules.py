@@ -20,6 +20,8 @@ next observation, so they cost no extra work):
   duplicates M / D: another duplicate radius (metres, degrees).
   converged leader D: once the best-scoring hypothesis has stopped on its own (zero step) and
                     leads every other by at least D, the others stop.
+  running only:     duplicates count only against hypotheses still taking steps (one that
+                    stopped short of the answer does not stop a later one that passes by).
 
     python3 scripts/search-rules.py /tmp/rec/synth-val/cases.json /tmp/rec/real-dev/cases.json \
         [--check CASES_JSON_OF_TODAYS_SEARCH ... --duplicate 1,5]
@@ -63,7 +65,7 @@ def load(path):
 
 
 def replay(case, iterations=10, merge=True, margin=None, after=1, start_margin=None, duplicate=DUPLICATE,
-           converged_lead=None):
+           converged_lead=None, only_running=False):
     """(final state of the chosen hypothesis, policy rows)."""
     hyps = case["hyps"]
     n = len(hyps)
@@ -94,8 +96,8 @@ def replay(case, iterations=10, merge=True, margin=None, after=1, start_margin=N
                 if done(j):
                     continue
                 pj = hyps[j]["poses"][taken[j]]
-                dropped[j] |= any(not dropped[i] and close(pj, hyps[i]["poses"][taken[i]], duplicate)
-                                  for i in range(j))
+                dropped[j] |= any(not dropped[i] and not (only_running and done(i))
+                                  and close(pj, hyps[i]["poses"][taken[i]], duplicate) for i in range(j))
         if margin is not None and k >= after:
             best = max(score(h) for h in range(n))
             for h in range(n):
@@ -117,12 +119,17 @@ def registered(state):
 
 
 def evaluate(cases, **rule):
-    hits, rows = 0, 0
+    """(registered cases, policy rows per case, mean RTE and RRE (Euler) over the registered)."""
+    hits, rows, rte, rre = 0, 0, 0.0, 0.0
     for c in cases:
         final, r = replay(c, **rule)
-        hits += registered(final)
+        if registered(final):
+            hits += 1
+            rte += final["rte_m"]
+            rre += final["rre_euler_deg"]
         rows += r
-    return hits, rows / max(len(cases), 1)
+    n = max(len(cases), 1)
+    return hits, rows / n, rte / max(hits, 1), rre / max(hits, 1)
 
 
 def main():
@@ -147,15 +154,17 @@ def main():
     rules += [(f"start margin {d}", dict(start_margin=d)) for d in (0.05, 0.1, 0.2)]
     rules += [(f"duplicates within {m:g} m / {d:g} deg", dict(duplicate=(m, d)))
               for m, d in ((1, 5), (1, 10), (1, 25), (2, 10), (3, 15), (4, 20), (5, 25), (7, 35), (10, 50), (3, 30))]
-    rules += [(f"converged leader {d} ahead stops the rest", dict(converged_lead=d)) for d in (0.0, 0.02, 0.05, 0.1)]
-    header = " | ".join(f"{p.split('/')[-2]} RR (rows/case)" for p, _ in sets)
+    rules += [(f"converged leader {d} ahead stops the rest", dict(converged_lead=d)) for d in (0.0, 0.1)]
+    rules += [(f"duplicates of running starts only, within {m:g} m / {d:g} deg", dict(duplicate=(m, d), only_running=True))
+              for m, d in ((4, 20),)]
+    header = " | ".join(f"{p.split('/')[-2]} RR (rows/case) RTE m / RRE deg" for p, _ in sets)
     print(f"| rule | {header} |")
     print("|---|" + "---|" * len(sets))
     for name, rule in rules:
         cells = []
         for _, cases in sets:
-            hits, rows = evaluate(cases, **rule)
-            cells.append(f"{hits}/{len(cases)} ({rows:.1f})")
+            hits, rows, rte, rre = evaluate(cases, **rule)
+            cells.append(f"{hits}/{len(cases)} ({rows:.1f}) {rte:.3f} / {rre:.2f}")
         print(f"| {name} | " + " | ".join(cells) + " |")
 
 
