@@ -88,8 +88,8 @@ impl SearchTuning {
 /// Two hypotheses closer than this (translation of camera_from_map, metres; and geodesic
 /// rotation, degrees) count as duplicates: the later one would most likely walk into the same
 /// answer (the starts are 90° apart; the policy's coarsest steps are 8.1 m and 62.5°). Chosen by
-/// replaying recorded searches (`scripts/search-rules.py`, docs/evaluation.md "Merging
-/// duplicates"): 1 m / 5° until 2026-12; 4 m / 20° costs about a fifth fewer policy rows on
+/// replaying recorded searches (`scripts/search-rules.py`, docs/evaluation.md "Trying search
+/// rules offline"): 1 m / 5° until 2026-12; 4 m / 20° costs about a fifth fewer policy rows on
 /// synthetic validation for one case of 240, and on real-dev stops starts that the agent would
 /// otherwise walk away from a good pose.
 pub const DUPLICATE_RTE_M: f64 = 4.0;
