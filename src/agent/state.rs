@@ -345,17 +345,15 @@ fn scatter(
 ) {
     let (d, cells) = (layout.dim, layout.cells());
     debug_assert_eq!(point_features.len(), points.len() * d);
-    // The buffers stay zeroed between calls; `drain` resets only the touched cells, so a step
-    // costs work proportional to the points in view, not to the grid size.
+    // The buffers stay zeroed between calls; `drain` or `write_correlation` resets only the
+    // touched cells, so a step costs work proportional to the points in view, not to the grid.
     if scratch.counts.len() != cells || scratch.sums.len() != cells * d {
         scratch.sums = vec![0.0; cells * d];
         scratch.counts = vec![0; cells];
     }
     scratch.touched.clear();
     scratch.visible.clear();
-    // A plain matrix (cheaper than the quaternion).
-    let (r, t) = (camera_from_map.rotation(), camera_from_map.translation());
-    let rows = [[r[(0, 0)], r[(0, 1)], r[(0, 2)], t.x], [r[(1, 0)], r[(1, 1)], r[(1, 2)], t.y], [r[(2, 0)], r[(2, 1)], r[(2, 2)], t.z]];
+    let rows = matrix_rows(camera_from_map);
     // Pass 1: where every point lands (no feature reads, vector lanes).
     scratch.cells.resize(points.len(), 0);
     cells_of(layout, k, &rows, points, &mut scratch.cells);
@@ -385,7 +383,13 @@ fn scatter(
 /// `cells_of`'s mark for a point outside the view.
 const OUT_OF_VIEW: u32 = u32::MAX;
 
-/// A map point in the camera frame: `rows` = [R | t] of camera_from_map.
+/// [R | t] of a pose as three rows: a plain matrix is cheaper to apply than the quaternion.
+fn matrix_rows(pose: &Pose) -> [[f64; 4]; 3] {
+    let (r, t) = (pose.rotation(), pose.translation());
+    [[r[(0, 0)], r[(0, 1)], r[(0, 2)], t.x], [r[(1, 0)], r[(1, 1)], r[(1, 2)], t.y], [r[(2, 0)], r[(2, 1)], r[(2, 2)], t.z]]
+}
+
+/// A map point in the camera frame: `rows` = [R | t] of camera_from_map (`matrix_rows`).
 #[inline(always)]
 fn transform(rows: &[[f64; 4]; 3], p: &[f32; 3]) -> Point3<f64> {
     let (x, y, z) = (p[0] as f64, p[1] as f64, p[2] as f64);
@@ -602,8 +606,7 @@ mod tests {
             points.push([p.x as f32, p.y as f32, p.z as f32]);
         }
         points.extend([[f32::NAN, 0.0, 0.0], [f32::INFINITY, 1.0, 1.0], [0.0, 0.0, f32::NEG_INFINITY]]);
-        let (r, t) = (pose.rotation(), pose.translation());
-        let rows = [[r[(0, 0)], r[(0, 1)], r[(0, 2)], t.x], [r[(1, 0)], r[(1, 1)], r[(1, 2)], t.y], [r[(2, 0)], r[(2, 1)], r[(2, 2)], t.z]];
+        let rows = matrix_rows(&pose);
         let mut cells = vec![0u32; points.len()];
         cells_of(&layout, &k, &rows, &points, &mut cells);
         let mut in_view = 0;

@@ -194,6 +194,34 @@ impl Method for Learned {
     }
 }
 
+/// Every hypothesis of a search as JSON: its start, and after each step the pose
+/// (camera_from_map, row-major 3×4), the alignment score and the errors against `truth`; how it
+/// stopped. What `scripts/search-rules.py` replays search rules on.
+fn hypothesis_trajectories(loc: &agent::Localization, truth: &Pose) -> serde_json::Value {
+    let at = |pose: &Pose, alignment: f32| {
+        let e = PoseError::between(pose, truth);
+        json!({
+            "camera_from_map": pose.to_row_major_3x4(),
+            "alignment": alignment,
+            "rte_m": e.rte_m,
+            "rre_geodesic_deg": e.rre_geodesic_deg,
+            "rre_euler_deg": e.rre_euler_deg,
+        })
+    };
+    loc.hypotheses
+        .iter()
+        .map(|h| {
+            json!({
+                "start_yaw_offset_deg": h.start_yaw_offset_deg,
+                "start": at(&h.start, h.start_alignment),
+                "steps": h.steps.iter().map(|s| at(&s.camera_from_map, s.alignment)).collect::<Vec<_>>(),
+                "converged": h.converged,
+                "dropped": h.dropped,
+            })
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -268,32 +296,4 @@ mod tests {
             assert!(e.rte_m < 0.1 && e.rre_geodesic_deg < 0.2, "{strategy:?}: {e:?}");
         }
     }
-}
-
-/// Every hypothesis of a search as JSON: its start, and after each step the pose
-/// (camera_from_map, row-major 3×4), the alignment score and the errors against `truth`; how it
-/// stopped. What `scripts/search-rules.py` replays search rules on.
-fn hypothesis_trajectories(loc: &agent::Localization, truth: &Pose) -> serde_json::Value {
-    let at = |pose: &Pose, alignment: f32| {
-        let e = PoseError::between(pose, truth);
-        json!({
-            "camera_from_map": pose.to_row_major_3x4(),
-            "alignment": alignment,
-            "rte_m": e.rte_m,
-            "rre_geodesic_deg": e.rre_geodesic_deg,
-            "rre_euler_deg": e.rre_euler_deg,
-        })
-    };
-    loc.hypotheses
-        .iter()
-        .map(|h| {
-            json!({
-                "start_yaw_offset_deg": h.start_yaw_offset_deg,
-                "start": at(&h.start, h.start_alignment),
-                "steps": h.steps.iter().map(|s| at(&s.camera_from_map, s.alignment)).collect::<Vec<_>>(),
-                "converged": h.converged,
-                "dropped": h.dropped,
-            })
-        })
-        .collect()
 }

@@ -431,7 +431,7 @@ pub(crate) mod tests {
         let (data, out) = (dir.path().join("data"), dir.path().join("out"));
         write_tiny_sequence(&data, 2);
         let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model");
-        let config = EvalConfig { models: Some(models), iterations: 4, hypotheses: 2, ..config(&data, &out) };
+        let config = EvalConfig { models: Some(models), iterations: 4, hypotheses: 2, record_hypotheses: true, ..config(&data, &out) };
         let report = run(&config).unwrap();
         let names: Vec<&str> = report.methods.iter().map(|m| m.method.as_str()).collect();
         let single = super::super::learned::AGENT_SINGLE_START;
@@ -450,6 +450,20 @@ pub(crate) mod tests {
             assert!(r.notes["iterations_run"].as_u64().unwrap() >= 1);
             let starts = if r.method == AGENT { 2 } else { 1 };
             assert_eq!(r.notes["alignment"].as_array().unwrap().len(), starts);
+            // `--record-hypotheses`: every start's trajectory, on the searched agent only; its
+            // last step's errors are the record's when that start is the chosen one.
+            let Some(hypotheses) = r.notes.get("hypotheses").and_then(|h| h.as_array()) else {
+                assert_eq!(r.method, single, "the search records its hypotheses");
+                continue;
+            };
+            assert_eq!(hypotheses.len(), 2);
+            let last = |h: &serde_json::Value| h["steps"].as_array().unwrap().last().cloned().unwrap_or_else(|| h["start"].clone());
+            let finals: Vec<f64> = hypotheses.iter().map(|h| last(h)["rte_m"].as_f64().unwrap()).collect();
+            assert!(finals.iter().any(|e| (e - r.errors[3].rte_m).abs() < 1e-9), "{finals:?} vs {}", r.errors[3].rte_m);
+            for h in hypotheses {
+                assert!(h["steps"].as_array().unwrap().len() <= 4);
+                assert_eq!(h["start"]["camera_from_map"].as_array().unwrap().len(), 12);
+            }
         }
         for r in records.iter().filter(|r| r.method == super::super::learned::BASELINE) {
             assert_eq!(r.errors.len(), 1);
