@@ -25,8 +25,14 @@ fn gzip(data: &[u8]) -> Vec<u8> {
 }
 
 fn las_file(cloud: &PointCloud, version: (u8, u8)) -> Vec<u8> {
+    las_file_with(cloud, version, 1, false)
+}
+
+/// A LAS file of point format `format`, LAZ-compressed when `laz`.
+fn las_file_with(cloud: &PointCloud, version: (u8, u8), format: u8, laz: bool) -> Vec<u8> {
     let mut builder = las::Builder::from(version);
-    builder.point_format = las::point::Format::new(1).unwrap();
+    builder.point_format = las::point::Format::new(format).unwrap();
+    builder.point_format.is_compressed = laz;
     let mut writer = las::Writer::new(std::io::Cursor::new(Vec::new()), builder.into_header().unwrap()).unwrap();
     for (k, p) in cloud.xyz.iter().enumerate() {
         let point = las::Point { x: p[0] as f64, y: p[1] as f64, z: p[2] as f64, intensity: (k % 300) as u16, gps_time: Some(0.0), ..Default::default() };
@@ -65,8 +71,9 @@ async fn bad_map_bodies_get_4xx_that_name_them_and_leave_the_region_alone() {
     let server = TestServer::start(&tiny_model(), maps.path(), &["--admin-token", "s3cret", "--max-map-bytes", "2000000"]).await;
     let before = snapshot(maps.path(), "street");
 
-    let mut laz = las_file(&street_cloud(), (1, 2));
-    laz[104] |= 0x80;
+    // Bit 7 of the point format set on uncompressed records: no LASzip chunk table behind it.
+    let mut fake_laz = las_file(&street_cloud(), (1, 2));
+    fake_laz[104] |= 0x80;
     let mut zip = b"PK\x03\x04\x14\x00\x00\x00\x00\x00".to_vec();
     zip.resize(160, 7);
     let mut huge = street_cloud();
@@ -79,7 +86,8 @@ async fn bad_map_bodies_get_4xx_that_name_them_and_leave_the_region_alone() {
         ("png as kitti_bin", "?format=kitti_bin", vec![], png_bytes(&test_image(64, 64)), 415, "unsupported_media_type", "PNG image"),
         ("jpeg", "", vec![], jpeg_bytes(&test_image(64, 48)), 415, "unsupported_media_type", "JPEG image"),
         ("zip", "", vec![], zip, 415, "unsupported_media_type", "zip archive"),
-        ("laz", "", vec![], laz, 415, "unsupported_media_type", "LAZ"),
+        ("layered LAZ", "", vec![], las_file_with(&street_cloud(), (1, 4), 6, true), 415, "unsupported_media_type", "LAZ with a layered point format"),
+        ("fake LAZ", "", vec![], fake_laz, 422, "invalid_input", "LAZ"),
         ("gzip in gzip", "", vec![], gzip(&gzip(&write_kitti_bin(&street_cloud()))), 415, "unsupported_media_type", "another gzip stream"),
         ("gzip png", "", vec![], gzip(&png_bytes(&test_image(8, 8))), 415, "unsupported_media_type", "gzip body holds a PNG image"),
         ("brotli", "", vec![("content-encoding", "br")], write_kitti_bin(&street_cloud()), 415, "unsupported_media_type", "Content-Encoding"),
@@ -115,6 +123,13 @@ async fn las_gzip_and_pcd_ply_quirks_are_read() {
         assert_eq!(status, 201, "{id}: {json}");
         assert_eq!(json["map"]["num_points"], n);
         assert_eq!(stored_intensity(maps.path(), id)[..3], [0.0, 1.0, 2.0]);
+    }
+    // LAZ (compressed LAS), sniffed or named `laz`: the same points as the LAS.
+    for (id, query) in [("laz", ""), ("laz-named", "?format=laz")] {
+        let (status, json) = put(&server, &format!("/v1/maps/{id}{query}"), &[], las_file_with(&cloud, (1, 2), 1, true)).await;
+        assert_eq!(status, 201, "{id}: {json}");
+        assert_eq!(json["map"]["num_points"], n);
+        assert_eq!(stored_intensity(maps.path(), id), stored_intensity(maps.path(), "las12"));
     }
     // gzip-compressed PCD, recognised by its magic bytes and by Content-Encoding.
     let pcd = ascii_pcd(&cloud, "F F F F");

@@ -182,13 +182,13 @@ fn gzip_encoded(headers: &HeaderMap) -> Result<bool, ApiError> {
 #[utoipa::path(put, path = "/v1/maps/{id}", params(MapIdParam, UploadParams,
         ("Content-Encoding" = Option<String>, Header, description = "`gzip` when the body is gzip-compressed (also recognised without it); `identity` or absent otherwise")),
     request_body(content = Vec<u8>, content_type = "application/octet-stream",
-        description = "The point-cloud file: KITTI .bin (float32 x, y, z, intensity), PCD (ascii, binary, binary_compressed), PLY (ascii, binary), LAS 1.0-1.4 (not LAZ); optionally gzip-compressed"),
+        description = "The point-cloud file: KITTI .bin (float32 x, y, z, intensity), PCD (ascii, binary, binary_compressed), PLY (ascii, binary), LAS 1.0-1.4 and LAZ; optionally gzip-compressed"),
     responses((status = 201, body = RegisterResponse, description = "new region"), (status = 200, body = RegisterResponse, description = "region replaced"),
         (status = 400, body = ErrorBody, description = "invalid map id or unreadable body"),
         (status = 401, body = ErrorBody, description = "missing or wrong bearer token (checked before the body is read)"),
         (status = 408, body = ErrorBody, description = "the body did not arrive in time"),
         (status = 413, body = ErrorBody, description = "the body, or its gzip-inflated content, is larger than max_map_bytes, or the file holds more than max_map_points points"),
-        (status = 415, body = ErrorBody, description = "recognised as something other than a point cloud this server reads (PNG/JPEG image, zip/7z/xz/zstd/bzip2 archive, LAZ, gzip inside gzip, JSON/HTML/PDF) or an unsupported Content-Encoding; the message names what was received"),
+        (status = 415, body = ErrorBody, description = "recognised as something other than a point cloud this server reads (PNG/JPEG image, zip/7z/xz/zstd/bzip2 archive, gzip inside gzip, JSON/HTML/PDF) or an unsupported Content-Encoding; the message names what was received"),
         (status = 422, body = ErrorBody, description = "bytes of no known format, a cloud that does not parse, has a coordinate beyond ±1e7 m or no finite point, corrupt gzip, a body whose header contradicts `format`, or an `origin` or `voxel_m` out of range")),
     security(("bearer" = [])))]
 pub async fn put_map(

@@ -2,7 +2,7 @@
 //! content is named by its magic bytes, then parsed as the format it is.
 //!
 //! Refusals, as [`MapError`]s: a body recognised as something other than a point cloud (PNG,
-//! JPEG, zip, LAZ, gzip inside gzip, ...) is `Unsupported` (HTTP 415) and says what it looks like
+//! JPEG, zip, gzip inside gzip, ...) is `Unsupported` (HTTP 415) and says what it looks like
 //! and what is accepted; gzip that inflates past the bound, or a file with more points than `limits.max_points`, is
 //! `TooLarge` (413); bytes with no known
 //! signature that are not KITTI `.bin` either, a cloud that does not parse, corrupt gzip, or a

@@ -46,7 +46,7 @@ pub enum CloudFormat {
     Pcd,
     /// Stanford PLY (ascii, binary_little_endian or binary_big_endian).
     Ply,
-    /// ASPRS LAS 1.0-1.4, uncompressed (point formats 0-10; LAZ is refused).
+    /// ASPRS LAS 1.0-1.4, point formats 0-10, uncompressed or LAZ (`format=las` or `laz`).
     Las,
 }
 
@@ -68,7 +68,7 @@ impl CloudFormat {
             "bin" => Some(CloudFormat::KittiBin),
             "pcd" => Some(CloudFormat::Pcd),
             "ply" => Some(CloudFormat::Ply),
-            "las" => Some(CloudFormat::Las),
+            "las" | "laz" => Some(CloudFormat::Las),
             _ => None,
         }
     }
@@ -94,7 +94,7 @@ impl CloudFormat {
 }
 
 /// The formats an upload may be in, for messages.
-pub const ACCEPTED: &str = "KITTI .bin, PCD, PLY or LAS 1.0-1.4, each optionally gzip-compressed";
+pub const ACCEPTED: &str = "KITTI .bin, PCD, PLY, LAS 1.0-1.4 or LAZ (point formats 0-5), each optionally gzip-compressed";
 
 /// Names of the intensity field (PCD) or vertex property (PLY), compared case-insensitively, in
 /// order of preference: PCL, CloudCompare (`scalar_Intensity`), KITTI/SemanticKITTI
@@ -113,8 +113,8 @@ impl std::str::FromStr for CloudFormat {
             "kitti_bin" | "kitti" | "bin" => Ok(CloudFormat::KittiBin),
             "pcd" => Ok(CloudFormat::Pcd),
             "ply" => Ok(CloudFormat::Ply),
-            "las" => Ok(CloudFormat::Las),
-            other => Err(format!("unknown point-cloud format {other:?} (expected kitti_bin, pcd, ply or las)")),
+            "las" | "laz" => Ok(CloudFormat::Las),
+            other => Err(format!("unknown point-cloud format {other:?} (expected kitti_bin, pcd, ply, las or laz)")),
         }
     }
 }

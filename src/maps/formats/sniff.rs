@@ -1,9 +1,9 @@
 //! What an uploaded body is, from its first bytes: one of the point-cloud formats we read, a gzip
 //! stream (which may hold one), or something else that we can name in the refusal (an image, an
-//! archive, compressed LAS).
+//! archive, a document).
 //!
-//! Magic numbers checked, in order: gzip `1f 8b 08` with the reserved flag bits clear; LAS `LASF` (LAZ when the point-format byte at
-//! offset 104 has bit 7 or 6 set); PLY `ply` + newline; PCD (`# .PCD` or a first header key);
+//! Magic numbers checked, in order: gzip `1f 8b 08` with the reserved flag bits clear; LAS `LASF`
+//! (LAZ too: the LAS reader decompresses it); PLY `ply` + newline; PCD (`# .PCD` or a first header key);
 //! PNG `89 50 4e 47 0d 0a 1a 0a`; JPEG `ff d8 ff` + an APPn/DQT/COM marker; zip `PK 03 04` (also
 //! an empty `PK 05 06`); 7z, xz, bzip2, zstd, PDF; then text that starts like JSON, HTML or XML.
 //! Read as KITTI float32 records, each binary prefix is either 4 or more exact bytes (a chance
@@ -20,7 +20,7 @@ pub enum Content {
     /// A gzip stream (RFC 1952, deflate method).
     Gzip,
     /// Something that is not a point cloud we read, named for the error message
-    /// (e.g. "a PNG image", "LAZ (compressed LAS)").
+    /// (e.g. "a PNG image", "a zip archive").
     NotACloud(&'static str),
     /// No known signature: headerless KITTI `.bin`, or garbage.
     Unknown,
@@ -33,9 +33,10 @@ pub fn content(bytes: &[u8]) -> Content {
         return Content::Gzip;
     }
     if starts(b"LASF") {
-        // Point Data Format ID (offset 104): LAZ writers set bit 7 (and some bit 6).
+        // LAS or LAZ (bit 7 or 6 of the point data format at offset 104), which the LAS reader
+        // decompresses, except the layered formats 6-10 (`formats::las`).
         return match bytes.get(104) {
-            Some(f) if f & 0xc0 != 0 => Content::NotACloud("LAZ (compressed LAS)"),
+            Some(f) if f & 0xc0 != 0 && f & 0x3f > 5 => Content::NotACloud("LAZ with a layered point format (6-10)"),
             _ => Content::Cloud(CloudFormat::Las),
         };
     }
@@ -94,8 +95,10 @@ mod tests {
         let mut las = b"LASF".to_vec();
         las.resize(227, 0);
         assert_eq!(content(&las), Content::Cloud(CloudFormat::Las));
-        las[104] = 0x83;
-        assert_eq!(content(&las), Content::NotACloud("LAZ (compressed LAS)"));
+        las[104] = 0x83; // LAZ
+        assert_eq!(content(&las), Content::Cloud(CloudFormat::Las));
+        las[104] = 0x86; // LAZ, layered
+        assert_eq!(content(&las), Content::NotACloud("LAZ with a layered point format (6-10)"));
         assert_eq!(content(b"ply\nformat ascii 1.0\n"), Content::Cloud(CloudFormat::Ply));
         assert_eq!(content(b"# .PCD v0.7\nVERSION 0.7\n"), Content::Cloud(CloudFormat::Pcd));
         assert_eq!(content(b"\x89PNG\r\n\x1a\n\0\0\0\rIHDR"), Content::NotACloud("a PNG image"));

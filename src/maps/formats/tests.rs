@@ -114,13 +114,25 @@ fn valid_files() -> Vec<(CloudFormat, Vec<u8>)> {
         (CloudFormat::Ply, write_ply(&cloud, "binary_big_endian")),
         (CloudFormat::Las, write_las(&cloud, (1, 2), 1)),
         (CloudFormat::Las, write_las(&cloud, (1, 4), 6)),
+        (CloudFormat::Las, write_laz(&cloud, (1, 2), 3)),
+        (CloudFormat::Las, write_laz(&cloud, (1, 4), 3)),
     ]
+}
+
+/// The same as `write_las`, compressed (LAZ).
+pub(super) fn write_laz(cloud: &PointCloud, version: (u8, u8), point_format: u8) -> Vec<u8> {
+    write_las_with(cloud, version, point_format, true)
 }
 
 /// A LAS file written by the `las` crate (intensity as the 16-bit value of `cloud`'s).
 pub(super) fn write_las(cloud: &PointCloud, version: (u8, u8), point_format: u8) -> Vec<u8> {
+    write_las_with(cloud, version, point_format, false)
+}
+
+fn write_las_with(cloud: &PointCloud, version: (u8, u8), point_format: u8, compressed: bool) -> Vec<u8> {
     let mut builder = ::las::Builder::from(version);
     builder.point_format = ::las::point::Format::new(point_format).unwrap();
+    builder.point_format.is_compressed = compressed;
     // Millimetres from an offset near the first point, as LAS writers store UTM-size coordinates.
     let t = |axis: usize| ::las::Transform { scale: 0.001, offset: (cloud.xyz[0][axis] as f64 / 1000.0).floor() * 1000.0 };
     builder.transforms = ::las::Vector { x: t(0), y: t(1), z: t(2) };
@@ -185,9 +197,21 @@ fn las_problems_are_named() {
     let mut many = las.clone();
     many[107..111].copy_from_slice(&u32::MAX.to_le_bytes()); // legacy number of point records
     assert!(matches!(parse(&many, CloudFormat::Las), Err(FormatError::TooManyPoints { .. })));
-    let mut laz = las.clone();
-    laz[104] |= 0x80;
-    assert!(matches!(parse(&laz, CloudFormat::Las), Err(FormatError::Unsupported(_))));
+    // LAZ: the compressed stream cut short, or a count inflated past the limit (refused from the
+    // header, before anything is decompressed), or the point data start past the end.
+    let laz = write_laz(&sample_cloud(3000), (1, 2), 1);
+    for cut in [laz.len() - 40, laz.len() / 2] {
+        let e = parse(&laz[..cut], CloudFormat::Las).unwrap_err();
+        assert!(matches!(e, FormatError::Truncated(_) | FormatError::Corrupt(_) | FormatError::Header(_)), "{cut}: {e}");
+    }
+    let mut many = laz.clone();
+    many[107..111].copy_from_slice(&u32::MAX.to_le_bytes());
+    assert!(matches!(parse(&many, CloudFormat::Las), Err(FormatError::TooManyPoints { .. })));
+    let layered = parse(&write_laz(&sample_cloud(20), (1, 4), 6), CloudFormat::Las).unwrap_err();
+    assert!(matches!(layered, FormatError::Unsupported(_)), "{layered}");
+    let mut far = laz.clone();
+    far[96..100].copy_from_slice(&(laz.len() as u32 + 1).to_le_bytes()); // offset to point data
+    assert!(parse(&far, CloudFormat::Las).is_err());
     // LAS 1.4 with an extended VLR claiming far more bytes than the file has.
     let mut v14 = write_las(&cloud, (1, 4), 6);
     let start = v14.len() as u64;
@@ -378,7 +402,8 @@ fn sniff_and_extension() {
     assert_eq!("pcd".parse::<CloudFormat>(), Ok(CloudFormat::Pcd));
     assert_eq!("las".parse::<CloudFormat>(), Ok(CloudFormat::Las));
     assert_eq!(CloudFormat::from_extension("LAS"), Some(CloudFormat::Las));
-    assert!("laz".parse::<CloudFormat>().is_err());
+    assert_eq!("laz".parse::<CloudFormat>(), Ok(CloudFormat::Las));
+    assert_eq!(CloudFormat::from_extension("laz"), Some(CloudFormat::Las));
     // A PNG whose length is a multiple of 16 is no longer taken for KITTI .bin.
     let mut png = b"\x89PNG\r\n\x1a\n".to_vec();
     png.resize(64, 0);
