@@ -68,9 +68,10 @@ def _same(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def weight_table(name: str, module: torch.nn.Module, correlation: bool, seed: int = 0):
-    """[(parameter name or None, transposed)] per initializer of `module`'s export, in first-use
-    order, and the export's arrays (for the shapes). Raises ValueError when a parameter other than
-    a BatchNorm scale has no initializer."""
+    """Tags `module` (distinct values: the exporter merges equal constants, such as fresh zero
+    shifts) and returns [(parameter name or None, transposed)] per initializer of its export, in
+    first-use order, and the export's arrays (for the shapes). Raises ValueError when a parameter
+    other than a BatchNorm scale has no initializer."""
     _tag(module, seed)
     arrays = first_use_order(onnx.load_from_string(onnx_bytes(name, module.eval(), correlation)))
     params = {k: p.detach().numpy() for k, p in module.named_parameters()}
@@ -94,14 +95,16 @@ def weight_table(name: str, module: torch.nn.Module, correlation: bool, seed: in
     return table, arrays
 
 
-def _matches(module_set: dict, onnx_graphs: dict, correlation: bool) -> bool:
-    for name, model in onnx_graphs.items():
-        _tag(module_set[name], 0)  # distinct values: the exporter merges equal constants (fresh zero shifts)
-        ours = first_use_order(onnx.load_from_string(onnx_bytes(name, module_set[name].eval(), correlation)))
-        theirs = first_use_order(model)
-        if [a.shape for a in ours] != [a.shape for a in theirs]:
-            return False
-    return True
+def _tables_if_matching(models: dict, graphs: dict, correlation: bool) -> dict | None:
+    """{graph: `weight_table`} when every graph's tagged export of `models` has the model set's
+    initializer shapes in the same order, else None (another architecture)."""
+    tables = {}
+    for name, model in graphs.items():
+        table, ours = weight_table(name, models[name], correlation)
+        if [a.shape for a in ours] != [a.shape for a in first_use_order(model)]:
+            return None
+        tables[name] = table
+    return tables
 
 
 def check_against_onnx(name: str, module: torch.nn.Module, model: onnx.ModelProto, correlation: bool) -> float:
@@ -135,29 +138,24 @@ def import_models(model_dir: Path) -> tuple[dict[str, torch.nn.Module], dict]:
     doc = json.loads((model_dir / "manifest.json").read_text())
     correlation = doc.get("state_2d", {}).get("form", "features") == "correlation"
     graphs = {name: onnx.load(str(model_dir / spec["file"])) for name, spec in doc["graphs"].items()}
-    for norm in NORMS:
-        for edges in (False, True):
-            if _matches(build_all(norm, edges), graphs, correlation):
-                arch = dict(norm=norm, image_edges=edges)
-                break
-        else:
-            continue
-        break
+    for arch in (dict(norm=norm, image_edges=edges) for norm in NORMS for edges in (False, True)):
+        models = build_all(**arch)
+        tables = _tables_if_matching(models, graphs, correlation)
+        if tables is not None:
+            break
     else:
         raise ValueError(f"{model_dir}: no architecture of models.build_all has these graphs' initializers")
 
-    models = build_all(**arch)
+    # The tagged modules have the folded BatchNorm's identity statistics already; only the
+    # matched parameters take the set's values.
     errors = {}
     for name, module in models.items():
-        table, _ = weight_table(name, module, correlation)
-        theirs = first_use_order(graphs[name])
-        state = module.state_dict()
+        state = module.state_dict()  # references to the module's tensors
         with torch.no_grad():
-            for (param, transposed), arr in zip(table, theirs):
+            for (param, transposed), arr in zip(tables[name], first_use_order(graphs[name])):
                 if param is not None:
                     value = torch.from_numpy(arr.T.copy() if transposed else arr.copy())
                     state[param].copy_(value.reshape(state[param].shape))
-        module.load_state_dict(state)
         errors[name] = check_against_onnx(name, module, graphs[name], correlation)
 
     training = doc.get("provenance", {}).get("training", {})
