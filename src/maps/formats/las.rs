@@ -12,6 +12,26 @@ use std::io::Cursor;
 
 use super::{check_count, CloudBuilder, FormatError, Limits, Parsed};
 
+/// The LASzip layout of a LAS point data format byte (offset 104 of the header): LAZ writers set
+/// bit 7 (and some bit 6); the point format is the low six bits.
+pub(crate) struct PointFormatByte(pub u8);
+
+impl PointFormatByte {
+    pub(crate) fn compressed(&self) -> bool {
+        self.0 & 0xc0 != 0
+    }
+
+    pub(crate) fn format(&self) -> u8 {
+        self.0 & 0x3f
+    }
+
+    /// LAZ of formats 6-10, compressed in layers whose sizes the `laz` crate allocates as the
+    /// stream declares them (up to 4 GB each, before reading a byte): not taken from uploads.
+    pub(crate) fn layered_laz(&self) -> bool {
+        self.compressed() && self.format() > 5
+    }
+}
+
 /// Points read per batch, so the raw record buffer stays small beside the cloud.
 const BATCH: usize = 1 << 16;
 
@@ -47,9 +67,7 @@ fn read_compressed(bytes: &[u8], count: usize, limits: Limits) -> Result<Parsed,
         if got == 0 {
             return Err(FormatError::Truncated(format!("LAZ declares {count} points, the compressed data holds {read}")));
         }
-        for (((x, y), z), i) in data.x().zip(data.y()).zip(data.z()).zip(data.intensity()) {
-            builder.push(x, y, z, i as f64)?;
-        }
+        push_batch(&data, &mut builder)?;
         read += got;
     }
     Ok(builder.finish())
@@ -66,11 +84,17 @@ fn read_points(bytes: &[u8], count: usize, offset: usize, limits: Limits) -> Res
     let mut builder = CloudBuilder::new(count, true, limits);
     for chunk in records.chunks(BATCH * record.max(1)) {
         let data = las::PointDataBuilder::new().for_header(&header).build_from_bytes(chunk.to_vec()).map_err(las_error)?;
-        for (((x, y), z), i) in data.x().zip(data.y()).zip(data.z()).zip(data.intensity()) {
-            builder.push(x, y, z, i as f64)?;
-        }
+        push_batch(&data, &mut builder)?;
     }
     Ok(builder.finish())
+}
+
+/// A batch's x, y, z (scale and offset applied) and raw intensity into the cloud.
+fn push_batch(data: &las::PointData, builder: &mut CloudBuilder) -> Result<(), FormatError> {
+    for (((x, y), z), i) in data.x().zip(data.y()).zip(data.z()).zip(data.intensity()) {
+        builder.push(x, y, z, i as f64)?;
+    }
+    Ok(())
 }
 
 /// What `check_header` found: the point count, the offset of the first record, and whether the
@@ -88,8 +112,8 @@ fn check_header(bytes: &[u8], limits: Limits) -> Result<CheckedHeader, FormatErr
         las::Error::Io(_) => FormatError::Truncated(format!("the LAS header is cut short ({} bytes)", bytes.len())),
         other => FormatError::Header(format!("LAS: {other}")),
     })?;
-    // LAZ writers set bit 7 of the point data format (and some bit 6).
-    let compressed = raw.point_data_record_format & 0xc0 != 0;
+    let format = PointFormatByte(raw.point_data_record_format);
+    let compressed = format.compressed();
     let legacy = u64::from(raw.number_of_point_records);
     let declared = match raw.large_file {
         Some(large) if legacy == 0 => large.number_of_point_records,
@@ -121,12 +145,10 @@ fn check_header(bytes: &[u8], limits: Limits) -> Result<CheckedHeader, FormatErr
         }
     }
     if compressed {
-        // Formats 6-10 are compressed in layers whose sizes the `laz` crate allocates as the
-        // stream declares them (up to 4 GB each, before reading a byte): not taken from uploads.
-        if raw.point_data_record_format & 0x3f > 5 {
+        if format.layered_laz() {
             return Err(FormatError::Unsupported(format!(
                 "LAZ with point format {} (LAS 1.4 layered compression); upload LAZ with point formats 0-5 or the decompressed LAS",
-                raw.point_data_record_format & 0x3f
+                format.format()
             )));
         }
         if raw.point_data_record_length > MAX_LAZ_RECORD {

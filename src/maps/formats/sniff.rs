@@ -10,7 +10,7 @@
 //! below 2⁻³² for a scan), or makes the first x a value no scan holds (gzip: 0 < |x| < 3e-20 m;
 //! the JPEG markers: |x| > 7e16 m), so a headerless KITTI `.bin` is not mistaken for one of them.
 
-use super::{pcd, CloudFormat};
+use super::{las, pcd, CloudFormat};
 
 /// What the body looks like.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -33,10 +33,10 @@ pub fn content(bytes: &[u8]) -> Content {
         return Content::Gzip;
     }
     if starts(b"LASF") {
-        // LAS or LAZ (bit 7 or 6 of the point data format at offset 104), which the LAS reader
-        // decompresses, except the layered formats 6-10 (`formats::las`).
+        // LAS or LAZ (the point data format byte at offset 104), which the LAS reader
+        // decompresses, except the layered formats 6-10.
         return match bytes.get(104) {
-            Some(f) if f & 0xc0 != 0 && f & 0x3f > 5 => Content::NotACloud("LAZ with a layered point format (6-10)"),
+            Some(&f) if las::PointFormatByte(f).layered_laz() => Content::NotACloud("LAZ with a layered point format (6-10)"),
             _ => Content::Cloud(CloudFormat::Las),
         };
     }
