@@ -2,6 +2,7 @@
 
     python -m cmr.export --checkpoint runs/x/agent.pt --out ../models [--validation eval.json]
     python -m cmr.export --to-correlation ../models
+    python -m cmr.export --checkpoint runs/x/agent.pt --out ../models --agent-only
 
 Without --checkpoint the graphs carry their random initialisation (said so in the provenance).
 Every file is written atomically (temp file in the same directory, fsync, rename).
@@ -269,6 +270,39 @@ def to_correlation(model_dir: Path, seed: int = 0) -> dict:
     return doc
 
 
+def replace_agent(model_dir: Path, agent: Agent, source: str, seed: int = 0, rtol: float = 1e-5) -> dict:
+    """Replaces the agent graph of the correlation-form model set in `model_dir` by `agent`
+    exported with today's code, when it answers as the graph it replaces: on random states (a
+    batch of 4) the relative error of the logits and the value must stay below `rtol`, else
+    ValueError and nothing is written. For changes to how `models.Agent` computes, not what
+    (e.g. `Agent.pooled_points`): the weights are the same, ONNX Runtime runs a different graph.
+    Updates the manifest's agent sha256 and FLOPs and notes `source` in its provenance."""
+    import onnxruntime as ort
+
+    model_dir = Path(model_dir)
+    doc = json.loads((model_dir / "manifest.json").read_text())
+    if doc.get("state_2d", {}).get("form") != "correlation":
+        raise ValueError(f"{model_dir}: not a correlation-form model set (convert it with --to-correlation first)")
+    spec = doc["graphs"]["agent"]
+    data = onnx_bytes("agent", agent.eval())
+    state_2d, state_3d = example_inputs("agent", batch=4, seed=seed)
+    with torch.no_grad():
+        feeds = {"correlation": agent.correlate(state_2d).numpy(), "state_3d": state_3d.numpy()}
+    old = ort.InferenceSession(str(model_dir / spec["file"]), providers=["CPUExecutionProvider"]).run(None, feeds)
+    new = ort.InferenceSession(data, providers=["CPUExecutionProvider"]).run(None, feeds)
+    rel = max(float(np.abs(w - g_).max() / max(np.abs(w).max(), 1e-6)) for w, g_ in zip(old, new))
+    if not rel < rtol:
+        raise ValueError(f"{model_dir}: the new agent graph differs from the one it replaces (relative error {rel:.2e})")
+    atomic_write_bytes(model_dir / spec["file"], data)
+    spec["sha256"] = hashlib.sha256(data).hexdigest()
+    spec["flops"] = count_flops(onnx.load_from_string(data), {"B": 1})[0]
+    doc.setdefault("provenance", {})["agent_graph"] = (
+        f"re-exported from {source} by `python -m cmr.export --agent-only` with the code of commit {git_commit()} "
+        f"(same weights; relative error against the previous graph {rel:.1e})")
+    atomic_write_bytes(model_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
+    return doc
+
+
 def load_models(checkpoint: Path | None) -> tuple[dict[str, torch.nn.Module], dict]:
     models = build_all()
     meta: dict = {}
@@ -295,7 +329,17 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=0, help="init seed when no checkpoint is given")
     ap.add_argument("--to-correlation", type=Path, metavar="DIR",
                     help="convert the features-form model set in DIR to the correlation form, in place")
+    ap.add_argument("--agent-only", action="store_true",
+                    help="replace only the agent graph of the model set in --out by the checkpoint's agent, "
+                         "checked against the graph it replaces (same weights, a faster graph)")
     args = ap.parse_args(argv)
+    if args.agent_only:
+        if args.checkpoint is None:
+            ap.error("--agent-only needs --checkpoint")
+        models, _ = load_models(args.checkpoint)
+        doc = replace_agent(args.out, models["agent"], str(args.checkpoint))
+        print(json.dumps({"agent": doc["graphs"]["agent"], "provenance": doc["provenance"]["agent_graph"]}, indent=2))
+        return
     if args.to_correlation:
         doc = to_correlation(args.to_correlation)
         print(json.dumps({"state_2d": doc["state_2d"], "agent": doc["graphs"]["agent"]}, indent=2))

@@ -115,3 +115,35 @@ def test_to_correlation_refuses_an_agent_without_a_correlation(tmp_path):
     export_models(models, tmp_path, dict(data="test", seeds={}))
     with pytest.raises(ValueError, match="not models.Agent"):
         to_correlation(tmp_path)
+
+
+def test_agent_only_replaces_the_agent_graph_when_it_answers_the_same(tmp_path):
+    """`--agent-only`: today's graph of the same weights replaces the old one; other weights are
+    refused and leave the set as it was."""
+    from cmr.export import replace_agent
+    torch.manual_seed(3)
+    models = build_all()
+    for m in models.values():
+        m.eval()
+    export_models(models, tmp_path, dict(data="test", seeds={}))
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    other = build_all()["agent"].eval()
+    with pytest.raises(ValueError, match="differs"):
+        replace_agent(tmp_path, other, "other")
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    doc = replace_agent(tmp_path, models["agent"], "same")
+    assert hashlib.sha256((tmp_path / "agent.onnx").read_bytes()).hexdigest() == doc["graphs"]["agent"]["sha256"]
+    assert "same" in doc["provenance"]["agent_graph"]
+    assert json.loads((tmp_path / "manifest.json").read_text()) == doc
+    for name in ("point_encoder", "image_encoder", "frustum_head"):
+        assert (tmp_path / f"{name}.onnx").read_bytes() == before[f"{name}.onnx"]
+
+
+def test_pooled_points_is_the_pointnet_max(exported):
+    """`Agent.pooled_points` (channel-major, bias and ReLU after the max) is `pointnet(...).amax`."""
+    agent = exported[0]["agent"]
+    _, state_3d = example_inputs("agent", batch=3, seed=4)
+    with torch.no_grad():
+        want = agent.pointnet(state_3d).amax(dim=1)
+        got = agent.pooled_points(state_3d)
+    assert torch.allclose(got, want, rtol=1e-5, atol=1e-6)
