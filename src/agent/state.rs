@@ -218,22 +218,49 @@ pub fn write_state(
 /// which must be all zero, zeroes the scratch again and returns the alignment score, as `drain`
 /// would (the same products summed in the same order), in one cell-major pass. Twin of
 /// `Agent.correlate` in `training/cmr/models.py`: the per-cell mean, its norm n, occupancy n >
-/// 1e-6, unit = mean / (n + 1e-6), and one dot product with a shifted image cell per shift.
+/// 1e-6, unit = mean / (n + 1e-6), and one dot product with a shifted image cell per shift (here
+/// the mean and the unit vector are multiplications by the reciprocal, which moves the last bit).
 fn write_correlation(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) -> f32 {
-    // The feature width of every model so far, unrolled; any other width takes the general loop.
-    match layout.dim {
-        64 => correlate_cells::<64>(layout, shifts, image_cells, scratch, out),
-        _ => correlate_cells::<0>(layout, shifts, image_cells, scratch, out),
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU has AVX2 (checked just above), all `correlate_avx2` requires.
+        return unsafe { correlate_avx2(layout, shifts, image_cells, scratch, out) };
+    }
+    // SAFETY: `Portable` is plain Rust.
+    unsafe {
+        match layout.dim {
+            64 => correlate_cells::<64, Portable>(layout, shifts, image_cells, scratch, out),
+            _ => correlate_cells::<0, Portable>(layout, shifts, image_cells, scratch, out),
+        }
     }
 }
 
-/// `write_correlation` for feature width `D` (0: `layout.dim`, not known at compile time).
-/// Compiled also for AVX2 and chosen at run time where the CPU has it (`multiversion`): wider
-/// vectors for the same operations in the same order (no FMA), so the same results.
-#[multiversion::multiversion(targets("x86_64+avx2"))]
-fn correlate_cells<const D: usize>(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) -> f32 {
+/// `correlate_cells` compiled for AVX2, with `Avx`'s dot products.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn correlate_avx2(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) -> f32 {
+    // SAFETY: AVX2 includes AVX, all `Avx` requires; the caller guarantees AVX2.
+    unsafe {
+        match layout.dim {
+            64 => correlate_cells::<64, Avx>(layout, shifts, image_cells, scratch, out),
+            _ => correlate_cells::<0, Avx>(layout, shifts, image_cells, scratch, out),
+        }
+    }
+}
+
+/// `write_correlation` for feature width `D` (0: `layout.dim`, not known at compile time) with
+/// the dot products of `L` (every `Lanes` gives the same results, so every build answers alike).
+///
+/// # Safety
+/// The CPU must support `L`'s instructions.
+#[inline(always)]
+unsafe fn correlate_cells<const D: usize, L: Lanes>(layout: &StateLayout, shifts: Shifts, image_cells: &[f32], scratch: &mut ScatterScratch, out: &mut [f32]) -> f32 {
     let (d, w, h, cells) = (layout.dim, layout.grid_width, layout.grid_height, layout.cells());
-    debug_assert!(D == 0 || D == d);
+    let d = if D > 0 { D } else { d };
+    debug_assert_eq!(d, layout.dim);
     debug_assert_eq!(image_cells.len(), d * cells);
     debug_assert_eq!(out.len(), shifts.channels() * cells);
     let ScatterScratch { sums, counts, touched, unit, channel_dots, .. } = scratch;
@@ -241,6 +268,7 @@ fn correlate_cells<const D: usize>(layout: &StateLayout, shifts: Shifts, image_c
     // alignment sums `drain`'s order).
     touched.sort_unstable();
     unit.resize(d, 0.0);
+    let unit = &mut unit[..d];
     let image_cell = |cell: usize| &image_cells[cell * d..(cell + 1) * d];
     let occupancy = shifts.channels() - 1;
     // The alignment's per-channel sums, each over the cells in ascending order, as in `drain`.
@@ -256,29 +284,29 @@ fn correlate_cells<const D: usize>(layout: &StateLayout, shifts: Shifts, image_c
         for ((acc, s), i) in channel_dots.iter_mut().zip(sum.iter()).zip(image_cell(cell)) {
             *acc += (s * i) as f64;
         }
-        let count = count as f32;
+        let per_point = 1.0 / count as f32;
         for (u, s) in unit.iter_mut().zip(sum.iter_mut()) {
-            *u = *s / count;
+            *u = *s * per_point;
             *s = 0.0;
         }
-        // In eight lanes like every dot product here (one long chain of additions was the
-        // slowest part of the loop).
-        let norm = dot::<D>(unit, unit).sqrt();
+        // SAFETY (the three `L::dot`): the caller guarantees `L`'s instructions.
+        let norm = unsafe { L::dot(unit, unit) }.sqrt();
         if !(norm > 1e-6) {
             continue;
         }
-        unit.iter_mut().for_each(|u| *u /= norm + 1e-6);
+        let per_norm = 1.0 / (norm + 1e-6);
+        unit.iter_mut().for_each(|u| *u *= per_norm);
         let (row, col) = (cell / w, cell % w);
         for (k, &s) in shifts.rows().iter().enumerate() {
             let other = col as isize + s as isize;
             if (0..w as isize).contains(&other) {
-                out[k * cells + cell] = dot::<D>(unit, image_cell(row * w + other as usize));
+                out[k * cells + cell] = unsafe { L::dot(unit, image_cell(row * w + other as usize)) };
             }
         }
         for (k, &s) in shifts.columns().iter().enumerate() {
             let other = row as isize + s as isize;
             if (0..h as isize).contains(&other) {
-                out[(shifts.rows().len() + k) * cells + cell] = dot::<D>(unit, image_cell(other as usize * w + col));
+                out[(shifts.rows().len() + k) * cells + cell] = unsafe { L::dot(unit, image_cell(other as usize * w + col)) };
             }
         }
         out[occupancy * cells + cell] = 1.0;
@@ -287,29 +315,71 @@ fn correlate_cells<const D: usize>(layout: &StateLayout, shifts: Shifts, image_c
     if in_view == 0 { -1.0 } else { (channel_dots.iter().sum::<f64>() / in_view as f64) as f32 }
 }
 
-/// f32 dot product in eight independent lanes (so the compiler can use SIMD); `D` > 0 fixes the
-/// length at compile time (fully unrolled, no bounds checks).
-#[inline(always)]
-fn dot<const D: usize>(a: &[f32], b: &[f32]) -> f32 {
-    if D > 0 && D % 8 == 0 {
-        let (a, b): (&[f32; D], &[f32; D]) = (a.try_into().expect("dim"), b.try_into().expect("dim"));
-        let mut lanes = [0f32; 8];
-        for i in (0..D).step_by(8) {
+/// The correlation's f32 dot product, in one order whatever the instructions: eight lanes, lane
+/// j the sum of a[8k + j]·b[8k + j] over k ascending (each product rounded, then added: no fused
+/// multiply-add), the lanes folded in halves, ((l0 + l4) + (l2 + l6)) + ((l1 + l5) + (l3 + l7)),
+/// then the tail beyond a multiple of eight added in order. `Portable` and `Avx` give the same
+/// bits (test `dot_products_agree_to_the_bit`).
+trait Lanes {
+    /// # Safety
+    /// The CPU must support the implementation's instructions.
+    unsafe fn dot(a: &[f32], b: &[f32]) -> f32;
+}
+
+/// `Lanes` in plain Rust (any CPU).
+struct Portable;
+
+impl Lanes for Portable {
+    #[inline(always)]
+    unsafe fn dot(a: &[f32], b: &[f32]) -> f32 {
+        let n = a.len().min(b.len());
+        let body = n / 8 * 8;
+        let mut l = [0f32; 8];
+        for (x, y) in a[..body].chunks_exact(8).zip(b[..body].chunks_exact(8)) {
             for j in 0..8 {
-                lanes[j] += a[i + j] * b[i + j];
+                l[j] += x[j] * y[j];
             }
         }
-        return lanes.iter().sum();
-    }
-    let mut lanes = [0f32; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f32 = ca.remainder().iter().zip(cb.remainder()).map(|(x, y)| x * y).sum();
-    for (x, y) in ca.zip(cb) {
-        for i in 0..8 {
-            lanes[i] += x[i] * y[i];
+        let half = [l[0] + l[4], l[1] + l[5], l[2] + l[6], l[3] + l[7]];
+        let mut sum = (half[0] + half[2]) + (half[1] + half[3]);
+        for i in body..n {
+            sum += a[i] * b[i];
         }
+        sum
     }
-    lanes.iter().sum::<f32>() + tail
+}
+
+/// `Lanes` in one 256-bit register (AVX). Inlined into `correlate_avx2`, which is compiled for
+/// AVX2, so the intrinsics inline too.
+#[cfg(target_arch = "x86_64")]
+struct Avx;
+
+#[cfg(target_arch = "x86_64")]
+impl Lanes for Avx {
+    #[inline(always)]
+    unsafe fn dot(a: &[f32], b: &[f32]) -> f32 {
+        use std::arch::x86_64::*;
+        let n = a.len().min(b.len());
+        let body = n / 8 * 8;
+        // SAFETY: every load reads 8 floats at an offset + 8 <= body <= both lengths; the CPU
+        // has AVX (the caller's guarantee).
+        let mut sum = unsafe {
+            let mut acc = _mm256_setzero_ps();
+            let mut i = 0;
+            while i < body {
+                acc = _mm256_add_ps(acc, _mm256_mul_ps(_mm256_loadu_ps(a.as_ptr().add(i)), _mm256_loadu_ps(b.as_ptr().add(i))));
+                i += 8;
+            }
+            // [l0 + l4, l1 + l5, l2 + l6, l3 + l7], then [h0 + h2, h1 + h3, ..], then the two.
+            let half = _mm_add_ps(_mm256_castps256_ps128(acc), _mm256_extractf128_ps::<1>(acc));
+            let quarter = _mm_add_ps(half, _mm_movehl_ps(half, half));
+            _mm_cvtss_f32(_mm_add_ss(quarter, _mm_shuffle_ps::<1>(quarter, quarter)))
+        };
+        for i in body..n {
+            sum += a[i] * b[i];
+        }
+        sum
+    }
 }
 
 /// How well a pose explains the image: the mean, over the sampled points in view, of the dot
@@ -401,10 +471,22 @@ fn transform(rows: &[[f64; 4]; 3], p: &[f32; 3]) -> Point3<f64> {
 /// `StateLayout::cell_of` written without branches so the compiler can use vector lanes; also
 /// compiled for AVX2 and AVX-512 and chosen at run time. No fused multiply-adds (Rust does not
 /// contract), so every build gives the same cells as `cell_of`.
-#[multiversion::multiversion(targets("x86_64+avx512f+avx512vl+avx512dq", "x86_64+avx2"))]
 fn cells_of(layout: &StateLayout, k: &Intrinsics, rows: &[[f64; 4]; 3], points: &[[f32; 3]], cells: &mut [u32]) {
+    // Dividing by a power of two is multiplying by its reciprocal, to the bit (both are the
+    // exact quotient, rounded once), and a multiplication is several times cheaper.
+    if layout.stride.is_power_of_two() {
+        cells_with::<true>(layout, k, rows, points, cells)
+    } else {
+        cells_with::<false>(layout, k, rows, points, cells)
+    }
+}
+
+/// `cells_of`, dividing by the stride (`POW2` false) or multiplying by its exact reciprocal.
+#[multiversion::multiversion(targets("x86_64+avx512f+avx512vl+avx512dq", "x86_64+avx2"))]
+fn cells_with<const POW2: bool>(layout: &StateLayout, k: &Intrinsics, rows: &[[f64; 4]; 3], points: &[[f32; 3]], cells: &mut [u32]) {
     let (right, bottom) = (layout.image_width as f64 - 0.5, layout.image_height as f64 - 0.5);
-    let stride = layout.stride as f64;
+    let (stride, per_stride) = (layout.stride as f64, 1.0 / layout.stride as f64);
+    let cell = |x: f64| if POW2 { x * per_stride } else { x / stride };
     let (last_row, last_col) = ((layout.grid_height - 1) as f64, (layout.grid_width - 1) as f64);
     let width = layout.grid_width as u32;
     for (p, out) in points.iter().zip(cells.iter_mut()) {
@@ -413,8 +495,8 @@ fn cells_of(layout: &StateLayout, k: &Intrinsics, rows: &[[f64; 4]; 3], points: 
         let inside = c.z >= MIN_DEPTH_M && u >= -0.5 && v >= -0.5 && u < right && v < bottom;
         // In view, (u + 0.5) / stride is in [0, grid width]: clamping before the cast is the
         // same as `cell_of`'s cast then min.
-        let row = ((v + 0.5) / stride).floor().clamp(0.0, last_row) as u32;
-        let col = ((u + 0.5) / stride).floor().clamp(0.0, last_col) as u32;
+        let row = cell(v + 0.5).floor().clamp(0.0, last_row) as u32;
+        let col = cell(u + 0.5).floor().clamp(0.0, last_col) as u32;
         *out = if inside { row * width + col } else { OUT_OF_VIEW };
     }
 }
@@ -582,6 +664,30 @@ mod tests {
     }
 
     #[test]
+    fn dot_products_agree_to_the_bit() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for len in (0..20).chain([63, 64, 65, 130]) {
+            for _ in 0..50 {
+                let mut a: Vec<f32> = (0..len).map(|_| rng.random_range(-1.0f32..1.0) * 10f32.powi(rng.random_range(-6..4))).collect();
+                let b: Vec<f32> = (0..len).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+                if len > 3 {
+                    a[1] = -0.0;
+                    a[2] = f32::MIN_POSITIVE / 4.0; // subnormal
+                }
+                // SAFETY: `Portable` is plain Rust; `Avx` only where the CPU has AVX.
+                let portable = unsafe { Portable::dot(&a, &b) };
+                let sequential: f64 = a.iter().zip(&b).map(|(x, y)| *x as f64 * *y as f64).sum();
+                assert!((portable as f64 - sequential).abs() <= 1e-5 * (1.0 + a.iter().zip(&b).map(|(x, y)| (x * y).abs() as f64).sum::<f64>()));
+                #[cfg(target_arch = "x86_64")]
+                if std::arch::is_x86_feature_detected!("avx") {
+                    assert_eq!(unsafe { Avx::dot(&a, &b) }.to_bits(), portable.to_bits(), "length {len}");
+                }
+            }
+        }
+    }
+
+    #[test]
     fn vector_cells_equal_cell_of_for_every_point() {
         // Random points, points on the frustum's edges (cell boundaries, the depth limit, the
         // image border) and non-finite ones, through a turned and shifted pose.
@@ -607,15 +713,18 @@ mod tests {
         }
         points.extend([[f32::NAN, 0.0, 0.0], [f32::INFINITY, 1.0, 1.0], [0.0, 0.0, f32::NEG_INFINITY]]);
         let rows = matrix_rows(&pose);
-        let mut cells = vec![0u32; points.len()];
-        cells_of(&layout, &k, &rows, &points, &mut cells);
-        let mut in_view = 0;
-        for (p, c) in points.iter().zip(&cells) {
-            let want = layout.cell_of(&k, &transform(&rows, p)).map_or(OUT_OF_VIEW, |c| c as u32);
-            assert_eq!(*c, want, "{p:?}");
-            in_view += (want != OUT_OF_VIEW) as usize;
+        // A power-of-two stride (multiplied by its reciprocal) and another one (divided by).
+        for layout in [layout, StateLayout { stride: 3, grid_height: 54, grid_width: 171, ..layout }] {
+            let mut cells = vec![0u32; points.len()];
+            cells_of(&layout, &k, &rows, &points, &mut cells);
+            let mut in_view = 0;
+            for (p, c) in points.iter().zip(&cells) {
+                let want = layout.cell_of(&k, &transform(&rows, p)).map_or(OUT_OF_VIEW, |c| c as u32);
+                assert_eq!(*c, want, "{p:?}, stride {}", layout.stride);
+                in_view += (want != OUT_OF_VIEW) as usize;
+            }
+            assert!(in_view > 1000, "{in_view} points in view: the test would not test much");
         }
-        assert!(in_view > 1000, "{in_view} points in view: the test would not test much");
     }
 
     #[test]
