@@ -258,8 +258,11 @@ fn begin(backend: &mut dyn Backend, start: &Start, layout: &StateLayout) -> Resu
     let t = Instant::now();
     let image_features = backend.encode_image(&start.image_tensor).map_err(|e| StepError::Inference(format!("image encoder: {e:#}")))?;
     let image_encoder_ms = ms(t);
+    // The frustum head's answers are read for the state points only (the 3D state and the
+    // confidence), so it runs on those: M of the N points, a twentieth of the work.
     let t = Instant::now();
-    let logits = backend.frustum_logits(&map.features, &image_features).map_err(|e| StepError::Inference(format!("frustum head: {e:#}")))?;
+    let state_features = &map.features[..manifest.points.num_state_points * manifest.features.dim];
+    let logits = backend.frustum_logits(state_features, &image_features).map_err(|e| StepError::Inference(format!("frustum head: {e:#}")))?;
     let frustum_head_ms = ms(t);
     let image_features = state::ImageGrid::new(layout, image_features);
     let evidence = ImageEvidence { image_features, frustum_probs: logits.iter().map(|l| state::sigmoid(*l)).collect(), intrinsics: start.intrinsics };

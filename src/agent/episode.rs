@@ -30,7 +30,8 @@ pub struct Step {
 #[derive(Debug, Clone, Copy)]
 pub struct Confidence {
     /// Intersection-over-union between the points the frustum head predicts in view (sigmoid > 0.5)
-    /// and the points in view at the final pose: high when the pose explains what the image shows.
+    /// and the points in view at the final pose, over the M state points (a random sample of the
+    /// map's points): high when the pose explains what the image shows.
     pub frustum_iou: f32,
     /// The last step's policy certainty (mean over DoF of the argmax probability).
     pub policy_certainty: f32,
@@ -45,7 +46,7 @@ pub struct Confidence {
 pub struct ImageEvidence {
     /// Image features [D, GH, GW] (and cell-major where the state needs them).
     pub image_features: ImageGrid,
-    /// sigmoid(frustum logit) per sampled map point.
+    /// sigmoid(frustum logit) of the first M sampled map points (the state points).
     pub frustum_probs: Vec<f32>,
     /// The crop's intrinsics.
     pub intrinsics: Intrinsics,
@@ -154,6 +155,7 @@ impl Episode {
         let iso = self.pose.0;
         let (mut both, mut either) = (0usize, 0usize);
         let e = &self.evidence;
+        // Over the points the frustum head ran on (the state points).
         for (p, prob) in map.points.iter().zip(&e.frustum_probs) {
             let p_cam = iso * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
             let in_view = e.intrinsics.in_frustum(&p_cam, layout.image_width, layout.image_height);

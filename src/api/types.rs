@@ -92,7 +92,8 @@ impl From<&Step> for StepBody {
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct ConfidenceBody {
     pub score: f32,
-    /// IoU of the points the frustum head predicts in view and the points in view at the final pose.
+    /// IoU of the points the frustum head predicts in view and the points in view at the final
+    /// pose, over the model's state points (a random sample of M = 2,048 of the region's points).
     pub frustum_iou: f32,
     /// The last step's mean (over DoF) probability of the chosen step.
     pub policy_certainty: f32,
