@@ -60,6 +60,10 @@ class Config:
     embed_warmup: int = 0
     embed_lr_min: float = 1e-5
     embed_grad_clip: float = 0.0  # max gradient norm in stage 1 (0: no clipping)
+    # Stage 1 with the BatchNorm layers in evaluation mode (their running statistics fixed, the
+    # affine parameters still learned): for fine-tuning, where batch statistics at batch 2 would
+    # change the function at step 0 (an imported model's BatchNorm is folded to identity statistics).
+    embed_frozen_bn: bool = False
     # The encoders' normalisation (models.NORMS): "batch" (up to v3) or "group" (per-sample statistics).
     norm: str = "batch"
     # Optional, off: the image encoder also sees its input's luma gradient magnitude, computed in
@@ -331,10 +335,19 @@ class Run:
             stats = dict(precision=tp / max(pred.sum().item(), 1), recall=tp / max(labels.sum().item(), 1))
         return circle + cfg.bce_weight * bce, dict(circle=circle.item(), bce=bce.item(), **stats)
 
-    def train_embed(self, deadline: float) -> None:
-        cfg = self.cfg
+    def embed_train_mode(self) -> None:
+        """The stage-1 modules in training mode; with `embed_frozen_bn`, their BatchNorm layers
+        stay in evaluation mode."""
         for k in ("point_encoder", "image_encoder", "frustum_head"):
             self.models[k].train()
+            if self.cfg.embed_frozen_bn:
+                for m in self.models[k].modules():
+                    if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+                        m.eval()
+
+    def train_embed(self, deadline: float) -> None:
+        cfg = self.cfg
+        self.embed_train_mode()
         started = time.time()
         while self.embed_step < cfg.embed_steps and time.time() < deadline:
             if cfg.embed_seconds > 0 and time.time() - started >= cfg.embed_seconds:
@@ -368,8 +381,7 @@ class Run:
                 self.save("last.pt")
             if cfg.embed_eval_every and (self.embed_step % cfg.embed_eval_every == 0 or self.embed_step == cfg.embed_steps):
                 self.validate_embeddings()
-                for k in ("point_encoder", "image_encoder", "frustum_head"):
-                    self.models[k].train()
+                self.embed_train_mode()
         self.save("last.pt")
 
     def validate_embeddings(self) -> dict:

@@ -100,3 +100,21 @@ def test_edge_channel_lives_inside_the_graph(tmp_path):
     # The edge input and GroupNorm stay well inside the 25 % FLOP budget of issue 13.
     base = export_models({"image_encoder": build_all()["image_encoder"].eval()}, tmp_path / "b", dict(data="test"))
     assert doc["graphs"]["image_encoder"]["flops"] < 1.25 * base["graphs"]["image_encoder"]["flops"]
+
+
+def test_frozen_batch_norm_keeps_the_running_statistics(tmp_path, tiny_dataset):
+    """`embed_frozen_bn`: stage 1 trains the weights but leaves every BatchNorm's running
+    statistics (and so the function at step 0) as they were."""
+    run = small_run(tmp_path, tiny_dataset, embed_steps=2, agent_iters=0, embed_frozen_bn=True)
+    bns = [m for k in ("point_encoder", "image_encoder") for m in run.models[k].modules()
+           if isinstance(m, torch.nn.BatchNorm2d)]
+    assert bns
+    before = [(m.running_mean.clone(), m.running_var.clone()) for m in bns]
+    weights = run.models["image_encoder"].stem[0][0].weight.detach().clone()
+    run.train_embed(deadline=float("inf"))
+    assert all(torch.equal(m.running_mean, a) and torch.equal(m.running_var, b) for m, (a, b) in zip(bns, before))
+    assert not torch.equal(run.models["image_encoder"].stem[0][0].weight, weights)
+    thawed = small_run(tmp_path / "t", tiny_dataset, embed_steps=1, agent_iters=0)
+    thawed.train_embed(deadline=float("inf"))
+    assert not all(torch.equal(m.running_mean, torch.zeros_like(m.running_mean))
+                   for k in ("image_encoder",) for m in thawed.models[k].modules() if isinstance(m, torch.nn.BatchNorm2d))
