@@ -2,7 +2,7 @@
 
     python -m cmr.export --checkpoint runs/x/agent.pt --out ../models [--validation eval.json]
     python -m cmr.export --to-correlation ../models
-    python -m cmr.export --checkpoint runs/x/agent.pt --out ../models --agent-only
+    python -m cmr.export --checkpoint runs/x/agent.pt --out ../models --only agent,point_encoder
 
 Without --checkpoint the graphs carry their random initialisation (said so in the provenance).
 Every file is written atomically (temp file in the same directory, fsync, rename).
@@ -270,35 +270,47 @@ def to_correlation(model_dir: Path, seed: int = 0) -> dict:
     return doc
 
 
-def replace_agent(model_dir: Path, agent: Agent, source: str, seed: int = 0, rtol: float = 1e-5) -> dict:
-    """Replaces the agent graph of the correlation-form model set in `model_dir` by `agent`
-    exported with today's code, when it answers as the graph it replaces: on random states (a
-    batch of 4) the relative error of the logits and the value must stay below `rtol`, else
-    ValueError and nothing is written. For changes to how `models.Agent` computes, not what
-    (e.g. `Agent.pooled_points`): the weights are the same, ONNX Runtime runs a different graph.
-    Updates the manifest's agent sha256 and FLOPs and notes `source` in its provenance."""
+def replace_graphs(model_dir: Path, models: dict[str, torch.nn.Module], source: str, seed: int = 0,
+                   rtol: float = 1e-5) -> dict:
+    """Replaces the named graphs of the model set in `model_dir` by `models` exported with today's
+    code, when each answers as the graph it replaces: on the contract's example inputs (the agent:
+    a batch of 4 random states, in the set's state form) the relative error of every output must
+    stay below `rtol`, else ValueError and nothing is written. For changes to how a network
+    computes, not what (e.g. `Agent.pooled_points`, `scatter_max_rows`): the weights are the same,
+    ONNX Runtime runs a different graph. Updates the manifest's sha256 and FLOPs of each graph and
+    notes `source` in its provenance."""
     import onnxruntime as ort
 
     model_dir = Path(model_dir)
     doc = json.loads((model_dir / "manifest.json").read_text())
-    if doc.get("state_2d", {}).get("form") != "correlation":
+    correlation = doc.get("state_2d", {}).get("form") == "correlation"
+    if "agent" in models and not correlation:
         raise ValueError(f"{model_dir}: not a correlation-form model set (convert it with --to-correlation first)")
-    spec = doc["graphs"]["agent"]
-    data = onnx_bytes("agent", agent.eval())
-    state_2d, state_3d = example_inputs("agent", batch=4, seed=seed)
-    with torch.no_grad():
-        feeds = {"correlation": agent.correlate(state_2d).numpy(), "state_3d": state_3d.numpy()}
-    old = ort.InferenceSession(str(model_dir / spec["file"]), providers=["CPUExecutionProvider"]).run(None, feeds)
-    new = ort.InferenceSession(data, providers=["CPUExecutionProvider"]).run(None, feeds)
-    rel = max(float(np.abs(w - g_).max() / max(np.abs(w).max(), 1e-6)) for w, g_ in zip(old, new))
-    if not rel < rtol:
-        raise ValueError(f"{model_dir}: the new agent graph differs from the one it replaces (relative error {rel:.2e})")
-    atomic_write_bytes(model_dir / spec["file"], data)
-    spec["sha256"] = hashlib.sha256(data).hexdigest()
-    spec["flops"] = count_flops(onnx.load_from_string(data), {"B": 1})[0]
-    doc.setdefault("provenance", {})["agent_graph"] = (
-        f"re-exported from {source} by `python -m cmr.export --agent-only` with the code of commit {git_commit()} "
-        f"(same weights; relative error against the previous graph {rel:.1e})")
+    errors, new = {}, {}
+    for name, module in models.items():
+        spec = doc["graphs"][name]
+        data = onnx_bytes(name, module.eval(), correlation)
+        inputs = example_inputs(name, batch=4, seed=seed) if name == "agent" else example_inputs(name, seed=seed)
+        if name == "agent":
+            with torch.no_grad():
+                inputs = (module.correlate(inputs[0]), inputs[1])
+        old_session = ort.InferenceSession(str(model_dir / spec["file"]), providers=["CPUExecutionProvider"])
+        feeds = {i.name: t.numpy() for i, t in zip(old_session.get_inputs(), inputs)}
+        old = old_session.run(None, feeds)
+        got = ort.InferenceSession(data, providers=["CPUExecutionProvider"]).run(None, feeds)
+        errors[name] = max(float(np.abs(w - g_).max() / max(np.abs(w).max(), 1e-6)) for w, g_ in zip(old, got))
+        if not errors[name] < rtol:
+            raise ValueError(f"{model_dir}: the new {name} graph differs from the one it replaces "
+                             f"(relative error {errors[name]:.2e})")
+        new[name] = data
+    for name, data in new.items():
+        spec = doc["graphs"][name]
+        atomic_write_bytes(model_dir / spec["file"], data)
+        spec["sha256"] = hashlib.sha256(data).hexdigest()
+        spec["flops"] = count_flops(onnx.load_from_string(data), {"N": NUM_POINTS, "B": 1})[0]
+        doc.setdefault("provenance", {})[f"{name}_graph"] = (
+            f"re-exported from {source} by `python -m cmr.export --only` with the code of commit {git_commit()} "
+            f"(same weights; relative error against the previous graph {errors[name]:.1e})")
     atomic_write_bytes(model_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
     return doc
 
@@ -329,16 +341,20 @@ def main(argv=None) -> None:
     ap.add_argument("--seed", type=int, default=0, help="init seed when no checkpoint is given")
     ap.add_argument("--to-correlation", type=Path, metavar="DIR",
                     help="convert the features-form model set in DIR to the correlation form, in place")
-    ap.add_argument("--agent-only", action="store_true",
-                    help="replace only the agent graph of the model set in --out by the checkpoint's agent, "
-                         "checked against the graph it replaces (same weights, a faster graph)")
+    ap.add_argument("--only", metavar="NAMES",
+                    help="comma-separated graphs (e.g. agent,point_encoder): replace only these in the model set "
+                         "in --out by the checkpoint's, each checked against the graph it replaces (same weights, "
+                         "a faster graph)")
     args = ap.parse_args(argv)
-    if args.agent_only:
+    if args.only:
         if args.checkpoint is None:
-            ap.error("--agent-only needs --checkpoint")
+            ap.error("--only needs --checkpoint")
         models, _ = load_models(args.checkpoint)
-        doc = replace_agent(args.out, models["agent"], str(args.checkpoint))
-        print(json.dumps({"agent": doc["graphs"]["agent"], "provenance": doc["provenance"]["agent_graph"]}, indent=2))
+        names = args.only.split(",")
+        if unknown := [n for n in names if n not in models]:
+            ap.error(f"--only: unknown graphs {unknown}; the graphs are {list(models)}")
+        doc = replace_graphs(args.out, {n: models[n] for n in names}, str(args.checkpoint))
+        print(json.dumps({n: dict(doc["graphs"][n], provenance=doc["provenance"][f"{n}_graph"]) for n in names}, indent=2))
         return
     if args.to_correlation:
         doc = to_correlation(args.to_correlation)

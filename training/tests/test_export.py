@@ -117,26 +117,39 @@ def test_to_correlation_refuses_an_agent_without_a_correlation(tmp_path):
         to_correlation(tmp_path)
 
 
-def test_agent_only_replaces_the_agent_graph_when_it_answers_the_same(tmp_path):
-    """`--agent-only`: today's graph of the same weights replaces the old one; other weights are
+def test_only_replaces_the_named_graphs_when_they_answer_the_same(tmp_path):
+    """`--only`: today's graphs of the same weights replace the old ones; other weights are
     refused and leave the set as it was."""
-    from cmr.export import replace_agent
+    from cmr.export import replace_graphs
     torch.manual_seed(3)
     models = build_all()
     for m in models.values():
         m.eval()
     export_models(models, tmp_path, dict(data="test", seeds={}))
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
-    other = build_all()["agent"].eval()
-    with pytest.raises(ValueError, match="differs"):
-        replace_agent(tmp_path, other, "other")
-    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
-    doc = replace_agent(tmp_path, models["agent"], "same")
-    assert hashlib.sha256((tmp_path / "agent.onnx").read_bytes()).hexdigest() == doc["graphs"]["agent"]["sha256"]
-    assert "same" in doc["provenance"]["agent_graph"]
+    other = build_all()
+    for name in ("agent", "point_encoder"):
+        with pytest.raises(ValueError, match=f"new {name} graph differs"):
+            replace_graphs(tmp_path, {"frustum_head": models["frustum_head"], name: other[name].eval()}, "other")
+        assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+    doc = replace_graphs(tmp_path, {k: models[k] for k in ("agent", "point_encoder")}, "same")
+    for name in ("agent", "point_encoder"):
+        data = (tmp_path / f"{name}.onnx").read_bytes()
+        assert hashlib.sha256(data).hexdigest() == doc["graphs"][name]["sha256"]
+        assert "same" in doc["provenance"][f"{name}_graph"]
     assert json.loads((tmp_path / "manifest.json").read_text()) == doc
-    for name in ("point_encoder", "image_encoder", "frustum_head"):
+    for name in ("image_encoder", "frustum_head"):
         assert (tmp_path / f"{name}.onnx").read_bytes() == before[f"{name}.onnx"]
+
+
+def test_point_encoder_scatter_is_one_scatter_nd(exported):
+    """The BEV scatter-max exports as one ScatterND (reduction max) and the gather as a Gather:
+    no element-wise index tensors of N x C."""
+    import onnx
+    _, out, _ = exported
+    ops = [n.op_type for n in onnx.load(str(out / "point_encoder.onnx")).graph.node]
+    assert ops.count("ScatterND") == 1
+    assert "ScatterElements" not in ops and "GatherElements" not in ops
 
 
 def test_pooled_points_is_the_pointnet_max(exported):
