@@ -276,8 +276,8 @@ def replace_graphs(model_dir: Path, models: dict[str, torch.nn.Module], source: 
     code, when each answers as the graph it replaces: on the contract's example inputs (the agent:
     a batch of 4 random states, in the set's state form) the relative error of every output must
     stay below `rtol`, else ValueError and nothing is written. For changes to how a network
-    computes, not what (e.g. `Agent.pooled_points`, `scatter_max_rows`): the weights are the same,
-    ONNX Runtime runs a different graph. Updates the manifest's sha256 and FLOPs of each graph and
+    computes, not what (e.g. `Agent.pooled_points`): the weights are the same, ONNX Runtime runs
+    a different graph. Updates the manifest's sha256 and FLOPs of each graph and
     notes `source` in its provenance."""
     import onnxruntime as ort
 

@@ -3,7 +3,7 @@
 Training resizes with PIL's bilinear filter; the server (`src/agent/input.rs`) resized with the
 `image` crate's Triangle filter (0.25: vertical pass kept in f32, then horizontal pass, rounded half
 away from zero) until 2026-12-01, and since then with `fast_image_resize`'s bilinear convolution
-(fixed point, 12x faster; within one grey level of the Triangle filter, Rust test
+(fixed point, about 10x faster; within one grey level of the Triangle filter, Rust test
 `resize_is_the_triangle_filter_to_one_grey_level`, and of PIL). `server_resize` ports the Triangle
 filter to numpy, and `evaluate` runs `cmr.evaluate` with it:
 
