@@ -17,6 +17,10 @@ request (`examples/localize-demo.json`, the default search):
      admitted (200) requests/s against its capacity measured in the same run at 4 clients.
 
     python3 scripts/bench.py [--binary PATH] [--models DIR] [--serve-args "..."] [--seconds 30] [--storm] [--out FILE]
+    python3 scripts/bench.py --baseline OLD_BINARY [--baseline-models DIR] [--rounds 2] ...   # A/B, ratios
+
+On a machine whose speed drifts (this one's did by a third within an hour), compare builds with
+`--baseline`: the two servers run alternately and the ratios of each figure are reported.
 oha (a Rust HTTP load generator) comes from scripts/install-oha.sh (into .tools/bin).
 """
 
@@ -123,28 +127,15 @@ def correlation_flops(manifest: dict) -> int:
     return 2 * shifts * f["dim"] * f["grid_height"] * f["grid_width"]
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--binary", default="./target/release/cmr-agent")
-    ap.add_argument("--models", default="models", help="model directory (the server's --models; FLOPs are read from its manifest)")
-    ap.add_argument("--serve-args", default="", help="extra flags for the server")
-    ap.add_argument("--request", default="examples/localize-demo.json")
-    ap.add_argument("--seconds", type=int, default=30, help="length of the c16 phase")
-    ap.add_argument("--sequential", type=int, default=40)
-    ap.add_argument("--peak-gflops", type=float, default=183.0,
-                    help="fp32 matmul GFLOP/s of this machine on all cores (183: 2-core dev machine, issue 15)")
-    ap.add_argument("--storm", action="store_true", help="also measure admitted throughput under overload")
-    ap.add_argument("--out", default="bench.json")
-    args = ap.parse_args()
-    if not os.path.exists(OHA):
-        sys.exit("oha not found: run scripts/install-oha.sh")
-    record = {"binary": args.binary, "serve_args": args.serve_args, "request": args.request,
+def measure(binary, models, args):
+    """One run of every phase against `binary` serving `models`: prints the figures, returns the record."""
+    record = {"binary": binary, "serve_args": args.serve_args, "request": args.request,
               "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "load_average_before": os.getloadavg()}
-    manifest = json.load(open(os.path.join(args.models, "manifest.json")))
-    record["models"] = args.models
+    manifest = json.load(open(os.path.join(models, "manifest.json")))
+    record["models"] = models
     flops = {k: v.get("flops") for k, v in manifest["graphs"].items()}
 
-    server = Server(args.binary, args.serve_args.split() + ["--models", args.models])
+    server = Server(binary, args.serve_args.split() + ["--models", models])
     try:
         body = open(args.request, "rb").read()
         for _ in range(3):
@@ -201,7 +192,7 @@ def main():
         server.stop()
 
     if args.storm:
-        storm_server = Server(args.binary, args.serve_args.split() + ["--models", args.models, "--queue-capacity", "4"])
+        storm_server = Server(binary, args.serve_args.split() + ["--models", models, "--queue-capacity", "4"])
         try:
             capacity = load_phase(storm_server, args.request, 4, 20)
             storm = load_phase(storm_server, args.request, 48, 20)
@@ -214,10 +205,57 @@ def main():
             storm_server.stop()
 
     record["load_average_after"] = os.getloadavg()
+    return record
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--binary", default="./target/release/cmr-agent")
+    ap.add_argument("--models", default="models", help="model directory (the server's --models; FLOPs are read from its manifest)")
+    ap.add_argument("--serve-args", default="", help="extra flags for the server")
+    ap.add_argument("--request", default="examples/localize-demo.json")
+    ap.add_argument("--seconds", type=int, default=30, help="length of the c16 phase")
+    ap.add_argument("--sequential", type=int, default=40)
+    ap.add_argument("--peak-gflops", type=float, default=183.0,
+                    help="fp32 matmul GFLOP/s of this machine on all cores (183: 2-core dev machine, issue 15)")
+    ap.add_argument("--storm", action="store_true", help="also measure admitted throughput under overload")
+    ap.add_argument("--baseline", metavar="BINARY", help="also run this binary, alternating with --binary, and print ratios")
+    ap.add_argument("--baseline-models", metavar="DIR", help="the baseline's model directory (default: --models)")
+    ap.add_argument("--rounds", type=int, default=2, help="alternating rounds with --baseline")
+    ap.add_argument("--out", default="bench.json")
+    args = ap.parse_args()
+    if not os.path.exists(OHA):
+        sys.exit("oha not found: run scripts/install-oha.sh")
+    if not args.baseline:
+        record = measure(args.binary, args.models, args)
+    else:
+        # Alternate the two, so that a machine whose speed drifts affects both alike; report the
+        # median over rounds of each figure's ratio (candidate / baseline).
+        runs = {"baseline": [], "candidate": []}
+        for r in range(args.rounds):
+            for name, binary, models in (("baseline", args.baseline, args.baseline_models or args.models),
+                                         ("candidate", args.binary, args.models)):
+                print(f"== round {r + 1}/{args.rounds}: {name} ({binary}, {models})")
+                runs[name].append(measure(binary, models, args))
+        figures = {
+            "c16 requests/s": lambda x: x["c16"]["ok_per_s"],
+            "c16 CPU ms per request": lambda x: x["c16"]["cpu_ms_per_request"],
+            "sequential p50 ms": lambda x: x["sequential"]["p50_ms"],
+            "sequential CPU ms per request": lambda x: x["sequential"]["cpu_ms_per_request"],
+            "register 40,960 points ms": lambda x: x["register_40960_points_ms"],
+        }
+        ratios = {k: statistics.median(f(c) / f(b) for b, c in zip(runs["baseline"], runs["candidate"])) for k, f in figures.items()}
+        record = {"runs": runs, "ratios_candidate_over_baseline": ratios}
+        print(f"candidate / baseline, median over {args.rounds} alternating rounds:")
+        for k, v in ratios.items():
+            print(f"  {k}: {v:.3f}")
     with open(args.out, "w") as f:
         json.dump(record, f, indent=2)
-    print(f"record: {args.out} (load average before {record['load_average_before'][0]:.2f}, "
-          f"after {record['load_average_after'][0]:.2f})")
+    if "load_average_before" in record:
+        print(f"record: {args.out} (load average before {record['load_average_before'][0]:.2f}, "
+              f"after {record['load_average_after'][0]:.2f})")
+    else:
+        print(f"record: {args.out}")
 
 
 if __name__ == "__main__":
