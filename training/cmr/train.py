@@ -75,6 +75,12 @@ class Config:
     circle_pos_margin: float = 0.1
     circle_neg_margin: float = 1.4
     bce_weight: float = 1.0
+    # Optional, off: a ranking term on the alignment score the search and `cmr.diagnose` use (mean
+    # point-image agreement over the points in view): the true pose must outscore `rank_poses`
+    # perturbed ones (yaw 2-30 deg, camera-frame shifts 0.3-3 m) by `rank_margin`, softplus-hinged.
+    rank_weight: float = 0.0
+    rank_poses: int = 4
+    rank_margin: float = 0.05
     # stage 2: agent
     agent_iters: int = 2000
     agent_envs: int = 8
@@ -333,7 +339,39 @@ class Run:
             pred = logits > 0
             tp = (pred & labels).sum().item()
             stats = dict(precision=tp / max(pred.sum().item(), 1), recall=tp / max(labels.sum().item(), 1))
-        return circle + cfg.bce_weight * bce, dict(circle=circle.item(), bce=bce.item(), **stats)
+        loss = circle + cfg.bce_weight * bce
+        if cfg.rank_weight > 0:
+            rank = self.rank_loss(samples, points, pf, imf, rng)
+            loss = loss + cfg.rank_weight * rank
+            stats["rank"] = rank.item()
+        return loss, dict(circle=circle.item(), bce=bce.item(), **stats)
+
+    def rank_loss(self, samples, points, pf, imf, rng) -> torch.Tensor:
+        """softplus(20 (margin - (score(truth) - score(perturbed)))) / 20, averaged over `rank_poses`
+        perturbations per sample, with score = `state.alignment` (differentiable in both
+        embeddings). A perturbation shifts the camera 0.3-3 m along its own x or z axis and, half
+        of the time, turns it about its own y axis by 2-30 deg either way."""
+        from .state import alignment
+        cfg, dev = self.cfg, self.device
+        b, p = len(samples), cfg.rank_poses
+        moved = []
+        for s in samples:
+            for _ in range(p):
+                yaw = np.deg2rad(rng.uniform(2.0, 30.0)) * rng.choice([-1.0, 1.0]) * (rng.random() < 0.5)
+                shift = np.zeros(3)
+                shift[rng.choice([0, 2])] = rng.uniform(0.3, 3.0) * rng.choice([-1.0, 1.0])
+                motion = np.eye(4)
+                c, si = np.cos(yaw), np.sin(yaw)
+                motion[:3, :3] = [[c, 0.0, si], [0.0, 1.0, 0.0], [-si, 0.0, c]]
+                motion[:3, 3] = shift
+                moved.append(motion @ s.truth)
+        truth = torch.as_tensor(np.stack([s.truth for s in samples]), dtype=torch.float32, device=dev)
+        moved = torch.as_tensor(np.stack(moved), dtype=torch.float32, device=dev)
+        k = torch.as_tensor(np.stack([s.intrinsics for s in samples]), dtype=torch.float32, device=dev)
+        rep = lambda t: t.repeat_interleave(p, dim=0)  # noqa: E731
+        good = alignment(truth, points, k, pf, imf)  # [B]
+        bad = alignment(moved, rep(points), rep(k), rep(pf), rep(imf)).view(b, p)
+        return (F.softplus(20.0 * (cfg.rank_margin - (good[:, None] - bad))) / 20.0).mean()
 
     def embed_train_mode(self) -> None:
         """The stage-1 modules in training mode; with `embed_frozen_bn`, their BatchNorm layers

@@ -118,3 +118,16 @@ def test_frozen_batch_norm_keeps_the_running_statistics(tmp_path, tiny_dataset):
     thawed.train_embed(deadline=float("inf"))
     assert not all(torch.equal(m.running_mean, torch.zeros_like(m.running_mean))
                    for k in ("image_encoder",) for m in thawed.models[k].modules() if isinstance(m, torch.nn.BatchNorm2d))
+
+
+def test_rank_loss_prefers_the_truth_and_reaches_both_encoders(tmp_path, tiny_dataset):
+    """`rank_weight`: a ranking term on the alignment score; logged as `rank`, with gradients in
+    the point and the image encoder."""
+    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=3)
+    samples = run.samples(1, 0, 2, 2048)
+    loss, stats = run.embed_losses(samples)
+    assert "rank" in stats and stats["rank"] > 0
+    loss.backward()
+    for name in ("point_encoder", "image_encoder"):
+        grads = [q.grad for q in run.models[name].parameters() if q.grad is not None]
+        assert grads and any(g.abs().sum() > 0 for g in grads), name
