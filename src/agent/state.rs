@@ -453,10 +453,11 @@ fn scatter(
 /// `cells_of`'s mark for a point outside the view.
 const OUT_OF_VIEW: u32 = u32::MAX;
 
-/// [R | t] of a pose as three rows: a plain matrix is cheaper to apply than the quaternion.
+/// [R | t] of a pose as three rows (`Pose::to_rows` without the last): a plain matrix is
+/// cheaper to apply than the quaternion.
 fn matrix_rows(pose: &Pose) -> [[f64; 4]; 3] {
-    let (r, t) = (pose.rotation(), pose.translation());
-    [[r[(0, 0)], r[(0, 1)], r[(0, 2)], t.x], [r[(1, 0)], r[(1, 1)], r[(1, 2)], t.y], [r[(2, 0)], r[(2, 1)], r[(2, 2)], t.z]]
+    let [r0, r1, r2, _] = pose.to_rows();
+    [r0, r1, r2]
 }
 
 /// A map point in the camera frame: `rows` = [R | t] of camera_from_map (`matrix_rows`).

@@ -113,6 +113,16 @@ def example_inputs(name: str, num_points: int = 4096, batch: int = 1, seed: int 
     raise KeyError(name)
 
 
+def graph_inputs(name: str, module: torch.nn.Module, correlation: bool, batch: int = 1, seed: int = 0) -> tuple[torch.Tensor, ...]:
+    """`example_inputs` as graph `name`'s ONNX export takes them: for an agent exported in the
+    correlation form, `Agent.correlate` of the random state in place of the state."""
+    inputs = example_inputs(name, batch=batch, seed=seed)
+    if name == "agent" and correlation and is_correlation_agent(module):
+        with torch.no_grad():
+            inputs = (module.eval().correlate(inputs[0]), inputs[1])
+    return inputs
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
@@ -290,10 +300,7 @@ def replace_graphs(model_dir: Path, models: dict[str, torch.nn.Module], source: 
     for name, module in models.items():
         spec = doc["graphs"][name]
         data = onnx_bytes(name, module.eval(), correlation)
-        inputs = example_inputs(name, batch=4, seed=seed) if name == "agent" else example_inputs(name, seed=seed)
-        if name == "agent":
-            with torch.no_grad():
-                inputs = (module.correlate(inputs[0]), inputs[1])
+        inputs = graph_inputs(name, module, correlation, batch=4, seed=seed)
         old_session = ort.InferenceSession(str(model_dir / spec["file"]), providers=["CPUExecutionProvider"])
         feeds = {i.name: t.numpy() for i, t in zip(old_session.get_inputs(), inputs)}
         old = old_session.run(None, feeds)

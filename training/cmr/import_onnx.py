@@ -33,7 +33,7 @@ import torch
 from onnx import numpy_helper
 
 from . import geometry as g
-from .export import example_inputs, is_correlation_agent, onnx_bytes
+from .export import graph_inputs, is_correlation_agent, onnx_bytes
 from .models import NORMS, build_all
 
 RTOL = 1e-4
@@ -112,14 +112,11 @@ def check_against_onnx(name: str, module: torch.nn.Module, model: onnx.ModelProt
     contract's example inputs; ValueError above `RTOL`."""
     import onnxruntime as ort
 
-    inputs = example_inputs(name, batch=2 if name == "agent" else 1, seed=7)
     module = module.eval()
+    inputs = graph_inputs(name, module, correlation, batch=2, seed=7)
     with torch.no_grad():
-        if name == "agent" and correlation and is_correlation_agent(module):
-            inputs = (module.correlate(inputs[0]), inputs[1])
-            want = module.decide(*inputs)
-        else:
-            want = module(*inputs)
+        # A correlation-form agent's graph starts after `correlate`: it is `decide`.
+        want = module.decide(*inputs) if name == "agent" and correlation and is_correlation_agent(module) else module(*inputs)
     want = [w.numpy() for w in (want if isinstance(want, tuple) else (want,))]
     session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
     feeds = {i.name: x.numpy() for i, x in zip(session.get_inputs(), inputs)}

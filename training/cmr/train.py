@@ -356,15 +356,12 @@ class Run:
         b, p = len(samples), cfg.rank_poses
         moved = []
         for s in samples:
+            camera_centre = g.invert(s.truth)[:3, 3]  # the pivot: a turn in place
             for _ in range(p):
-                yaw = np.deg2rad(rng.uniform(2.0, 30.0)) * rng.choice([-1.0, 1.0]) * (rng.random() < 0.5)
+                yaw_deg = rng.uniform(2.0, 30.0) * rng.choice([-1.0, 1.0]) * (rng.random() < 0.5)
                 shift = np.zeros(3)
                 shift[rng.choice([0, 2])] = rng.uniform(0.3, 3.0) * rng.choice([-1.0, 1.0])
-                motion = np.eye(4)
-                c, si = np.cos(yaw), np.sin(yaw)
-                motion[:3, :3] = [[c, 0.0, si], [0.0, 1.0, 0.0], [-si, 0.0, c]]
-                motion[:3, 3] = shift
-                moved.append(motion @ s.truth)
+                moved.append(g.apply_action(s.truth, camera_centre, yaw_deg, shift[0], shift[2]))
         truth = torch.as_tensor(np.stack([s.truth for s in samples]), dtype=torch.float32, device=dev)
         moved = torch.as_tensor(np.stack(moved), dtype=torch.float32, device=dev)
         k = torch.as_tensor(np.stack([s.intrinsics for s in samples]), dtype=torch.float32, device=dev)
