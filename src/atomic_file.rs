@@ -47,6 +47,14 @@ impl AtomicWriter {
         &self.path
     }
 
+    /// Flushes and fsyncs the temp file, so a later [`AtomicWriter::commit`] (which fsyncs again)
+    /// has little left to wait for: the slow part can run outside a caller's lock.
+    pub fn sync(&mut self) -> std::io::Result<()> {
+        let file = self.file.as_mut().expect("not yet committed");
+        file.flush()?;
+        file.get_ref().sync_all()
+    }
+
     /// Flushes, fsyncs, renames over the target and fsyncs the directory.
     pub fn commit(mut self) -> std::io::Result<()> {
         let named = |e: std::io::Error| std::io::Error::new(e.kind(), format!("writing {}: {e}", self.path.display()));

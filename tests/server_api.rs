@@ -313,7 +313,10 @@ async fn map_management_is_atomic_and_persistent() {
     assert_eq!(reg["map"]["num_points"], 3000);
     assert_eq!(reg["map"]["metadata"]["description"], "a yard");
     assert_eq!(reg["replaced"], false);
-    assert!(maps.path().join("yard.bin").exists() && maps.path().join("yard.emb").exists());
+    assert!(maps.path().join("yard.bin").exists());
+    server.flush_writes().await; // the embeddings follow the answer
+    let emb = std::fs::read(maps.path().join("yard.emb")).unwrap();
+    assert_eq!(&emb[72..136], reg["map"]["source_sha256"].as_str().unwrap().as_bytes(), "yard.emb names the stored cloud");
 
     // A corrupt upload is refused and leaves the stored region as it was.
     let before = std::fs::read(maps.path().join("yard.bin")).unwrap();
@@ -347,6 +350,7 @@ async fn map_management_is_atomic_and_persistent() {
     assert_eq!(r.status(), 400);
 
     // Restart: the embeddings come from yard.emb, not recomputed (the file is not rewritten).
+    server.flush_writes().await;
     let emb_modified = std::fs::metadata(maps.path().join("yard.emb")).unwrap().modified().unwrap();
     server.stop().await;
     let server = TestServer::start(&tiny_model(), maps.path(), &["--admin-token", "s3cret"]).await;

@@ -167,15 +167,19 @@ async fn close_when_draining(
     response
 }
 
-/// Prepares every stored map (from `<id>.emb` when valid) and runs one inference per graph, then
-/// marks the server ready. Runs on the blocking pool while the listener already answers /health.
+/// Runs the registration encoder on the model's N points (`Maps::warm_up_encoder`), prepares
+/// every stored map (from `<id>.emb` when valid, else computed and stored), then marks the server
+/// ready. Runs on the
+/// blocking pool while the listener already answers /health.
 pub fn warm_up(state: &AppState) -> Result<()> {
+    state.maps.warm_up_encoder()?;
     for entry in state.maps.store.list() {
         match state.maps.prepared_for(&entry) {
             Ok(_) => tracing::info!("map {:?} ready ({} points)", entry.id, entry.num_points),
             Err(e) => tracing::warn!("map {:?} could not be prepared: {e}", entry.id),
         }
     }
+    state.maps.flush_writes(); // ready: nothing computed at start-up is left unstored
     state.lifecycle.set_ready();
     Ok(())
 }
@@ -185,7 +189,7 @@ pub fn warm_up(state: &AppState) -> Result<()> {
 ///    while in-flight localizations finish, at most `shutdown_grace_s`;
 /// 2. the listener closes; open connections finish their current request (kept-alive idle ones
 ///    close) within what is left of the grace;
-/// 3. the agent workers stop.
+/// 3. the agent workers stop, and the queued `<id>.emb` writes finish.
 ///
 /// Connections: at most `max_connections` at once (more wait in the backlog), headers must
 /// arrive within `header_timeout_s`, and a kept-alive connection idle for that long is closed.
@@ -220,6 +224,8 @@ pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shut
     if !finished {
         tracing::warn!("agent workers did not stop in time");
     }
+    let maps = state.maps.clone();
+    let _ = tokio::task::spawn_blocking(move || maps.finish_writes()).await;
     Ok(())
 }
 

@@ -5,6 +5,8 @@
 //! Layout (little-endian): magic `CMREMB01`, 64 ASCII hex model sha, 64 ASCII hex source sha,
 //! u64 N, u64 D, u64 source point count, 3 × f64 pivot, N × 3 f32 points, N × D f32 features.
 
+use std::io::Write;
+
 use nalgebra::Point3;
 
 use super::PreparedMap;
@@ -12,27 +14,38 @@ use super::PreparedMap;
 const MAGIC: &[u8; 8] = b"CMREMB01";
 const HEADER: usize = 8 + 64 + 64 + 8 * 3 + 8 * 3;
 
+/// The file's bytes in memory (see [`write`]).
 pub fn encode(map: &PreparedMap, model_sha: &str, source_sha: &str) -> Vec<u8> {
-    let d = map.features.len() / map.points.len().max(1);
     let mut out = Vec::with_capacity(HEADER + map.points.len() * 12 + map.features.len() * 4);
-    out.extend_from_slice(MAGIC);
-    out.extend_from_slice(&fixed_hex(model_sha));
-    out.extend_from_slice(&fixed_hex(source_sha));
+    write(&mut out, map, model_sha, source_sha).expect("writing to a Vec cannot fail");
+    out
+}
+
+/// Writes the file to `out` in the layout above, streaming the floats (no copy of the whole).
+pub fn write(out: &mut impl Write, map: &PreparedMap, model_sha: &str, source_sha: &str) -> std::io::Result<()> {
+    let d = map.features.len() / map.points.len().max(1);
+    out.write_all(MAGIC)?;
+    out.write_all(&fixed_hex(model_sha))?;
+    out.write_all(&fixed_hex(source_sha))?;
     for v in [map.points.len() as u64, d as u64, map.source_points as u64] {
-        out.extend_from_slice(&v.to_le_bytes());
+        out.write_all(&v.to_le_bytes())?;
     }
     for v in [map.pivot.x, map.pivot.y, map.pivot.z] {
-        out.extend_from_slice(&v.to_le_bytes());
+        out.write_all(&v.to_le_bytes())?;
     }
-    for p in &map.points {
-        for v in p {
-            out.extend_from_slice(&v.to_le_bytes());
+    write_f32s(out, map.points.as_flattened())?;
+    write_f32s(out, &map.features)
+}
+
+fn write_f32s(out: &mut impl Write, values: &[f32]) -> std::io::Result<()> {
+    let mut buf = [0u8; 1 << 14];
+    for chunk in values.chunks(buf.len() / 4) {
+        for (b, v) in buf.chunks_exact_mut(4).zip(chunk) {
+            b.copy_from_slice(&v.to_le_bytes());
         }
+        out.write_all(&buf[..chunk.len() * 4])?;
     }
-    for v in &map.features {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    out
+    Ok(())
 }
 
 /// The stored map, or `None` when the file is for another model/source or is damaged.

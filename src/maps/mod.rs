@@ -5,12 +5,12 @@ pub mod build;
 pub mod cache;
 pub mod embeddings;
 pub mod formats;
+pub mod persist;
 pub mod prepared;
 pub mod store;
 pub mod tiles;
 pub mod upload;
 
-use std::io::Write;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -149,7 +149,7 @@ pub struct RegisterTimings {
 
 /// Stored regions plus their prepared embeddings.
 pub struct Maps {
-    pub store: MapStore,
+    pub store: Arc<MapStore>,
     pub cache: MapCache,
     pub config: RegionConfig,
     /// The point encoder used for registrations and cache misses (not the agent workers').
@@ -162,12 +162,16 @@ pub struct Maps {
     /// Prepared maps read back from `<id>.emb`, and computed by the point encoder.
     pub loaded_from_disk: AtomicU64,
     pub computed: AtomicU64,
+    /// Writes whole regions' `<id>.emb` after the answer ([`persist`]).
+    writer: persist::EmbeddingWriter,
 }
 
 impl Maps {
     pub fn new(store: MapStore, cache: MapCache, encoder: Box<dyn Backend>, config: RegionConfig) -> Self {
         let model_sha = encoder.manifest().point_encoder_sha256().to_string();
+        let store = Arc::new(store);
         Self {
+            writer: persist::EmbeddingWriter::start(store.clone()),
             store,
             cache,
             config,
@@ -213,18 +217,46 @@ impl Maps {
             let tiled = self.store.load_tiles(id, &self.model_sha, &source_sha, self.config.tiles).ok_or_else(|| MapError::Io(format!("{id}.emb: cannot read back the tiles just written")))?;
             return Ok(Prepared::Tiled(Arc::new(tiled)));
         }
+        // A registration's own file may still be queued (evicted right after it was made).
+        self.writer.flush();
         if let Some(map) = self.store.load_embeddings(id, &self.model_sha, &source_sha) {
             self.loaded_from_disk.fetch_add(1, Ordering::Relaxed);
             metrics::counter!("cmr_embeddings_loaded_total").increment(1);
             return Ok(Prepared::Whole(Arc::new(map)));
         }
-        let map = self.encode(&cloud)?;
+        let map = Arc::new(self.encode(&cloud)?);
         self.computed.fetch_add(1, Ordering::Relaxed);
         metrics::counter!("cmr_embeddings_computed_total").increment(1);
-        if let Err(e) = self.store.save_embeddings(id, &map, &self.model_sha, &source_sha) {
-            tracing::warn!("could not persist embeddings of {id:?}: {e}");
+        self.writer.submit(id, map.clone(), &self.model_sha, &source_sha);
+        Ok(Prepared::Whole(map))
+    }
+
+    /// Returns once every `<id>.emb` write queued before the call is on disk.
+    pub fn flush_writes(&self) {
+        self.writer.flush();
+    }
+
+    /// Writes the queued `<id>.emb` files and stops the writer (at shutdown).
+    pub fn finish_writes(&self) {
+        self.writer.finish();
+    }
+
+    /// Runs the point encoder twice on a cloud of the model's N points, as a registration does:
+    /// ONNX Runtime plans its memory for a new input shape over the first runs (on the shipped
+    /// model, 2 cores: about 39, 40, then 22-26 ms), which the first uploads would pay otherwise.
+    pub fn warm_up_encoder(&self) -> Result<(), MapError> {
+        let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
+        let n = encoder.manifest().points.num_points;
+        let cloud: Vec<[f32; 3]> = (0..n)
+            .map(|i| {
+                let t = i as f32 * 0.618_034;
+                [80.0 * (t.fract() - 0.5), 80.0 * ((t * 1.7).fract() - 0.5), 3.0 * ((t * 2.3).fract() - 0.5)]
+            })
+            .collect();
+        for _ in 0..2 {
+            encoder.encode_points(&cloud).map_err(|e| MapError::Inference(format!("{e:#}")))?;
         }
-        Ok(Prepared::Whole(Arc::new(map)))
+        Ok(())
     }
 
     /// A crop with its embeddings computed now, by the point encoder on the crop's own points
@@ -250,7 +282,8 @@ impl Maps {
 
     /// Parses (see [`upload::read_upload`]) an uploaded cloud, moves it into its local frame,
     /// downsamples it when asked, encodes and stores it, replacing any region with the same id
-    /// only once everything succeeded. Blocking.
+    /// only once everything succeeded. Blocking. Returns once the cloud and its metadata are
+    /// durable; a whole region's `<id>.emb` follows on the writer thread ([`persist`]).
     /// Errors: `TooLarge` for more points than `config.max_points`, `BadOption` for an origin or
     /// voxel size out of range, and [`upload::read_upload`]'s.
     pub fn register(&self, id: &str, upload: Upload, options: UploadOptions, metadata: Option<MapMetadata>) -> Result<(MapEntry, RegisterTimings), MapError> {
@@ -279,23 +312,26 @@ impl Maps {
         let staged = self.store.stage(id, &cloud, frame)?;
         let parse_ms = ms(t);
         let t = Instant::now();
-        let mut emb = self.store.stage_embeddings(id)?;
-        let whole = if self.is_tiled(cloud.len()) {
+        // A tiled region's embeddings are streamed to their file as the tiles are encoded and
+        // committed with the cloud; a whole region's are written after the answer.
+        let (whole, tiles) = if self.is_tiled(cloud.len()) {
             cloud.intensity = None;
+            let mut emb = self.store.stage_embeddings(id)?;
             self.encode_tiles(&cloud.xyz, staged.sha256(), &mut emb)?;
-            None
+            (None, Some(emb))
         } else {
-            let prepared = self.encode(&cloud.xyz)?;
-            emb.write_all(&embeddings::encode(&prepared, &self.model_sha, staged.sha256())).map_err(|e| MapError::Io(e.to_string()))?;
-            Some(prepared)
+            (Some(Arc::new(self.encode(&cloud.xyz)?)), None)
         };
         drop(cloud);
         let encode_ms = ms(t);
         let t = Instant::now();
-        let entry = self.store.commit(id, staged, emb, metadata)?;
+        let entry = self.store.commit(id, staged, tiles, metadata)?;
         self.prepared_from.lock().expect("prepared_from").insert(id.to_string(), entry.source_sha256.clone());
         match whole {
-            Some(prepared) => self.cache.insert(id, Prepared::Whole(Arc::new(prepared))),
+            Some(prepared) => {
+                self.cache.insert(id, Prepared::Whole(prepared.clone()));
+                self.writer.submit(id, prepared, &self.model_sha, &entry.source_sha256);
+            }
             None => match self.store.load_tiles(id, &self.model_sha, &entry.source_sha256, self.config.tiles) {
                 Some(tiled) => self.cache.insert(id, Prepared::Tiled(Arc::new(tiled))),
                 None => self.cache.invalidate(id),

@@ -357,9 +357,10 @@ impl MapStore {
         AtomicWriter::create(&self.path(id, "emb")).map_err(|e| MapError::Io(e.to_string()))
     }
 
-    /// Puts a staged region in place: cloud, embeddings, then metadata (each an atomic rename or
-    /// write), then registers it. `metadata: None` keeps an existing region's metadata.
-    pub fn commit(&self, id: &str, staged: Staged, embeddings: AtomicWriter, metadata: Option<MapMetadata>) -> Result<MapEntry, MapError> {
+    /// Puts a staged region in place: cloud, embeddings when given, then metadata (each an atomic
+    /// rename or write, fsynced), then registers it. `metadata: None` keeps an existing region's
+    /// metadata. A whole region's embeddings come later, by [`MapStore::save_embeddings`].
+    pub fn commit(&self, id: &str, staged: Staged, embeddings: Option<AtomicWriter>, metadata: Option<MapMetadata>) -> Result<MapEntry, MapError> {
         validate_id(id)?;
         let _guard = self.writes.lock().expect("writes");
         let metadata = match metadata {
@@ -369,7 +370,9 @@ impl MapStore {
         let io = |e: std::io::Error| MapError::Io(e.to_string());
         let origin = staged.frame.origin();
         staged.bin.commit().map_err(io)?;
-        embeddings.commit().map_err(io)?;
+        if let Some(embeddings) = embeddings {
+            embeddings.commit().map_err(io)?;
+        }
         write_atomic(&self.path(id, "json"), &sidecar_bytes(&metadata, origin)).map_err(io)?;
         let entry = MapEntry {
             id: id.to_string(),
@@ -396,8 +399,8 @@ impl MapStore {
     ) -> Result<MapEntry, MapError> {
         let staged = self.stage(id, cloud, LocalFrame::default())?;
         let mut emb = self.stage_embeddings(id)?;
-        emb.write_all(&embeddings::encode(prepared, model_sha, staged.sha256())).map_err(|e| MapError::Io(e.to_string()))?;
-        self.commit(id, staged, emb, metadata)
+        embeddings::write(&mut emb, prepared, model_sha, staged.sha256()).map_err(|e| MapError::Io(e.to_string()))?;
+        self.commit(id, staged, Some(emb), metadata)
     }
 
     pub fn set_metadata(&self, id: &str, metadata: MapMetadata) -> Result<MapEntry, MapError> {
@@ -458,9 +461,22 @@ impl MapStore {
         Some((len, super::tiles::header_cells(&head[..read])))
     }
 
-    pub fn save_embeddings(&self, id: &str, prepared: &PreparedMap, model_sha: &str, source_sha: &str) -> Result<(), MapError> {
+    /// Writes a whole region's `<id>.emb`: written and fsynced outside the store's write lock,
+    /// then renamed into place under it, only while the registered cloud of `id` is still
+    /// `source_sha`. `Ok(false)`, nothing written, when the region was replaced or deleted
+    /// meanwhile (the file would name a cloud no longer stored).
+    pub fn save_embeddings(&self, id: &str, prepared: &PreparedMap, model_sha: &str, source_sha: &str) -> Result<bool, MapError> {
+        let io = |e: std::io::Error| MapError::Io(e.to_string());
+        let mut emb = self.stage_embeddings(id)?;
+        embeddings::write(&mut emb, prepared, model_sha, source_sha).map_err(io)?;
+        emb.sync().map_err(io)?;
         let _guard = self.writes.lock().expect("writes");
-        write_atomic(&self.path(id, "emb"), &embeddings::encode(prepared, model_sha, source_sha)).map_err(|e| MapError::Io(e.to_string()))
+        let current = self.registry.read().expect("registry").get(id).map(|(e, _)| e.source_sha256 == source_sha);
+        if current != Some(true) {
+            return Ok(false);
+        }
+        emb.commit().map_err(io)?;
+        Ok(true)
     }
 }
 
@@ -568,6 +584,33 @@ mod tests {
         a.delete("yard").unwrap();
         assert!(matches!(b.get("yard"), Err(MapError::NotFound(_))));
         assert!(b.list().is_empty());
+    }
+
+    #[test]
+    fn embeddings_for_a_replaced_or_deleted_region_are_not_written() {
+        use crate::maps::formats::PointCloud;
+        let dir = tempfile::tempdir().unwrap();
+        let (store, _) = MapStore::open(dir.path()).unwrap();
+        let cloud = |n: usize| PointCloud { xyz: (0..n).map(|i| [i as f32, 1.0, -1.0]).collect(), intensity: None };
+        let prepared = PreparedMap { points: vec![[0.5; 3]], features: vec![0.25; 64], pivot: nalgebra::Point3::origin(), source_points: 1 };
+        let emb = dir.path().join("yard.emb");
+        let staged = store.stage("yard", &cloud(10), LocalFrame::default()).unwrap();
+        let first = store.commit("yard", staged, None, None).unwrap();
+        assert!(!emb.exists(), "a whole region's embeddings come separately");
+        assert!(store.save_embeddings("yard", &prepared, "model", &first.source_sha256).unwrap());
+        assert!(store.load_embeddings("yard", "model", &first.source_sha256).is_some());
+
+        let staged = store.stage("yard", &cloud(12), LocalFrame::default()).unwrap();
+        let second = store.commit("yard", staged, None, None).unwrap();
+        let on_disk = std::fs::read(&emb).unwrap();
+        assert!(!store.save_embeddings("yard", &prepared, "model", &first.source_sha256).unwrap(), "a late write for the replaced cloud");
+        assert_eq!(std::fs::read(&emb).unwrap(), on_disk);
+        assert!(store.save_embeddings("yard", &prepared, "model", &second.source_sha256).unwrap());
+
+        store.delete("yard").unwrap();
+        assert!(!store.save_embeddings("yard", &prepared, "model", &second.source_sha256).unwrap(), "a late write for a deleted region");
+        let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().map(|e| e.unwrap().file_name()).collect();
+        assert!(left.is_empty(), "no file, temp or final, is left: {left:?}");
     }
 
     #[test]

@@ -94,6 +94,12 @@ impl TestServer {
         }
     }
 
+    /// Waits until the `<id>.emb` files queued so far are written (they follow a registration's answer).
+    pub async fn flush_writes(&self) {
+        let state = self.state.clone();
+        tokio::task::spawn_blocking(move || state.maps.flush_writes()).await.unwrap();
+    }
+
     pub async fn localize(&self, map: &str, body: &serde_json::Value) -> (u16, serde_json::Value, reqwest::header::HeaderMap) {
         let r = self.client.post(self.url(&format!("/v1/maps/{map}/localize"))).json(body).send().await.unwrap();
         let status = r.status().as_u16();

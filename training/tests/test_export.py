@@ -158,6 +158,21 @@ def test_point_encoder_is_deterministic_on_two_threads(exported):
         assert np.array_equal(sess.run(None, {"points": pts.numpy()})[0], first)
 
 
+def test_point_encoder_graph_has_no_emptiness_guard(exported):
+    """`without_empty_guards` wires in the scatter's else branch: no `If` left, and the graph still
+    answers as the network on clouds of 1, 7 and 5,000 points."""
+    import onnx
+    models, out, _ = exported
+    assert "If" not in [n.op_type for n in onnx.load(str(out / "point_encoder.onnx")).graph.node]
+    sess = ort.InferenceSession(str(out / "point_encoder.onnx"), providers=["CPUExecutionProvider"])
+    for n in (1, 7, 5000):
+        (pts,) = example_inputs("point_encoder", num_points=n, seed=n)
+        with torch.no_grad():
+            want = models["point_encoder"](pts).numpy()
+        got = sess.run(None, {"points": pts.numpy()})[0]
+        assert got.shape == want.shape and np.abs(got - want).max() < 1e-4, n
+
+
 def test_pooled_points_is_the_pointnet_max(exported):
     """`Agent.pooled_points` (channel-major, bias and ReLU after the max) is `pointnet(...).amax`."""
     agent = exported[0]["agent"]
