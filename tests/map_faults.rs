@@ -247,6 +247,7 @@ async fn a_starting_replica_spares_another_replicas_upload_in_progress() {
     // Uploads of this replica still work beside it, and leave no temp file of their own.
     let (status, json) = put(&server, "/v1/maps/yard?format=kitti_bin", &[], write_kitti_bin(&street_cloud())).await;
     assert_eq!(status, 201, "{json}");
+    server.flush_writes().await; // the region's .emb follows the answer, through a temp file too
     let temps: Vec<String> = std::fs::read_dir(maps.path()).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).filter(|n| n.contains(".tmp-")).collect();
     assert_eq!(temps, [".yard.bin.tmp-1-0-1234abcd"]);
     drop(held);
