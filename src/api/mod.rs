@@ -169,8 +169,7 @@ async fn close_when_draining(
 
 /// Runs the registration encoder on the model's N points (`Maps::warm_up_encoder`), prepares
 /// every stored map (from `<id>.emb` when valid, else computed and stored), then marks the server
-/// ready. Runs on the
-/// blocking pool while the listener already answers /health.
+/// ready. Runs on the blocking pool while the listener already answers /health.
 pub fn warm_up(state: &AppState) -> Result<()> {
     state.maps.warm_up_encoder()?;
     for entry in state.maps.store.list() {

@@ -14,13 +14,6 @@ use super::PreparedMap;
 const MAGIC: &[u8; 8] = b"CMREMB01";
 const HEADER: usize = 8 + 64 + 64 + 8 * 3 + 8 * 3;
 
-/// The file's bytes in memory (see [`write`]).
-pub fn encode(map: &PreparedMap, model_sha: &str, source_sha: &str) -> Vec<u8> {
-    let mut out = Vec::with_capacity(HEADER + map.points.len() * 12 + map.features.len() * 4);
-    write(&mut out, map, model_sha, source_sha).expect("writing to a Vec cannot fail");
-    out
-}
-
 /// Writes the file to `out` in the layout above, streaming the floats (no copy of the whole).
 pub fn write(out: &mut impl Write, map: &PreparedMap, model_sha: &str, source_sha: &str) -> std::io::Result<()> {
     let d = map.features.len() / map.points.len().max(1);
@@ -94,7 +87,8 @@ mod tests {
             pivot: Point3::new(2.5, 3.5, 4.5),
             source_points: 7,
         };
-        let bytes = encode(&map, "ab", "cd");
+        let mut bytes = Vec::new();
+        write(&mut bytes, &map, "ab", "cd").unwrap();
         let back = decode(&bytes, "ab", "cd").unwrap();
         assert_eq!(back.points, map.points);
         assert_eq!(back.features, map.features);

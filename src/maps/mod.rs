@@ -246,13 +246,7 @@ impl Maps {
     /// model, 2 cores: about 39, 40, then 22-26 ms), which the first uploads would pay otherwise.
     pub fn warm_up_encoder(&self) -> Result<(), MapError> {
         let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
-        let n = encoder.manifest().points.num_points;
-        let cloud: Vec<[f32; 3]> = (0..n)
-            .map(|i| {
-                let t = i as f32 * 0.618_034;
-                [80.0 * (t.fract() - 0.5), 80.0 * ((t * 1.7).fract() - 0.5), 3.0 * ((t * 2.3).fract() - 0.5)]
-            })
-            .collect();
+        let cloud = crate::model::synthetic_cloud(encoder.manifest().points.num_points, 80.0, 3.0);
         for _ in 0..2 {
             encoder.encode_points(&cloud).map_err(|e| MapError::Inference(format!("{e:#}")))?;
         }

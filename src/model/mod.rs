@@ -49,12 +49,7 @@ pub trait Backend: Send {
     fn warm_up(&mut self) -> Result<()> {
         let manifest = self.manifest().clone();
         let m = manifest.points.num_state_points;
-        let points: Vec<[f32; 3]> = (0..m)
-            .map(|i| {
-                let t = i as f32 * 0.618_034;
-                [10.0 * (t.fract() - 0.5), 10.0 * ((t * 1.7).fract() - 0.5), 2.0 * ((t * 2.3).fract() - 0.5)]
-            })
-            .collect();
+        let points = synthetic_cloud(m, 10.0, 2.0);
         let point_features = self.encode_points(&points)?;
         let (w, h) = (manifest.image.width as usize, manifest.image.height as usize);
         let image: Vec<f32> = (0..3 * w * h).map(|i| ((i % 251) as f32 / 251.0) - 0.5).collect();
@@ -65,6 +60,17 @@ pub trait Backend: Send {
         self.agent_step(&state_2d, &state_3d, 1)?;
         Ok(())
     }
+}
+
+/// `n` points spread over a `side_m` x `side_m` square and `height_m` of height, centred on the
+/// origin (a low-discrepancy sequence, no randomness): an input for warming up the point encoder.
+pub fn synthetic_cloud(n: usize, side_m: f32, height_m: f32) -> Vec<[f32; 3]> {
+    (0..n)
+        .map(|i| {
+            let t = i as f32 * 0.618_034;
+            [side_m * (t.fract() - 0.5), side_m * ((t * 1.7).fract() - 0.5), height_m * ((t * 2.3).fract() - 0.5)]
+        })
+        .collect()
 }
 
 /// Makes one backend per worker thread.

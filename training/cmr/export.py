@@ -175,9 +175,10 @@ def without_empty_guards(model: onnx.ModelProto) -> onnx.ModelProto:
 
     def constant_zero(name: str) -> bool:
         n = producer.get(name)
-        return (n is not None and n.op_type == "Constant"
-                and onnx.numpy_helper.to_array(n.attribute[0].t).size == 1
-                and float(onnx.numpy_helper.to_array(n.attribute[0].t)) == 0.0)
+        if n is None or n.op_type != "Constant":
+            return False
+        value = onnx.numpy_helper.to_array(n.attribute[0].t)
+        return value.size == 1 and float(value) == 0.0
 
     rename, kept = {}, []
     for node in graph.node:
