@@ -27,6 +27,8 @@ pub struct ServeArgs {
     #[arg(long, env = "CMR_WORKERS", default_value_t = 0)]
     pub workers: usize,
     /// ONNX Runtime intra-op threads per worker session (0 = CPU cores / workers, at least 1).
+    /// With several workers and fewer threads than cores, one more set of sessions with every
+    /// core's threads serves whichever worker is alone with work (docs/server.md).
     #[arg(long, env = "CMR_INTRA_THREADS", default_value_t = 0)]
     pub intra_threads: usize,
     /// Most hypotheses (rows of the batched policy call) one worker steps together: a request

@@ -101,7 +101,10 @@ pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
     // Registering a map runs the point encoder once, rarely and one at a time: all cores for it.
     let encoder = ModelSet { options: BackendOptions { intra_threads: config::cores(), ..models.options.clone() }, ..models.clone() };
     let maps = Arc::new(Maps::new(store, cache, Box::new(encoder.backend()?), config.regions()));
-    let scheduler = Arc::new(Scheduler::start(&models.factory(), config.scheduler())?);
+    // With several workers, one more set of sessions with every core's threads, for whichever
+    // worker is alone with work (a lone request then has the idle cores; about 25 MB).
+    let lone = (config.workers() > 1 && config.intra_threads() < config::cores()).then(|| encoder.factory());
+    let scheduler = Arc::new(Scheduler::start_with_lone(&models.factory(), lone.as_ref(), config.scheduler())?);
     let lifecycle = Arc::new(Lifecycle::default());
     let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), config.localizer());
     Ok(Arc::new(AppState { config, models, localizer, maps, scheduler, lifecycle, metrics: metrics_handle() }))

@@ -214,12 +214,24 @@ fn hypothesis_trajectories(loc: &agent::Localization, truth: &Pose) -> serde_jso
             json!({
                 "start_yaw_offset_deg": h.start_yaw_offset_deg,
                 "start": at(&h.start, h.start_alignment),
-                "steps": h.steps.iter().map(|s| at(&s.camera_from_map, s.alignment)).collect::<Vec<_>>(),
+                "steps": h.steps.iter().map(|s| policy_step(at(&s.camera_from_map, s.alignment), s)).collect::<Vec<_>>(),
                 "converged": h.converged,
                 "dropped": h.dropped,
             })
         })
         .collect()
+}
+
+/// A recorded step with what the policy said at the pose before it (the step's own outputs):
+/// the critic's `value`, its certainty, the per-DoF softmax `probabilities` [3][actions] (rows
+/// yaw, tx, tz; columns the action set's steps, ascending) and the chosen `action_indices`.
+/// What an offline judge of poses is tried on (docs/evaluation.md, "Which pose to answer with").
+fn policy_step(mut record: serde_json::Value, step: &agent::Step) -> serde_json::Value {
+    record["value"] = json!(step.value);
+    record["policy_certainty"] = json!(step.confidence);
+    record["probabilities"] = json!(step.probabilities);
+    record["action_indices"] = json!(step.action.indices);
+    record
 }
 
 #[cfg(test)]

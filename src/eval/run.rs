@@ -463,6 +463,19 @@ pub(crate) mod tests {
             for h in hypotheses {
                 assert!(h["steps"].as_array().unwrap().len() <= 4);
                 assert_eq!(h["start"]["camera_from_map"].as_array().unwrap().len(), 12);
+                for step in h["steps"].as_array().unwrap() {
+                    // What the policy said at the pose before the step: a softmax per DoF, the
+                    // chosen index its argmax.
+                    let probabilities = step["probabilities"].as_array().unwrap();
+                    assert_eq!(probabilities.len(), 3);
+                    for (dof, row) in probabilities.iter().enumerate() {
+                        let row: Vec<f64> = row.as_array().unwrap().iter().map(|p| p.as_f64().unwrap()).collect();
+                        assert!((row.iter().sum::<f64>() - 1.0).abs() < 1e-4, "{row:?}");
+                        let chosen = step["action_indices"][dof].as_u64().unwrap() as usize;
+                        assert!(row.iter().all(|p| *p <= row[chosen]));
+                    }
+                    assert!(step["value"].as_f64().is_some_and(f64::is_finite) && step["policy_certainty"].as_f64().is_some());
+                }
             }
         }
         for r in records.iter().filter(|r| r.method == super::super::learned::BASELINE) {

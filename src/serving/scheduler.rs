@@ -126,6 +126,17 @@ impl Scheduler {
     /// Starts `config.workers` threads, each with its own backend from `factory` (warmed up).
     /// Fails if any backend fails.
     pub fn start(factory: &BackendFactory, config: SchedulerConfig) -> anyhow::Result<Self> {
+        Self::start_with_lone(factory, None, config)
+    }
+
+    /// [`Scheduler::start`], plus one backend from `lone` (sessions with every core's threads)
+    /// that a worker uses while it is the only one with work: no request in another worker's
+    /// batch and none decoding or queued. A lone request then has the idle cores for its ONNX
+    /// Runtime calls; under load every worker runs its own one-thread sessions side by side,
+    /// the faster way to share the cores (docs/server.md, "Workers x threads"). One set serves
+    /// all workers, since only one can be alone at a time (a worker that finds it taken uses
+    /// its own).
+    pub fn start_with_lone(factory: &BackendFactory, lone: Option<&BackendFactory>, config: SchedulerConfig) -> anyhow::Result<Self> {
         let queue = Arc::new(Queue {
             jobs: Mutex::new(VecDeque::new()),
             ready: Condvar::new(),
@@ -137,12 +148,20 @@ impl Scheduler {
             stepped_rows: AtomicUsize::new(0),
             largest_batch: AtomicUsize::new(0),
         });
+        let lone = match lone {
+            Some(make) => {
+                let mut backend = make()?;
+                backend.warm_up()?;
+                Some(Arc::new(Mutex::new(backend)))
+            }
+            None => None,
+        };
         let mut workers = Vec::new();
         let (exit_tx, exited) = std::sync::mpsc::channel();
         for index in 0..config.workers.max(1) {
             let mut backend = factory()?;
             backend.warm_up()?;
-            let worker = Worker { batch: Batch::new(backend.manifest()), backend, queue: queue.clone(), max_batch: config.max_batch.max(1) };
+            let worker = Worker { batch: Batch::new(backend.manifest()), backend, lone: lone.clone(), queue: queue.clone(), max_batch: config.max_batch.max(1) };
             let signal = ExitSignal(exit_tx.clone());
             workers.push(std::thread::Builder::new().name(format!("agent-worker-{index}")).spawn(move || {
                 let _signal = signal;
@@ -241,6 +260,8 @@ struct Tag {
 
 struct Worker {
     backend: Box<dyn Backend>,
+    /// Sessions with every core's threads, shared by the workers, for whichever is alone with work.
+    lone: Option<Arc<Mutex<Box<dyn Backend>>>>,
     batch: Batch<Tag>,
     queue: Arc<Queue>,
     max_batch: usize,
@@ -261,7 +282,7 @@ impl Worker {
             }
             // A bug in one step must not take the worker (and every later request) down: the
             // requests in the batch get an error and the worker goes on.
-            let stepped = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.batch.step(self.backend.as_mut())));
+            let stepped = self.with_backend(|batch, backend| std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| batch.step(backend))));
             match stepped {
                 Ok(rows) if rows > 0 => {
                     metrics::histogram!("cmr_batch_size").record(rows as f64);
@@ -276,6 +297,19 @@ impl Worker {
                 }
             }
             self.retire();
+        }
+    }
+
+    /// Runs `f` (one model call's worth of work on the batch) with the lone backend while no
+    /// other request is in another worker's batch, decoding or queued (read just before the
+    /// call: a request that arrives during it runs beside it for that one call), else with
+    /// this worker's own. `f` must not unwind (callers catch panics inside it).
+    fn with_backend<R>(&mut self, f: impl FnOnce(&mut Batch<Tag>, &mut dyn Backend) -> R) -> R {
+        let alone = self.queue.active.load(Ordering::SeqCst) <= self.batch.len() && self.queue.reserved.load(Ordering::SeqCst) == 0;
+        let Worker { backend, lone, batch, .. } = self;
+        match lone.as_ref().filter(|_| alone).and_then(|lone| lone.try_lock().ok()) {
+            Some(mut shared) => f(batch, shared.as_mut()),
+            None => f(batch, backend.as_mut()),
         }
     }
 
@@ -321,10 +355,8 @@ impl Worker {
         let span = job.span.clone();
         let _entered = span.enter();
         let tag = Tag { reply: job.reply, deadline: job.deadline, span: job.span.clone(), queue_ms };
-        let backend = self.backend.as_mut();
-        let batch = &mut self.batch;
         // On a panic the job is dropped, so its client gets an internal error at once.
-        let admitted = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| batch.admit(backend, job.start, tag)));
+        let admitted = self.with_backend(|batch, backend| std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| batch.admit(backend, job.start, tag))));
         match admitted {
             Ok(Ok(())) => {
                 self.queue.active.fetch_add(1, Ordering::SeqCst);
@@ -452,6 +484,60 @@ mod tests {
         let good = submit(&scheduler, start(&manifest, &map, 1, false));
         assert!(matches!(bad.blocking_recv().unwrap(), Err(JobError::Step(StepError::NonFinite(_)))));
         assert!(good.blocking_recv().unwrap().is_ok());
+        assert!(scheduler.shutdown(Duration::from_secs(5)));
+    }
+
+    /// A `FakeBackend` that counts its policy calls into a shared counter.
+    struct Counted(FakeBackend, Arc<AtomicUsize>);
+
+    impl Backend for Counted {
+        fn manifest(&self) -> &Arc<Manifest> {
+            self.0.manifest()
+        }
+        fn encode_points(&mut self, points: &[[f32; 3]]) -> anyhow::Result<Vec<f32>> {
+            self.0.encode_points(points)
+        }
+        fn encode_image(&mut self, image: &[f32]) -> anyhow::Result<Vec<f32>> {
+            self.0.encode_image(image)
+        }
+        fn frustum_logits(&mut self, point_features: &[f32], image_features: &[f32]) -> anyhow::Result<Vec<f32>> {
+            self.0.frustum_logits(point_features, image_features)
+        }
+        fn agent_step(&mut self, state_2d: &[f32], state_3d: &[f32], batch: usize) -> anyhow::Result<crate::model::AgentOutput> {
+            self.1.fetch_add(1, Ordering::SeqCst);
+            self.0.agent_step(state_2d, state_3d, batch)
+        }
+    }
+
+    fn counted_factory(manifest: &Arc<Manifest>, calls: &Arc<AtomicUsize>) -> BackendFactory {
+        let (m, calls) = (manifest.clone(), calls.clone());
+        Arc::new(move || Ok(Box::new(Counted(FakeBackend::new(m.clone()), calls.clone())) as Box<dyn Backend>))
+    }
+
+    /// A request alone runs on the lone sessions (all cores), with the answer it gets from the
+    /// plain ones; requests that overlap run on the per-worker sessions. Warm-up calls are
+    /// counted too, so counts are taken after start.
+    #[test]
+    fn a_lone_request_runs_on_the_lone_sessions_and_overlapping_ones_do_not() {
+        let manifest = manifest();
+        let map = map(&manifest);
+        let (narrow, lone) = (Arc::new(AtomicUsize::new(0)), Arc::new(AtomicUsize::new(0)));
+        let config = SchedulerConfig { workers: 2, max_batch: 8, queue_capacity: 32 };
+        let scheduler = Scheduler::start_with_lone(&counted_factory(&manifest, &narrow), Some(&counted_factory(&manifest, &lone)), config).unwrap();
+        let (narrow_before, lone_before) = (narrow.load(Ordering::SeqCst), lone.load(Ordering::SeqCst));
+        let s = start(&manifest, &map, 1, false);
+        let expected = localize(&mut FakeBackend::new(manifest.clone()), &map, &s.image_tensor, s.intrinsics, s.prior, s.search).unwrap();
+        let got = submit(&scheduler, s).blocking_recv().unwrap().ok().expect("answered").localization;
+        assert!(same(&got, &expected));
+        assert_eq!(narrow.load(Ordering::SeqCst), narrow_before, "a request alone never used the per-worker sessions");
+        assert_eq!(lone.load(Ordering::SeqCst) - lone_before, expected.iterations(), "one lone policy call per iteration");
+        // Twenty at once: the queue is never empty for long, so both workers run side by side
+        // on their own sessions.
+        let answers: Vec<_> = (0..20).map(|i| submit(&scheduler, start(&manifest, &map, i % 5, false))).collect();
+        for answer in answers {
+            assert!(answer.blocking_recv().unwrap().is_ok());
+        }
+        assert!(narrow.load(Ordering::SeqCst) > narrow_before, "overlapping requests used the per-worker sessions");
         assert!(scheduler.shutdown(Duration::from_secs(5)));
     }
 
