@@ -7,7 +7,7 @@ every start ran its whole trajectory and each recorded step carries what the pol
 pose before it (`value`, `policy_certainty`, `probabilities`, `action_indices`;
 src/eval/learned.rs, `policy_step`). A candidate is any pose the search visited at which the
 policy was evaluated (the start and every step but the last of each hypothesis), so every signal
-is known for it at no extra cost. Registered: RTE < 5 m and geodesic RRE < 10 deg (protocol A).
+is known for it at no extra cost. Registered: RTE < 5 m and RRE (Euler sum) < 10 deg (protocol A, `PoseError::registered`).
 
 For each file it prints:
   oracle, any visited     share of cases with at least one registered candidate: the most any
@@ -17,7 +17,9 @@ For each file it prints:
                           within-case AUC of J (registered vs not, over cases that have both).
 Judges: the alignment score (what the server ranks hypotheses by), the policy's log-probability
 of the zero step summed over the three DoF (`log_p_zero`: the agent's own "I am there"), the
-critic's value, the policy certainty, and alignment + lambda * log_p_zero.
+critic's value, the policy certainty, alignment + lambda * log_p_zero, and (recordings with
+`frustum_iou` per pose) the frustum IoU of `Confidence` alone and added to the alignment.
+How the server's own search would answer under such a judge: `scripts/search-rules.py`.
 
     python3 scripts/pose-judges.py /tmp/rec/real-dev/cases.json /tmp/rec/synth-val/cases.json
 """
@@ -32,7 +34,7 @@ LAMBDAS = [0.02, 0.05, 0.1, 0.2, 0.5, 1.0]
 
 
 def registered(record):
-    return record["rte_m"] < RR_M and record["rre_geodesic_deg"] < RR_DEG
+    return record["rte_m"] < RR_M and record["rre_euler_deg"] < RR_DEG
 
 
 def zero_index(probabilities):
@@ -64,6 +66,7 @@ def candidates(path):
                     "log_p_zero": log_p_zero,
                     "value": policy["value"],
                     "policy_certainty": policy["policy_certainty"],
+                    "frustum_iou": pose.get("frustum_iou"),
                 })
         final_ok += any(registered(p) for p in finals)
     return by_case, len(agent), final_ok
@@ -92,13 +95,19 @@ def main():
         ("value", lambda c: c["value"]),
         ("policy_certainty", lambda c: c["policy_certainty"]),
     ] + [(f"alignment + {lam:g} log_p_zero", lambda c, lam=lam: c["alignment"] + lam * c["log_p_zero"]) for lam in LAMBDAS]
+    iou_judges = [
+        ("frustum_iou", lambda c: c["frustum_iou"]),
+        ("alignment + 0.3 frustum_iou", lambda c: c["alignment"] + 0.3 * c["frustum_iou"]),
+        ("alignment + 1 frustum_iou", lambda c: c["alignment"] + c["frustum_iou"]),
+    ]
     for path in args.cases:
         by_case, n, final_ok = candidates(path)
         visited_ok = sum(any(c["registered"] for c in cands) for cands in by_case.values())
         print(f"{path}: {n} cases, {sum(map(len, by_case.values()))} candidates")
         print(f"  oracle, any visited   {100.0 * visited_ok / n:5.1f} %")
         print(f"  oracle, any final     {100.0 * final_ok / n:5.1f} %")
-        for name, score in judges:
+        has_iou = all(c["frustum_iou"] is not None for cands in by_case.values() for c in cands)
+        for name, score in judges + (iou_judges if has_iou else []):
             rr, auc = judge(by_case, n, score)
             print(f"  {name:30s} RR {rr:5.1f} %   within-case AUC {auc:.3f}")
 

@@ -22,6 +22,10 @@ next observation, so they cost no extra work):
                     leads every other by at least D, the others stop.
   running only:     duplicates count only against hypotheses still taking steps (one that
                     stopped short of the answer does not stop a later one that passes by).
+  answer rules:     which pose the search answers with (the search itself as today): the best
+                    final pose by alignment + w x frustum IoU, or the best of every pose visited
+                    (recordings with `frustum_iou` per pose only: they cost the frustum head's
+                    IoU, which the server computes for its answer's confidence anyway).
 
     python3 scripts/search-rules.py /tmp/rec/synth-val/cases.json /tmp/rec/real-dev/cases.json \
         [--check CASES_JSON_OF_TODAYS_SEARCH ... --duplicate 1,5]
@@ -65,8 +69,10 @@ def load(path):
 
 
 def replay(case, iterations=10, merge=True, margin=None, after=1, start_margin=None, duplicate=DUPLICATE,
-           converged_lead=None, only_running=False):
-    """(final state of the chosen hypothesis, policy rows)."""
+           converged_lead=None, only_running=False, iou_weight=0.0, visited=False):
+    """(the answer's recorded state, policy rows). The answer is the final pose that scores best
+    (alignment + `iou_weight` x frustum IoU; the server: weight 0), or with `visited` the best
+    of every pose any start reached up to where it stopped."""
     hyps = case["hyps"]
     n = len(hyps)
     taken, dropped = [0] * n, [False] * n
@@ -109,6 +115,12 @@ def replay(case, iterations=10, merge=True, margin=None, after=1, start_margin=N
             stopped = taken[leader] >= len(hyps[leader]["states"]) - 1 and hyps[leader]["converged"]
             if stopped and all(scores[leader] - scores[h] >= converged_lead for h in range(n) if h != leader):
                 dropped = [d or h != leader for h, d in enumerate(dropped)]
+    if iou_weight or visited:
+        if iou_weight and any("frustum_iou" not in s for h in hyps for s in h["states"]):
+            raise SystemExit("an IoU rule needs a recording with `frustum_iou` per pose (a build of 2026-12-01 or later)")
+        answers = [s for h in range(n) for s in (hyps[h]["states"][:taken[h] + 1] if visited else [hyps[h]["states"][taken[h]]])]
+        judged = [-math.inf if s["alignment"] is None else s["alignment"] + iou_weight * s.get("frustum_iou", 0.0) for s in answers]
+        return answers[max(range(len(answers)), key=lambda i: (judged[i], -i))], rows
     scores = [score(h) for h in range(n)]
     chosen = max(range(n), key=lambda h: (scores[h], -h))
     return hyps[chosen]["states"][taken[chosen]], rows
@@ -157,6 +169,9 @@ def main():
     rules += [(f"converged leader {d} ahead stops the rest", dict(converged_lead=d)) for d in (0.0, 0.1)]
     rules += [(f"duplicates of running starts only, within {m:g} m / {d:g} deg", dict(duplicate=(m, d), only_running=True))
               for m, d in ((4, 20),)]
+    if all("frustum_iou" in cases[0]["hyps"][0]["states"][0] for _, cases in sets if cases):
+        rules += [(f"answer: best final pose by alignment + {w:g} frustum IoU", dict(iou_weight=w)) for w in (0.1, 0.3, 0.5, 1.0)]
+        rules += [(f"answer: best visited pose by alignment + {w:g} frustum IoU", dict(iou_weight=w, visited=True)) for w in (0.0, 0.1, 0.3, 0.5, 1.0)]
     header = " | ".join(f"{p.split('/')[-2]} RR (rows/case) RTE m / RRE deg" for p, _ in sets)
     print(f"| rule | {header} |")
     print("|---|" + "---|" * len(sets))

@@ -152,21 +152,26 @@ impl Episode {
     }
 
     pub fn confidence(&self, map: &PreparedMap, layout: &StateLayout) -> Confidence {
-        let iso = self.pose.0;
-        let (mut both, mut either) = (0usize, 0usize);
         let e = &self.evidence;
-        // Over the points the frustum head ran on (the state points).
-        for (p, prob) in map.points.iter().zip(&e.frustum_probs) {
-            let p_cam = iso * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
-            let in_view = e.intrinsics.in_frustum(&p_cam, layout.image_width, layout.image_height);
-            let predicted = *prob > 0.5;
-            both += (in_view && predicted) as usize;
-            either += (in_view || predicted) as usize;
-        }
-        let frustum_iou = if either == 0 { 0.0 } else { both as f32 / either as f32 };
+        let frustum_iou = frustum_iou(&map.points, &e.frustum_probs, &e.intrinsics, layout, &self.pose);
         let policy_certainty = self.steps.last().map(|s| s.confidence).unwrap_or(0.0);
         Confidence { frustum_iou, policy_certainty, score: (frustum_iou * policy_certainty).sqrt(), alignment: self.alignment() }
     }
+}
+
+/// Intersection-over-union between the points the frustum head predicts in view
+/// (`frustum_probs` > 0.5, one per point of `points` from the first) and the points in the
+/// model input's frustum at `camera_from_map` (crop intrinsics `k`); 0 when both are empty.
+pub fn frustum_iou(points: &[[f32; 3]], frustum_probs: &[f32], k: &Intrinsics, layout: &StateLayout, camera_from_map: &Pose) -> f32 {
+    let (mut both, mut either) = (0usize, 0usize);
+    for (p, prob) in points.iter().zip(frustum_probs) {
+        let p_cam = camera_from_map.0 * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
+        let in_view = k.in_frustum(&p_cam, layout.image_width, layout.image_height);
+        let predicted = *prob > 0.5;
+        both += (in_view && predicted) as usize;
+        either += (in_view || predicted) as usize;
+    }
+    if either == 0 { 0.0 } else { both as f32 / either as f32 }
 }
 
 pub fn softmax(logits: &[f32]) -> Vec<f32> {

@@ -79,7 +79,15 @@ impl Learned {
             "policy_rows": loc.hypotheses.iter().map(|h| h.steps.len()).sum::<usize>(),
         });
         if self.record_hypotheses && method == AGENT {
-            notes["hypotheses"] = hypothesis_trajectories(&loc, &case.truth);
+            // The frustum head again (the search keeps its answers to itself), for the IoU of
+            // every visited pose: a judge tried offline (scripts/pose-judges.py).
+            let m = manifest.points.num_state_points.min(map.points.len());
+            let image_features = self.backend.encode_image(&tensor)?;
+            let logits = self.backend.frustum_logits(&map.features[..m * manifest.features.dim], &image_features)?;
+            let probs: Vec<f32> = logits.iter().map(|l| agent::state::sigmoid(*l)).collect();
+            let layout = agent::StateLayout::from_manifest(&manifest);
+            let iou = |pose: &Pose| agent::episode::frustum_iou(&map.points[..m], &probs, &crop_intrinsics, &layout, pose);
+            notes["hypotheses"] = hypothesis_trajectories(&loc, &case.truth, &iou);
         }
         Ok(MethodRun {
             method: method.into(),
@@ -197,10 +205,13 @@ impl Method for Learned {
 /// Every hypothesis of a search as JSON: its start, and after each step the pose
 /// (camera_from_map, row-major 3×4), the alignment score and the errors against `truth`; how it
 /// stopped. What `scripts/search-rules.py` replays search rules on.
-fn hypothesis_trajectories(loc: &agent::Localization, truth: &Pose) -> serde_json::Value {
+/// Every hypothesis's trajectory with its errors against `truth`; `frustum_iou` scores a pose
+/// as `Confidence::frustum_iou` does.
+fn hypothesis_trajectories(loc: &agent::Localization, truth: &Pose, frustum_iou: &dyn Fn(&Pose) -> f32) -> serde_json::Value {
     let at = |pose: &Pose, alignment: f32| {
         let e = PoseError::between(pose, truth);
         json!({
+            "frustum_iou": frustum_iou(pose),
             "camera_from_map": pose.to_row_major_3x4(),
             "alignment": alignment,
             "rte_m": e.rte_m,

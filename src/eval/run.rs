@@ -463,6 +463,7 @@ pub(crate) mod tests {
             for h in hypotheses {
                 assert!(h["steps"].as_array().unwrap().len() <= 4);
                 assert_eq!(h["start"]["camera_from_map"].as_array().unwrap().len(), 12);
+                assert!(h["start"]["frustum_iou"].as_f64().is_some_and(|iou| (0.0..=1.0).contains(&iou)));
                 for step in h["steps"].as_array().unwrap() {
                     // What the policy said at the pose before the step: a softmax per DoF, the
                     // chosen index its argmax.
