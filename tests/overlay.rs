@@ -210,6 +210,47 @@ fn eval_writes_worst_case_pictures() {
     }
 }
 
+/// `cmr-agent eval` without `--models` evaluates `models/` of the working directory, as `serve`
+/// serves it; `--reference-only` runs the expert and the no-op alone; with neither flag nor a
+/// model set there it refuses, naming both ways out.
+#[test]
+fn eval_uses_the_served_models_by_default() {
+    let dir = tempfile::tempdir().unwrap();
+    let (data, out) = (dir.path().join("data"), dir.path().join("out"));
+    write_sequence(&data, 2);
+    let eval = |cwd: &std::path::Path, extra: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
+            .current_dir(cwd)
+            .env_remove("CMR_MODELS")
+            .args(["eval", "--data", data.to_str().unwrap(), "--perturbations", out.join("p.json").to_str().unwrap()])
+            .args(["--out", out.to_str().unwrap(), "--iterations", "2", "--hypotheses", "1", "--worst", "0", "--quiet", "--threads", "1"])
+            .args(extra)
+            .output()
+            .unwrap()
+    };
+    let methods = || -> std::collections::BTreeSet<String> {
+        let cases: Vec<serde_json::Value> = serde_json::from_str(&std::fs::read_to_string(out.join("cases.json")).unwrap()).unwrap();
+        cases.iter().map(|c| c["method"].as_str().unwrap().to_string()).collect()
+    };
+    let empty = tempfile::tempdir().unwrap();
+    let refused = eval(empty.path(), &[]);
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success() && stderr.contains("--models") && stderr.contains("--reference-only"), "{stderr}");
+    assert!(eval(empty.path(), &["--reference-only"]).status.success());
+    assert_eq!(methods(), ["expert (oracle)", "no-op"].map(String::from).into());
+    let served = tempfile::tempdir().unwrap();
+    copy_dir(&tiny_model(), &served.path().join("models"));
+    assert!(eval(served.path(), &[]).status.success());
+    assert!(methods().contains("cmr-agent"), "{:?}", methods());
+}
+
+fn copy_dir(from: &std::path::Path, to: &std::path::Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for entry in std::fs::read_dir(from).unwrap().flatten() {
+        std::fs::copy(entry.path(), to.join(entry.file_name())).unwrap();
+    }
+}
+
 /// A tiny KITTI-odometry sequence: the street cloud as every scan (velodyne axes), KITTI-like
 /// calibration, the test image.
 fn write_sequence(root: &std::path::Path, frames: usize) {

@@ -19,10 +19,13 @@ pub struct Args {
     /// Output directory for eval.json, cases.json, tables.md, the Fig. 5 PNGs and worst/.
     #[arg(long)]
     pub out: PathBuf,
-    /// Model directory (manifest.json + four ONNX graphs). Without it only the expert and
-    /// no-op reference methods run.
-    #[arg(long, env = "CMR_MODELS")]
-    pub models: Option<PathBuf>,
+    /// Model directory (manifest.json + four ONNX graphs): the served one by default, as for
+    /// `serve`.
+    #[arg(long, env = "CMR_MODELS", default_value = "models")]
+    pub models: PathBuf,
+    /// Run only the reference methods (greedy expert, no-op): no model is loaded.
+    #[arg(long)]
+    pub reference_only: bool,
     /// Path of libonnxruntime.so (otherwise the project's usual search).
     #[arg(long, env = "ORT_DYLIB_PATH")]
     pub ort_lib: Option<PathBuf>,
@@ -53,7 +56,7 @@ pub struct Args {
     pub cases_per_frame: usize,
     /// The greedy expert's action frame: `camera_y` (yaw about camera y, translation along
     /// camera x / z) or `map_z` (yaw about the map's up axis, translation in its ground plane).
-    /// Default: the model's `actions.frame`, `camera_y` without --models.
+    /// Default: the model's `actions.frame`, `camera_y` with --reference-only.
     #[arg(long)]
     pub action_frame: Option<crate::geometry::ActionFrame>,
     /// RANSAC iterations of the one-shot baseline.
@@ -67,7 +70,7 @@ pub struct Args {
     #[arg(long, value_enum, default_value = "ratio")]
     pub matching: MatchStrategy,
     /// Write overlays (prior, final, truth) of the K worst cases by final RTE into
-    /// `<out>/worst/` (the agent's with --models, else the expert's); 0: none.
+    /// `<out>/worst/` (the agent's, or the expert's with --reference-only); 0: none.
     #[arg(long, default_value_t = 5)]
     pub worst: usize,
     /// No progress bar.
@@ -84,11 +87,18 @@ pub fn main(args: Args) -> Result<()> {
     if args.iterations == 0 {
         anyhow::bail!("--iterations must be at least 1");
     }
+    if !args.reference_only && !args.models.join("manifest.json").is_file() {
+        anyhow::bail!(
+            "no model set at {} (no manifest.json): pass --models DIR, run from the repository root for models/, \
+             or --reference-only for the expert and no-op alone",
+            args.models.display()
+        );
+    }
     let config = EvalConfig {
         data: args.data,
         perturbations: args.perturbations,
         out: args.out,
-        models: args.models,
+        models: (!args.reference_only).then_some(args.models),
         ort_lib: args.ort_lib,
         threads: args.threads.max(1),
         iterations: args.iterations,
