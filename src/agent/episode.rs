@@ -160,8 +160,9 @@ impl Episode {
 }
 
 /// Intersection-over-union between the points the frustum head predicts in view
-/// (`frustum_probs` > 0.5, one per point of `points` from the first) and the points in the
-/// model input's frustum at `camera_from_map` (crop intrinsics `k`); 0 when both are empty.
+/// (`frustum_probs[i]` > 0.5 for `points[i]`; only the points that have a probability count)
+/// and the points in the model input's frustum at `camera_from_map` (crop intrinsics `k`,
+/// `layout`'s image size); 0 when both sets are empty.
 pub fn frustum_iou(points: &[[f32; 3]], frustum_probs: &[f32], k: &Intrinsics, layout: &StateLayout, camera_from_map: &Pose) -> f32 {
     let (mut both, mut either) = (0usize, 0usize);
     for (p, prob) in points.iter().zip(frustum_probs) {

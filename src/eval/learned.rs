@@ -203,10 +203,10 @@ impl Method for Learned {
 }
 
 /// Every hypothesis of a search as JSON: its start, and after each step the pose
-/// (camera_from_map, row-major 3×4), the alignment score and the errors against `truth`; how it
-/// stopped. What `scripts/search-rules.py` replays search rules on.
-/// Every hypothesis's trajectory with its errors against `truth`; `frustum_iou` scores a pose
-/// as `Confidence::frustum_iou` does.
+/// (camera_from_map, row-major 3×4), the alignment score, the frustum IoU (`frustum_iou`, as
+/// `Confidence::frustum_iou`) and the errors against `truth`, with the policy's outputs
+/// (`policy_step`); how it stopped. What `scripts/search-rules.py` and `scripts/pose-judges.py`
+/// read.
 fn hypothesis_trajectories(loc: &agent::Localization, truth: &Pose, frustum_iou: &dyn Fn(&Pose) -> f32) -> serde_json::Value {
     let at = |pose: &Pose, alignment: f32| {
         let e = PoseError::between(pose, truth);
