@@ -68,6 +68,12 @@ def load(path):
     return cases
 
 
+def alignment(state):
+    """A recorded state's alignment score; -inf where none was recorded (never the answer)."""
+    a = state["alignment"]
+    return -math.inf if a is None or (isinstance(a, float) and math.isnan(a)) else a
+
+
 def replay(case, iterations=10, merge=True, margin=None, after=1, start_margin=None, duplicate=DUPLICATE,
            converged_lead=None, only_running=False, iou_weight=0.0, visited=False):
     """(the answer's recorded state, policy rows). The answer is the final pose that scores best
@@ -82,8 +88,7 @@ def replay(case, iterations=10, merge=True, margin=None, after=1, start_margin=N
         return dropped[h] or taken[h] >= iterations or (taken[h] >= full)
 
     def score(h):
-        a = hyps[h]["states"][taken[h]]["alignment"]
-        return -math.inf if a is None or (isinstance(a, float) and math.isnan(a)) else a
+        return alignment(hyps[h]["states"][taken[h]])
 
     if start_margin is not None:
         best = max(score(h) for h in range(n))
@@ -119,7 +124,7 @@ def replay(case, iterations=10, merge=True, margin=None, after=1, start_margin=N
         if iou_weight and any("frustum_iou" not in s for h in hyps for s in h["states"]):
             raise SystemExit("an IoU rule needs a recording with `frustum_iou` per pose (a build of 2026-12-01 or later)")
         answers = [s for h in range(n) for s in (hyps[h]["states"][:taken[h] + 1] if visited else [hyps[h]["states"][taken[h]]])]
-        judged = [-math.inf if s["alignment"] is None else s["alignment"] + iou_weight * s.get("frustum_iou", 0.0) for s in answers]
+        judged = [alignment(s) + iou_weight * s.get("frustum_iou", 0.0) for s in answers]
         return answers[max(range(len(answers)), key=lambda i: (judged[i], -i))], rows
     scores = [score(h) for h in range(n)]
     chosen = max(range(n), key=lambda h: (scores[h], -h))

@@ -236,6 +236,7 @@ fn eval_uses_the_served_models_by_default() {
     let refused = eval(empty.path(), &[]);
     let stderr = String::from_utf8_lossy(&refused.stderr);
     assert!(!refused.status.success() && stderr.contains("--models") && stderr.contains("--reference-only"), "{stderr}");
+    assert!(!out.join("p.json").exists(), "a refused run writes nothing");
     assert!(eval(empty.path(), &["--reference-only"]).status.success());
     assert_eq!(methods(), ["expert (oracle)", "no-op"].map(String::from).into());
     let served = tempfile::tempdir().unwrap();

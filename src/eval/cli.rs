@@ -87,13 +87,6 @@ pub fn main(args: Args) -> Result<()> {
     if args.iterations == 0 {
         anyhow::bail!("--iterations must be at least 1");
     }
-    if !args.reference_only && !args.models.join("manifest.json").is_file() {
-        anyhow::bail!(
-            "no model set at {} (no manifest.json): pass --models DIR, run from the repository root for models/, \
-             or --reference-only for the expert and no-op alone",
-            args.models.display()
-        );
-    }
     let config = EvalConfig {
         data: args.data,
         perturbations: args.perturbations,

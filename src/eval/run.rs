@@ -118,6 +118,13 @@ pub fn peak_rss_bytes() -> Option<u64> {
 
 /// The whole command: load, evaluate, write `eval.json`, `cases.json`, `tables.md` and the plots.
 pub fn run(config: &EvalConfig) -> Result<EvalReport> {
+    // The model set first: a run that cannot load it fails before it writes anything.
+    let models = match &config.models {
+        Some(dir) => Some(ModelSet::load(dir, BackendOptions { intra_threads: config.threads, ort_lib: config.ort_lib.clone() }).with_context(|| {
+            format!("no usable model set at {}: pass --models DIR, or --reference-only for the expert and no-op alone", dir.display())
+        })?),
+        None => None,
+    };
     let dataset = Dataset::open(&config.data)?;
     let frames: Vec<(String, usize)> = dataset
         .frames(config.frame_stride, config.max_cases)
@@ -136,8 +143,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
     let (mut num_points, mut actions) = (config.num_points, ActionSet::default());
     let mut learned_index = None;
     let mut provenance = serde_json::Value::Null;
-    if let Some(dir) = &config.models {
-        let set = ModelSet::load(dir, BackendOptions { intra_threads: config.threads, ort_lib: config.ort_lib.clone() })?;
+    if let Some(set) = &models {
         num_points = set.manifest.points.num_points;
         provenance = set.manifest.provenance.clone();
         actions = set.manifest.action_set();
