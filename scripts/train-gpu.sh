@@ -9,7 +9,8 @@
 #
 # Environment (all optional except on the GPU machine, where OUT is given):
 #   OUT            results: models/ (4 ONNX + manifest.json), eval.json, log.jsonl, config.json,
-#                  training_curves.png, checkpoint/last.pt, logs/ (default: runs/gpu-out)
+#                  training_curves.png, checkpoint/last.pt, logs/ (default: runs/gpu-out); and
+#                  models-int8/ (the same set with int8 Conv layers) when $PYTHON has onnxruntime
 #   PYTHON         the interpreter with torch, numpy, pillow, onnx (default python3; nothing is
 #                  installed, the network is never used)
 #   CMR_AGENT_BIN  the release binary (default target/release/cmr-agent, carried along)
@@ -101,6 +102,14 @@ stamp "evaluated: $("$PYTHON" -c "import json,sys; r=json.load(open(sys.argv[1])
   > "$OUT/logs/export.log" 2>&1
 "$PYTHON" -m cmr.plots "$RUN" --out "$OUT/training_curves.png" > "$OUT/logs/plots.log" 2>&1 || stamp "plots skipped (see logs/plots.log)"
 stamp "exported to $OUT/models"
+# The served form: Conv layers in int8, calibrated on the validation frames (judge both sets with
+# `cmr-agent eval` before shipping either; docs: training/README.md, "Quantised graphs").
+if "$PYTHON" -m cmr.quantize --models "$OUT/models" --calibration "$WORK/val-flat" --out "$OUT/models-int8" \
+    > "$OUT/logs/quantize.log" 2>&1; then
+  stamp "quantised to $OUT/models-int8"
+else
+  stamp "quantisation failed (see logs/quantize.log)"
+fi
 
 # -- 4. the server loads them. ONNX Runtime's library: $ORT_DYLIB_PATH, else runtime/ next to the
 #    binary's checkout (the binary's own search), else the one inside $PYTHON's onnxruntime wheel.
@@ -114,6 +123,10 @@ if "$BIN" localize --models "$OUT/models" --map maps/demo.bin --request examples
   stamp "server localize on the demo: ok ($OUT/localize-demo.json)"
 else
   stamp "server localize failed (see logs/localize.log); the models are still in $OUT/models"
+fi
+if [ -d "$OUT/models-int8" ] && "$BIN" localize --models "$OUT/models-int8" --map maps/demo.bin \
+    --request examples/localize-demo.json > "$OUT/localize-demo-int8.json" 2>> "$OUT/logs/localize.log"; then
+  stamp "server localize on the demo with the int8 set: ok"
 fi
 [ -n "${KEEP_WORK:-}" ] || rm -rf "$WORK"
 stamp "done"

@@ -51,6 +51,57 @@ def first_use_order(model: onnx.ModelProto) -> list[np.ndarray]:
     return list(seen.values())
 
 
+def dequantized(model: onnx.ModelProto) -> onnx.ModelProto:
+    """A QDQ-quantised graph (`cmr.quantize`) as a float graph: each DequantizeLinear of a constant
+    (int8 weight, int32 bias; per-tensor or per-channel) becomes the float initializer
+    (q - zero_point) * scale, and each activation's QuantizeLinear -> DequantizeLinear pair is
+    dropped. The weights are those the quantised graph computes with; only the activations'
+    rounding is gone. A float graph comes back unchanged (a copy)."""
+    out = onnx.ModelProto()
+    out.CopyFrom(model)
+    graph = out.graph
+    inits = {i.name: i for i in graph.initializer}
+    producer = {o: n for n in graph.node for o in n.output}
+    rename: dict[str, str] = {}
+    folded, kept = [], []
+    for node in graph.node:
+        if node.op_type == "DequantizeLinear" and node.input[0] in inits:
+            q = numpy_helper.to_array(inits[node.input[0]]).astype(np.float64)
+            scale = numpy_helper.to_array(inits[node.input[1]]).astype(np.float64)
+            zero = (numpy_helper.to_array(inits[node.input[2]]).astype(np.float64)
+                    if len(node.input) > 2 and node.input[2] else np.zeros_like(scale))
+            if scale.ndim == 1 and q.ndim > 1:  # per channel along `axis` (default 1)
+                axis = next((a.i for a in node.attribute if a.name == "axis"), 1)
+                shape = [1] * q.ndim
+                shape[axis] = -1
+                scale, zero = scale.reshape(shape), zero.reshape(shape)
+            folded.append(numpy_helper.from_array(((q - zero) * scale).astype(np.float32), node.output[0]))
+        elif node.op_type == "DequantizeLinear" and getattr(producer.get(node.input[0]), "op_type", "") == "QuantizeLinear":
+            rename[node.output[0]] = producer[node.input[0]].input[0]
+        elif node.op_type != "QuantizeLinear":
+            kept.append(node)
+    if not folded and not rename:
+        return out
+
+    def source(name: str) -> str:
+        while name in rename:
+            name = rename[name]
+        return name
+
+    for node in kept:
+        node.input[:] = [source(i) for i in node.input]
+    for value in graph.output:
+        if source(value.name) != value.name:
+            kept.append(onnx.helper.make_node("Identity", [source(value.name)], [value.name]))
+    del graph.node[:]
+    graph.node.extend(kept)
+    used = {i for node in kept for i in node.input}
+    remaining = [i for i in graph.initializer if i.name in used] + [i for i in folded if i.name in used]
+    del graph.initializer[:]
+    graph.initializer.extend(remaining)
+    return out
+
+
 def _tag(module: torch.nn.Module, seed: int) -> None:
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
@@ -134,7 +185,8 @@ def import_models(model_dir: Path) -> tuple[dict[str, torch.nn.Module], dict]:
     model_dir = Path(model_dir)
     doc = json.loads((model_dir / "manifest.json").read_text())
     correlation = doc.get("state_2d", {}).get("form", "features") == "correlation"
-    graphs = {name: onnx.load(str(model_dir / spec["file"])) for name, spec in doc["graphs"].items()}
+    # A quantised set (`cmr.quantize`) comes back with its weights dequantised.
+    graphs = {name: dequantized(onnx.load(str(model_dir / spec["file"]))) for name, spec in doc["graphs"].items()}
     for arch in (dict(norm=norm, image_edges=edges) for norm in NORMS for edges in (False, True)):
         models = build_all(**arch)
         tables = _tables_if_matching(models, graphs, correlation)

@@ -1,0 +1,175 @@
+"""Static int8 quantisation of a model set's image encoder and agent (ONNX QDQ, per-channel int8
+weights, int8 activations with scales calibrated on synthetic frames).
+
+    python -m cmr.quantize --models ../models --calibration ../data/synth-val ../data/v2/val-flat --out /tmp/models-int8
+
+The calibration inputs are what the served search feeds the graphs: the frames' images, and the
+agent's observations (correlation volume, 3D state) along greedy multi-start rollouts of the set's
+own (float) models from the frames' perturbed priors. Activation ranges are fixed at calibration,
+so a row's answer does not depend on the other rows of a batch (dynamic quantisation would scale
+each batch by its own range). The frustum head and the point encoder stay float: the head is
+0.3 ms, and the encoder's BEV scatter is not arithmetic.
+
+Writes a complete model set in `--out` (the other graphs copied, the manifest's sha256 updated and
+the quantisation noted in its provenance); it never writes into `--models`. Judge the result with
+`cmr-agent eval --models OUT` on synthetic and real frames before shipping it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from . import geometry as g
+from .data import find_sequences, list_frames, make_sample
+from .episodes import embed, rollout
+from .export import atomic_write_bytes, git_commit
+from .import_onnx import import_models
+
+QUANTIZED = ("image_encoder", "agent")
+
+
+
+@torch.no_grad()
+def calibration_inputs(models: dict, frames: list, hypotheses: int = 4, steps: int = 10, seed: int = 7,
+                       max_rows: int = 512, chunk: int = 4) -> dict[str, list[dict[str, np.ndarray]]]:
+    """Feeds for each quantised graph: {graph: [feed dict, ...]}. Images [1, 3, H, W] one per
+    frame; agent observations in batches of up to 16 rows, at most `max_rows` in all (an even
+    subsample of every step of every start)."""
+    images, observations = [], []
+    for start in range(0, len(frames), chunk):
+        samples = [make_sample(f, np.random.default_rng([seed, start + j]), train=False)
+                   for j, f in enumerate(frames[start:start + chunk])]
+        images.extend(s.image[None] for s in samples)
+        eps = embed(models, samples, torch.device("cpu"))
+        prior = list(eps.initial)
+        for off in g.start_yaw_offsets(hypotheses):
+            eps.initial = [g.apply_action(p, eps.pivots[i], off, 0.0, 0.0, frame=eps.action_frame)
+                           for i, p in enumerate(prior)]
+            traj = rollout(models["agent"], eps, steps, "greedy", keep_states=True)
+            for corr, s3 in traj.states:
+                observations.extend(zip(corr.numpy(), s3.numpy()))
+        eps.initial = prior
+    pick = np.linspace(0, len(observations) - 1, min(max_rows, len(observations))).round().astype(int)
+    rows = [observations[i] for i in pick]
+    agent = [dict(correlation=np.stack([c for c, _ in rows[i:i + 16]]), state_3d=np.stack([s for _, s in rows[i:i + 16]]))
+             for i in range(0, len(rows), 16)]
+    return dict(image_encoder=[dict(image=im) for im in images], agent=agent)
+
+
+class _Reader:
+    """onnxruntime.quantization.CalibrationDataReader over a list of feeds."""
+
+    def __init__(self, feeds: list[dict[str, np.ndarray]]):
+        self._it = iter(feeds)
+
+    def get_next(self):
+        return next(self._it, None)
+
+    def rewind(self):  # not needed by MinMax; kept for the calibrators that read twice
+        raise NotImplementedError
+
+
+def in_source_order(quantized: onnx.ModelProto, source: onnx.ModelProto) -> onnx.ModelProto:
+    """`quantized` with its nodes in `source`'s order, each QuantizeLinear / DequantizeLinear
+    placed just before the first node that reads it. The quantiser sorts the graph its own way;
+    `import_onnx` matches weights by the order nodes first read them, so a quantised set keeps the
+    order of the graph it came from. Raises ValueError unless every node finds its place."""
+    nodes = {n.name: n for n in quantized.graph.node}
+    producer = {o: n for n in quantized.graph.node for o in n.output}
+    placed: list = []
+    done: set[str] = set()
+
+    def place(node) -> None:
+        for name in node.input:
+            feeder = producer.get(name)
+            if feeder is not None and feeder.op_type in ("QuantizeLinear", "DequantizeLinear") and feeder.name not in done:
+                place(feeder)
+        done.add(node.name)
+        placed.append(node)
+
+    for node in source.graph.node:
+        place(nodes[node.name])
+    if len(placed) != len(quantized.graph.node):
+        raise ValueError("the quantised graph has nodes the float graph does not explain")
+    out = onnx.ModelProto()
+    out.CopyFrom(quantized)
+    del out.graph.node[:]
+    out.graph.node.extend(placed)
+    return out
+
+
+def quantize_graph(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> None:
+    """Writes `src` quantised to `dst`: Conv layers only (inputs and outputs through QDQ pairs,
+    uint8 activations with int8 weights: ONNX Runtime's fast x86 kernels; see the module doc)."""
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+
+    quantize_static(str(src), str(dst), _Reader(feeds), quant_format=QuantFormat.QDQ,
+                    activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
+                    calibrate_method=CalibrationMethod.MinMax, op_types_to_quantize=["Conv"])
+    onnx.save(in_source_order(onnx.load(str(dst)), onnx.load(str(src))), str(dst))
+
+
+def quantize_set(model_dir: Path, out_dir: Path, frames: list, graphs: tuple[str, ...] = QUANTIZED,
+                 **calibration) -> dict:
+    model_dir, out_dir = Path(model_dir), Path(out_dir)
+    if out_dir.resolve() == model_dir.resolve():
+        raise ValueError("--out must differ from --models: the quantised set is judged before it replaces one")
+    doc = json.loads((model_dir / "manifest.json").read_text())
+    models, _ = import_models(model_dir)
+    feeds = calibration_inputs(models, frames, **calibration)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, spec in doc["graphs"].items():
+            src = model_dir / spec["file"]
+            if name in graphs:
+                dst = Path(tmp) / spec["file"]
+                quantize_graph(src, dst, feeds[name])
+                data = dst.read_bytes()
+            else:
+                data = src.read_bytes()
+            atomic_write_bytes(out_dir / spec["file"], data)
+            spec["sha256"] = hashlib.sha256(data).hexdigest()
+    for extra in ("MODEL_CARD.md", "training_curves.png"):
+        if (model_dir / extra).exists():
+            shutil.copyfile(model_dir / extra, out_dir / extra)
+    doc.setdefault("provenance", {})["quantized"] = dict(
+        graphs=list(graphs), format="QDQ, int8 activations (MinMax calibration), per-channel int8 weights",
+        calibration=dict(frames=len(frames), images=len(feeds["image_encoder"]),
+                         agent_rows=int(sum(len(f["state_3d"]) for f in feeds["agent"]))),
+        code_commit=git_commit())
+    atomic_write_bytes(out_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
+    return doc
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--models", type=Path, required=True, help="float model set (manifest.json + graphs)")
+    ap.add_argument("--calibration", type=Path, nargs="+", required=True,
+                    help="KITTI-layout roots of synthetic frames (not the frames you evaluate on)")
+    ap.add_argument("--out", type=Path, required=True, help="folder for the quantised model set")
+    ap.add_argument("--frames", type=int, default=24, help="calibration frames, spread evenly over the roots")
+    ap.add_argument("--max-rows", type=int, default=512, help="agent observations kept for calibration")
+    ap.add_argument("--graphs", default=",".join(QUANTIZED), help="comma-separated graphs to quantise")
+    args = ap.parse_args(argv)
+    graphs = tuple(args.graphs.split(","))
+    if not set(graphs) <= set(QUANTIZED):
+        raise SystemExit(f"--graphs: choose among {','.join(QUANTIZED)}")
+    frames = [f for root in args.calibration for f in list_frames(find_sequences(root))]
+    if not frames:
+        raise SystemExit("no frames under --calibration")
+    pick = np.linspace(0, len(frames) - 1, min(args.frames, len(frames))).round().astype(int)
+    doc = quantize_set(args.models, args.out, [frames[i] for i in pick], graphs, max_rows=args.max_rows)
+    print(json.dumps(doc["provenance"]["quantized"], indent=2))
+
+
+if __name__ == "__main__":
+    main()
