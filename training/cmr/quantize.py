@@ -118,34 +118,46 @@ def quantize_graph(src: Path, dst: Path, feeds: list[dict[str, np.ndarray]]) -> 
     onnx.save(in_source_order(onnx.load(str(dst)), onnx.load(str(src))), str(dst))
 
 
+def is_quantized(model: onnx.ModelProto) -> bool:
+    return any(n.op_type in ("QuantizeLinear", "DequantizeLinear", "QLinearConv") for n in model.graph.node)
+
+
 def quantize_set(model_dir: Path, out_dir: Path, frames: list, graphs: tuple[str, ...] = QUANTIZED,
                  **calibration) -> dict:
+    """Quantises `graphs` of the float set in `model_dir` into a complete set in `out_dir`
+    (`calibration`: keyword arguments of `calibration_inputs`). Everything is computed before the
+    first file is written. ValueError when `out_dir` is `model_dir` or a graph is quantised already."""
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     if out_dir.resolve() == model_dir.resolve():
         raise ValueError("--out must differ from --models: the quantised set is judged before it replaces one")
     doc = json.loads((model_dir / "manifest.json").read_text())
+    for name in graphs:
+        if is_quantized(onnx.load(str(model_dir / doc["graphs"][name]["file"]))):
+            raise ValueError(f"{model_dir}: {name} is quantised already; start from the float set")
     models, _ = import_models(model_dir)
     feeds = calibration_inputs(models, frames, **calibration)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    files = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name, spec in doc["graphs"].items():
             src = model_dir / spec["file"]
             if name in graphs:
-                dst = Path(tmp) / spec["file"]
-                quantize_graph(src, dst, feeds[name])
-                data = dst.read_bytes()
-            else:
-                data = src.read_bytes()
-            atomic_write_bytes(out_dir / spec["file"], data)
-            spec["sha256"] = hashlib.sha256(data).hexdigest()
+                quantize_graph(src, Path(tmp) / spec["file"], feeds[name])
+                src = Path(tmp) / spec["file"]
+            files[spec["file"]] = src.read_bytes()
+            spec["sha256"] = hashlib.sha256(files[spec["file"]]).hexdigest()
+    doc.setdefault("provenance", {})["quantized"] = dict(
+        graphs=list(graphs), format="QDQ: Conv layers with uint8 activations (MinMax calibration) and per-channel int8 weights",
+        calibration=dict(frames=len(frames), images=len(feeds["image_encoder"]),
+                         agent_rows=int(sum(len(f["state_3d"]) for f in feeds["agent"]))),
+        float_sha256={name: hashlib.sha256((model_dir / doc["graphs"][name]["file"]).read_bytes()).hexdigest()
+                      for name in graphs},
+        code_commit=git_commit())
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for file, data in files.items():
+        atomic_write_bytes(out_dir / file, data)
     for extra in ("MODEL_CARD.md", "training_curves.png"):
         if (model_dir / extra).exists():
             shutil.copyfile(model_dir / extra, out_dir / extra)
-    doc.setdefault("provenance", {})["quantized"] = dict(
-        graphs=list(graphs), format="QDQ, int8 activations (MinMax calibration), per-channel int8 weights",
-        calibration=dict(frames=len(frames), images=len(feeds["image_encoder"]),
-                         agent_rows=int(sum(len(f["state_3d"]) for f in feeds["agent"]))),
-        code_commit=git_commit())
     atomic_write_bytes(out_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
     return doc
 

@@ -84,6 +84,9 @@ def test_the_set_names_its_files_and_keeps_the_other_graphs(sets):
     assert doc["provenance"]["quantized"]["graphs"] == list(QUANTIZED)
     with pytest.raises(ValueError, match="--out must differ"):
         quantize_set(int8_dir, int8_dir, [])
+    with pytest.raises(ValueError, match="quantised already"):
+        quantize_set(int8_dir, int8_dir.parent / "twice", [])
+    assert not (int8_dir.parent / "twice").exists()
 
 
 def test_a_quantised_set_imports_with_its_dequantised_weights(sets):
