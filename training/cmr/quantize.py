@@ -120,6 +120,16 @@ def is_quantized(model: onnx.ModelProto) -> bool:
     return any(n.op_type in ("QuantizeLinear", "DequantizeLinear", "QLinearConv") for n in model.graph.node)
 
 
+def check_float_set(model_dir: Path, graphs: tuple[str, ...]) -> dict:
+    """The set's manifest; ValueError when one of `graphs` is quantised already."""
+    doc = json.loads((Path(model_dir) / "manifest.json").read_text())
+    for name in graphs:
+        if is_quantized(onnx.load(str(Path(model_dir) / doc["graphs"][name]["file"]))):
+            raise ValueError(f"{model_dir}: {name} is quantised already; start from the float set "
+                             "(training/README.md, \"Quantised graphs\")")
+    return doc
+
+
 def quantize_set(model_dir: Path, out_dir: Path, frames: list, graphs: tuple[str, ...] = QUANTIZED,
                  **calibration) -> dict:
     """Quantises `graphs` of the float set in `model_dir` into a complete set in `out_dir`
@@ -128,10 +138,7 @@ def quantize_set(model_dir: Path, out_dir: Path, frames: list, graphs: tuple[str
     model_dir, out_dir = Path(model_dir), Path(out_dir)
     if out_dir.resolve() == model_dir.resolve():
         raise ValueError("--out must differ from --models: the quantised set is judged before it replaces one")
-    doc = json.loads((model_dir / "manifest.json").read_text())
-    for name in graphs:
-        if is_quantized(onnx.load(str(model_dir / doc["graphs"][name]["file"]))):
-            raise ValueError(f"{model_dir}: {name} is quantised already; start from the float set")
+    doc = check_float_set(model_dir, graphs)
     models, _ = import_models(model_dir)
     feeds = calibration_inputs(models, frames, **calibration)
     files = {}
@@ -173,11 +180,15 @@ def main(argv=None) -> None:
     graphs = tuple(args.graphs.split(","))
     if not set(graphs) <= set(QUANTIZED):
         raise SystemExit(f"--graphs: choose among {','.join(QUANTIZED)}")
-    frames = [f for root in args.calibration for f in list_frames(find_sequences(root))]
-    if not frames:
-        raise SystemExit("no frames under --calibration")
-    pick = np.linspace(0, len(frames) - 1, min(args.frames, len(frames))).round().astype(int)
-    doc = quantize_set(args.models, args.out, [frames[i] for i in pick], graphs, max_rows=args.max_rows)
+    try:
+        check_float_set(args.models, graphs)
+        frames = [f for root in args.calibration for f in list_frames(find_sequences(root))]
+        if not frames:
+            raise ValueError("no frames under --calibration")
+        pick = np.linspace(0, len(frames) - 1, min(args.frames, len(frames))).round().astype(int)
+        doc = quantize_set(args.models, args.out, [frames[i] for i in pick], graphs, max_rows=args.max_rows)
+    except (ValueError, OSError) as e:  # DataError is a ValueError
+        raise SystemExit(f"cmr.quantize: {e}") from None
     print(json.dumps(doc["provenance"]["quantized"], indent=2))
 
 
