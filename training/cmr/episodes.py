@@ -169,19 +169,20 @@ def select_hypotheses(scores: np.ndarray) -> np.ndarray:
     return np.asarray(scores).argmax(axis=0)
 
 
-def multi_start(agent, episodes: Episodes, steps: int,
-                hypotheses: int) -> tuple[list[list[np.ndarray]], list[Trajectory]]:
+def multi_start(agent, episodes: Episodes, steps: int, hypotheses: int,
+                keep_states: bool = False) -> tuple[list[list[np.ndarray]], list[Trajectory]]:
     """The multi-start search: greedy rollouts from the prior turned about the map pivot by each of
     `g.start_yaw_offsets(hypotheses)` (a single start fails on coarse yaw), and after each iteration
     1..steps the pose of the hypothesis with the highest alignment score. Returns (selected poses
-    [steps][B], the H trajectories). `episodes.initial` is restored afterwards."""
+    [steps][B], the H trajectories, with the agent's observations when `keep_states`).
+    `episodes.initial` is restored afterwards."""
     prior = list(episodes.initial)
     trajectories, scores = [], []
     try:
         for off in g.start_yaw_offsets(hypotheses):
             episodes.initial = [g.apply_action(p, episodes.pivots[i], off, 0.0, 0.0, frame=episodes.action_frame)
                                 for i, p in enumerate(prior)]
-            traj = rollout(agent, episodes, steps, "greedy")
+            traj = rollout(agent, episodes, steps, "greedy", keep_states=keep_states)
             trajectories.append(traj)
             scores.append([episodes.alignment(traj.poses[t]) for t in range(1, steps + 1)])
     finally:

@@ -30,9 +30,8 @@ import numpy as np
 import onnx
 import torch
 
-from . import geometry as g
 from .data import find_sequences, list_frames, make_sample
-from .episodes import embed, rollout
+from .episodes import embed, multi_start
 from .export import atomic_write_bytes, git_commit
 from .import_onnx import import_models
 
@@ -51,14 +50,10 @@ def calibration_inputs(models: dict, frames: list, hypotheses: int = 4, steps: i
                    for j, f in enumerate(frames[start:start + chunk])]
         images.extend(s.image[None] for s in samples)
         eps = embed(models, samples, torch.device("cpu"))
-        prior = list(eps.initial)
-        for off in g.start_yaw_offsets(hypotheses):
-            eps.initial = [g.apply_action(p, eps.pivots[i], off, 0.0, 0.0, frame=eps.action_frame)
-                           for i, p in enumerate(prior)]
-            traj = rollout(models["agent"], eps, steps, "greedy", keep_states=True)
+        _, trajectories = multi_start(models["agent"], eps, steps, hypotheses, keep_states=True)
+        for traj in trajectories:
             for corr, s3 in traj.states:
                 observations.extend(zip(corr.numpy(), s3.numpy()))
-        eps.initial = prior
     pick = np.linspace(0, len(observations) - 1, min(max_rows, len(observations))).round().astype(int)
     rows = [observations[i] for i in pick]
     agent = [dict(correlation=np.stack([c for c, _ in rows[i:i + 16]]), state_3d=np.stack([s for _, s in rows[i:i + 16]]))

@@ -57,8 +57,8 @@ class FakeEpisodes:
 def test_multi_start_answers_with_the_best_aligned_start(monkeypatch, frame):
     """With an agent that stands still, the answer is the start nearest the truth in yaw; hypothesis
     0 is the prior itself, and the batch's starts are restored afterwards."""
-    def still(agent, episodes, steps, mode):
-        assert mode == "greedy"
+    def still(agent, episodes, steps, mode, keep_states=False):
+        assert mode == "greedy" and not keep_states
         return ep.Trajectory([list(episodes.initial)] * (steps + 1), *[None] * 5)
     monkeypatch.setattr(ep, "rollout", still)
     eps = FakeEpisodes([100.0, -30.0], frame)
