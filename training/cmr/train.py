@@ -81,6 +81,11 @@ class Config:
     rank_weight: float = 0.0
     rank_poses: int = 4
     rank_margin: float = 0.05
+    # Share of those perturbations drawn wide instead: a turn of 30-180 deg either way about the
+    # vertical through the camera centre and a ground shift of up to `rank_far_shift_m` in any
+    # direction (map_z frame) -- the real-frame failures are flipped headings and metres backwards.
+    rank_far: float = 0.0
+    rank_far_shift_m: float = 6.0
     # stage 2: agent
     agent_iters: int = 2000
     agent_envs: int = 8
@@ -350,18 +355,13 @@ class Run:
         """softplus(20 (margin - (score(truth) - score(perturbed)))) / 20, averaged over `rank_poses`
         perturbations per sample, with score = `state.alignment` (differentiable in both
         embeddings). A perturbation shifts the camera 0.3-3 m along its own x or z axis and, half
-        of the time, turns it about its own y axis by 2-30 deg either way."""
+        of the time, turns it about its own y axis by 2-30 deg either way; a `rank_far` share of
+        them is wide instead (30-180 deg about map z through the camera centre, a ground shift of
+        up to `rank_far_shift_m` in any direction)."""
         from .state import alignment
         cfg, dev = self.cfg, self.device
         b, p = len(samples), cfg.rank_poses
-        moved = []
-        for s in samples:
-            camera_centre = g.invert(s.truth)[:3, 3]  # the pivot: a turn in place
-            for _ in range(p):
-                yaw_deg = rng.uniform(2.0, 30.0) * rng.choice([-1.0, 1.0]) * (rng.random() < 0.5)
-                shift = np.zeros(3)
-                shift[rng.choice([0, 2])] = rng.uniform(0.3, 3.0) * rng.choice([-1.0, 1.0])
-                moved.append(g.apply_action(s.truth, camera_centre, yaw_deg, shift[0], shift[2]))
+        moved = [pose for s in samples for pose in self.rank_perturbations(s.truth, rng)]
         truth = torch.as_tensor(np.stack([s.truth for s in samples]), dtype=torch.float32, device=dev)
         moved = torch.as_tensor(np.stack(moved), dtype=torch.float32, device=dev)
         k = torch.as_tensor(np.stack([s.intrinsics for s in samples]), dtype=torch.float32, device=dev)
@@ -369,6 +369,24 @@ class Run:
         good = alignment(truth, points, k, pf, imf)  # [B]
         bad = alignment(moved, rep(points), rep(k), rep(pf), rep(imf)).view(b, p)
         return (F.softplus(20.0 * (cfg.rank_margin - (good[:, None] - bad))) / 20.0).mean()
+
+    def rank_perturbations(self, truth: np.ndarray, rng) -> list[np.ndarray]:
+        """`rank_poses` camera_from_map poses [4, 4] near `truth` for the ranking term (its docstring)."""
+        cfg = self.cfg
+        camera_centre = g.invert(truth)[:3, 3]  # the pivot: a turn in place
+        moved = []
+        for _ in range(cfg.rank_poses):
+            if cfg.rank_far > 0 and rng.random() < cfg.rank_far:
+                yaw_deg = rng.uniform(30.0, 180.0) * rng.choice([-1.0, 1.0])
+                heading, dist = rng.uniform(0.0, 2 * math.pi), rng.uniform(0.0, cfg.rank_far_shift_m)
+                moved.append(g.apply_action(truth, camera_centre, yaw_deg, dist * math.cos(heading),
+                                            dist * math.sin(heading), frame=g.MAP_Z))
+                continue
+            yaw_deg = rng.uniform(2.0, 30.0) * rng.choice([-1.0, 1.0]) * (rng.random() < 0.5)
+            shift = np.zeros(3)
+            shift[rng.choice([0, 2])] = rng.uniform(0.3, 3.0) * rng.choice([-1.0, 1.0])
+            moved.append(g.apply_action(truth, camera_centre, yaw_deg, shift[0], shift[2]))
+        return moved
 
     def embed_train_mode(self) -> None:
         """The stage-1 modules in training mode; with `embed_frozen_bn`, their BatchNorm layers

@@ -2,12 +2,14 @@
 stage-1 schedule, loader workers draw the same batches, fine-tuning starts from a checkpoint."""
 
 import json
+import math
 
 import numpy as np
 import onnxruntime as ort
 import pytest
 import torch
 
+from cmr import geometry as g
 from cmr.export import CONTRACT_SHAPES, example_inputs, export_models, load_models
 from cmr.models import build_all
 from cmr.train import Config, Run, main
@@ -120,10 +122,28 @@ def test_frozen_batch_norm_keeps_the_running_statistics(tmp_path, tiny_dataset):
                    for k in ("image_encoder",) for m in thawed.models[k].modules() if isinstance(m, torch.nn.BatchNorm2d))
 
 
-def test_rank_loss_prefers_the_truth_and_reaches_both_encoders(tmp_path, tiny_dataset):
+def test_rank_perturbations_near_and_wide(tmp_path, tiny_dataset):
+    """Near perturbations turn 0-30 deg and move the camera 0.3-3 m; wide ones (`rank_far=1`)
+    turn 30-180 deg about map z and move it at most `rank_far_shift_m` in the ground plane."""
+    for far, turns, shifts in ((0.0, (0.0, 30.0), (0.3, 3.0)), (1.0, (30.0, 180.0), (0.0, 6.0))):
+        run = small_run(tmp_path / str(far), tiny_dataset, rank_poses=64, rank_far=far)
+        truth = run.samples(1, 0, 1, 2048)[0].truth
+        centre = g.invert(truth)[:3, 3]
+        for pose in run.rank_perturbations(truth, np.random.default_rng(0)):
+            f0, f1 = g.ground_heading(truth)[1], g.ground_heading(pose)[1]
+            turn = math.degrees(math.acos(np.clip(f0 @ f1, -1.0, 1.0)))
+            moved = g.invert(pose)[:3, 3] - centre
+            assert turns[0] - 1e-6 <= turn <= turns[1] + 1e-6
+            assert shifts[0] - 1e-6 <= np.linalg.norm(moved) <= shifts[1] + 1e-6
+            if far:
+                assert abs(moved[2]) < 1e-9  # a ground shift: the camera keeps its height
+
+
+@pytest.mark.parametrize("rank_far", [0.0, 1.0])
+def test_rank_loss_prefers_the_truth_and_reaches_both_encoders(tmp_path, tiny_dataset, rank_far):
     """`rank_weight`: a ranking term on the alignment score; logged as `rank`, with gradients in
-    the point and the image encoder."""
-    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=3)
+    the point and the image encoder; with near and with wide (`rank_far`) perturbations."""
+    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=3, rank_far=rank_far)
     samples = run.samples(1, 0, 2, 2048)
     loss, stats = run.embed_losses(samples)
     assert "rank" in stats and stats["rank"] > 0
