@@ -5,6 +5,14 @@ and count how often the true pose outscores the same pose perturbed by a given y
 A perfect embedding wins every comparison; a useless one wins about half. This is the number the
 agent's 2D branch lives on, so it is checked before spending hours on the agent stage.
 
+Two global figures say how well the score would judge the whole search space, without an agent:
+- `heading_at_truth`: at the true camera centre, the best of 72 headings (5 deg apart, turned about
+  map z) is within 10 deg of the truth (share of frames; `cmr.heading_sweep --truth` on ONNX sets);
+- `truth_percentile`: the share of `--global-poses` poses drawn as the paper's protocol draws its
+  starts (any heading, the camera within +-10 m in the ground plane), registered ones (5 m /
+  10 deg) left out, that score below the truth (mean over frames; 0.5 = no signal), and
+  `truth_beats_all`: the share of frames where the truth outscores every one of them.
+
     python -m cmr.diagnose --checkpoint runs/default/last.pt --data ../data/synth-val --frames 24
 """
 
@@ -33,10 +41,28 @@ def alignment_score(eps, row: int, pose: np.ndarray) -> float:
     return float(eps.alignment([pose], [row])[0])
 
 
+def global_poses(truth: np.ndarray, rng: np.random.Generator, count: int) -> tuple[list[np.ndarray], np.ndarray]:
+    """72 headings at the true camera centre, then `count` protocol-like poses (heading uniform,
+    ground shift uniform in +-10 m); and a mask of the latter that are not registered (5 m / 10 deg)."""
+    centre = g.invert(truth)[:3, 3]
+    sweep = [g.apply_action(truth, centre, yaw, 0.0, 0.0, frame=g.MAP_Z) for yaw in np.arange(0.0, 360.0, 5.0)]
+    drawn, far = [], []
+    for _ in range(count):
+        yaw = rng.uniform(-180.0, 180.0)
+        tx, tz = rng.uniform(-10.0, 10.0, 2)
+        pose = g.apply_action(truth, centre, yaw, tx, tz, frame=g.MAP_Z)
+        err = g.pose_error(pose, truth)
+        drawn.append(pose)
+        far.append(err["rte_m"] >= 5.0 or err["rre_euler_deg"] >= 10.0)
+    return sweep + drawn, np.asarray(far)
+
+
 @torch.no_grad()
-def diagnose(models: dict, frames, seed: int = 4321, num_points: int = 40960, chunk: int = 4) -> dict:
+def diagnose(models: dict, frames, seed: int = 4321, num_points: int = 40960, chunk: int = 4,
+             global_count: int = 128) -> dict:
     for m in models.values():
         m.eval()
+    heading_hits, percentiles, beats_all = 0, [], 0
     wins = {name: 0 for name, *_ in PERTURBATIONS}
     margins = {name: [] for name, *_ in PERTURBATIONS}
     confusion = np.zeros(3, dtype=np.int64)
@@ -53,8 +79,17 @@ def diagnose(models: dict, frames, seed: int = 4321, num_points: int = 40960, ch
                 margin = truth_score - alignment_score(eps, row, moved)
                 wins[name] += margin > 0
                 margins[name].append(margin)
+            poses, far = global_poses(s.truth, np.random.default_rng([seed, 7, start + row]), global_count)
+            scores = eps.alignment(poses, [row] * len(poses))
+            best = int(np.argmax(scores[:72])) * 5.0
+            heading_hits += min(best, 360.0 - best) <= 10.0
+            others = scores[72:][far]
+            percentiles.append(float((others < truth_score).mean()) if len(others) else 1.0)
+            beats_all += bool((others < truth_score).all())
     n = len(frames)
     return dict(frames=n, frustum=precision_recall(confusion),
+                heading_at_truth=heading_hits / n, truth_percentile=float(np.mean(percentiles)),
+                truth_beats_all=beats_all / n,
                 truth_wins={k: v / n for k, v in wins.items()},
                 median_margin={k: float(np.median(v)) for k, v in margins.items()})
 
@@ -65,12 +100,13 @@ def main(argv=None) -> None:
     ap.add_argument("--checkpoint", type=Path, required=True)
     ap.add_argument("--data", type=Path, required=True)
     ap.add_argument("--frames", type=int, default=24)
+    ap.add_argument("--global-poses", type=int, default=128, help="protocol-like poses per frame for truth_percentile")
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
     models, _ = load_models(args.checkpoint)
     frames = list_frames(find_sequences(args.data))
     frames = frames[:: max(1, len(frames) // args.frames)][: args.frames]
-    print(json.dumps(diagnose(models, frames), indent=2))
+    print(json.dumps(diagnose(models, frames, global_count=args.global_poses), indent=2))
 
 
 if __name__ == "__main__":

@@ -80,3 +80,30 @@ def test_frozen_cases_reproduce_the_harness_motions(tmp_path, tiny_dataset):
     err = g.pose_error(s.initial, s.truth)
     assert abs(err["rre_geodesic_deg"] - 30.0) < 1e-6
     assert np.allclose(s.motion, g.ground_motion(np.radians(30.0), 3.0, -4.0))
+
+
+def test_global_poses_sweep_the_heading_and_draw_protocol_starts():
+    """`cmr.diagnose.global_poses`: 72 headings 5 deg apart at the true camera centre, then starts
+    within +-10 m in the ground plane at any heading, with the registered ones flagged."""
+    import math
+
+    import numpy as np
+
+    from cmr import geometry as g
+    from cmr.diagnose import global_poses
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # level camera, map z up
+    pose[:3, 3] = [0.3, 1.6, -2.0]
+    poses, far = global_poses(pose, np.random.default_rng(0), 300)
+    assert len(poses) == 372 and far.shape == (300,)
+    centre = g.invert(pose)[:3, 3]
+    f0 = g.ground_heading(pose)[1]
+    for i, p in enumerate(poses[:72]):
+        assert np.allclose(g.invert(p)[:3, 3], centre)
+        turn = math.degrees(math.atan2(np.cross(f0, g.ground_heading(p)[1])[2], f0 @ g.ground_heading(p)[1]))
+        assert abs((turn - 5.0 * i + 180.0) % 360.0 - 180.0) < 1e-6
+    moved = np.array([g.invert(p)[:3, 3] - centre for p in poses[72:]])
+    assert np.allclose(moved[:, 2], 0.0) and np.abs(moved[:, :2]).max() <= 10.0 * math.sqrt(2) + 1e-9
+    errs = [g.pose_error(p, pose) for p in poses[72:]]
+    assert np.array_equal(far, [e["rte_m"] >= 5.0 or e["rre_euler_deg"] >= 10.0 for e in errs])
+    assert 0 < (~far).sum() < 30  # a few starts land within 5 m / 10 deg
