@@ -40,6 +40,7 @@ class AugmentOptions:
     # The map from other scans of the drive (`data.neighbour_map`): 0 = the frame's own scan.
     map_window: int = 0  # frames each side to draw from
     map_scans: int = 3  # scans in the union
+    map_window_p: float = 1.0  # share of samples given such a map (the others keep their own scan)
 
     @property
     def active(self) -> bool:

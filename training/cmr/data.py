@@ -7,7 +7,8 @@ A sequence directory holds `calib.txt`, `velodyne/NNNNNN.bin` (float32 x, y, z, 
 - the scan sampled to N points (random permutation, refilled with replacement when short);
 - a random map-frame motion Q (yaw over the full circle, ground shift within +-10 m):
   map = Q * scan, truth camera_from_map = camera_from_lidar * Q^-1, initial pose camera_from_lidar;
-- optionally (training, `AugmentOptions.map_window` > 0) the map is not this frame's own scan but
+- optionally (training, `AugmentOptions.map_window` > 0, for a `map_window_p` share of the
+  samples) the map is not this frame's own scan but
   the union of the scans of `map_scans` frames drawn within +-`map_window` of it, moved into this
   frame's LiDAR frame with `poses.txt`: the camera is then not at the centre of the map's rings,
   as in a region built from a drive (a model trained only on own scans learns to put the camera
@@ -231,7 +232,7 @@ def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points:
     image = ((rgb - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1).astype(np.float32)
     k = g.adjust_intrinsics(plan, frame.calib.intrinsics, w, h)
 
-    if train and augment.map_window > 0:
+    if train and augment.map_window > 0 and (augment.map_window_p >= 1.0 or rng.random() < augment.map_window_p):
         xyz = neighbour_map(frame, rng, augment.map_window, augment.map_scans, augment)
     elif train and augment.lidar:
         xyz = aug.lidar_augment(xyz, rng, augment)

@@ -125,6 +125,7 @@ class Config:
     # a drive does not have its scan centre at the camera. 0 = each frame's own scan (v3).
     map_window: int = 0
     map_scans: int = 3
+    map_window_p: float = 1.0  # share of training samples with such a map; the rest keep their own scan
     # Start from another run's checkpoint (its weights only; optimisers and counters start fresh):
     # fine-tuning. Ignored when <out>/last.pt exists (resume wins).
     init_from: str = ""
@@ -187,7 +188,7 @@ class Run:
                                       beam_dropout_p=cfg.beam_dropout_p, density_min=cfg.density_min,
                                       range_noise_m=cfg.range_noise_m, occlusion_p=cfg.occlusion_p,
                                       occlusion_max_deg=cfg.occlusion_max_deg, map_window=cfg.map_window,
-                                      map_scans=cfg.map_scans)
+                                      map_scans=cfg.map_scans, map_window_p=cfg.map_window_p)
         embed_params = [p for k in ("point_encoder", "image_encoder", "frustum_head") for p in self.models[k].parameters()]
         self.opt_embed = torch.optim.Adam(embed_params, lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))

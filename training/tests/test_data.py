@@ -103,3 +103,26 @@ def test_neighbour_map_moves_other_scans_into_this_frames_lidar_frame(tiny_datas
     a = make_sample(f0, np.random.default_rng(3), train=True, num_points=4096)
     b = make_sample(f0, np.random.default_rng(3), train=True, num_points=4096, augment=AugmentOptions())
     assert np.array_equal(a.points, b.points)
+
+
+def test_map_window_p_gives_a_share_of_samples_a_neighbour_map(tiny_dataset):
+    """`map_window_p`: that share of training samples gets the union of neighbour scans, the rest
+    their own scan (every point of which lies on the frame's scan, moved by the sample's Q)."""
+    import torch
+
+    from cmr.augment import AugmentOptions
+    from cmr.data import read_scan
+
+    f0 = list_frames(find_sequences(tiny_dataset))[0]
+    own = torch.from_numpy(read_scan(f0.scan_path).astype(np.float64))
+
+    def on_own_scan(share: float, seed: int) -> float:
+        opts = AugmentOptions(map_window=3, map_scans=2, map_window_p=share)
+        s = make_sample(f0, np.random.default_rng(seed), train=True, num_points=1024, augment=opts)
+        back = torch.from_numpy(g.transform(g.invert(s.motion), s.points.astype(np.float64)))
+        return float((torch.cdist(back, own).min(dim=1).values < 1e-3).double().mean())
+
+    shares = [on_own_scan(0.5, seed) for seed in range(12)]
+    assert any(x == 1.0 for x in shares) and any(x < 0.9 for x in shares), shares
+    assert all(on_own_scan(0.0, seed) == 1.0 for seed in range(3))
+    assert all(on_own_scan(1.0, seed) < 0.9 for seed in range(3))
