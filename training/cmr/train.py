@@ -129,6 +129,9 @@ class Config:
     # Start from another run's checkpoint (its weights only; optimisers and counters start fresh):
     # fine-tuning. Ignored when <out>/last.pt exists (resume wins).
     init_from: str = ""
+    # Then the agent alone (its moving average when saved) from this checkpoint, whatever its
+    # encoders: a trained policy on new embeddings (the correlation it reads is a cosine either way).
+    init_agent_from: str = ""
     # bookkeeping
     # Wall-time budgets per stage (0: none). With a budget the stage ends when it is spent and its
     # cosine runs over max(step share, time share); meant for one-shot runs (scripts/train-gpu.sh).
@@ -205,8 +208,11 @@ class Run:
             self.train_frames, val = split_frames(frames, cfg.holdout_every)
         step = max(1, len(val) // max(cfg.eval_frames, 1))
         self.val_frames = val[::step][: cfg.eval_frames]
-        if cfg.init_from and not (self.dir / "last.pt").exists():
-            self._init_from(Path(cfg.init_from))
+        if not (self.dir / "last.pt").exists():
+            if cfg.init_from:
+                self._init_from(Path(cfg.init_from))
+            if cfg.init_agent_from:
+                self._init_agent_from(Path(cfg.init_agent_from))
         self._load(self.dir / "last.pt")
 
     # -- persistence -------------------------------------------------------------------------
@@ -258,6 +264,13 @@ class Run:
             self.agent_ema.load_state_dict(self.models["agent"].state_dict())
         print(f"initialised from {path} (embed step {state['embed_step']}, agent iteration {state['agent_iter']})",
               flush=True)
+
+    def _init_agent_from(self, path: Path) -> None:
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        self.models["agent"].load_state_dict(state.get("agent_ema", state["models"]["agent"]))
+        if self.agent_ema is not None:
+            self.agent_ema.load_state_dict(self.models["agent"].state_dict())
+        print(f"agent initialised from {path} (agent iteration {state['agent_iter']})", flush=True)
 
     def log(self, record: dict) -> None:
         with open(self.dir / "log.jsonl", "a") as f:

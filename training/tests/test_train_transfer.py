@@ -73,6 +73,16 @@ def test_group_norm_run_exports_and_fine_tunes(tmp_path, tiny_dataset):
         assert torch.equal(v, src["models"]["image_encoder"][k])
     with pytest.raises(SystemExit, match="norm=group"):
         small_run(tmp_path / "ft2", tiny_dataset, init_from=str(tmp_path / "src" / "last.pt"))
+    # The agent alone from a checkpoint with other encoders (BatchNorm): encoders stay as given.
+    main(["--out", str(tmp_path / "bn")] + base + ["embed_steps=1", "agent_iters=1", "agent_ema=0.9"])
+    bn = torch.load(tmp_path / "bn" / "last.pt", map_location="cpu", weights_only=False)
+    mixed = small_run(tmp_path / "mixed", tiny_dataset, norm="group", agent_ema=0.5,
+                      init_from=str(tmp_path / "src" / "last.pt"), init_agent_from=str(tmp_path / "bn" / "last.pt"))
+    for k, v in mixed.models["agent"].state_dict().items():
+        assert torch.equal(v, bn["agent_ema"][k]) and torch.equal(mixed.agent_ema.state_dict()[k], v)
+    assert any(not torch.equal(v, bn["models"]["agent"][k]) for k, v in bn["agent_ema"].items())
+    for k, v in mixed.models["image_encoder"].state_dict().items():
+        assert torch.equal(v, src["models"]["image_encoder"][k])
 
 
 def test_stage_one_time_budget_ends_the_stage(tmp_path, tiny_dataset):
