@@ -7,7 +7,8 @@ agent's 2D branch lives on, so it is checked before spending hours on the agent 
 
 Two global figures say how well the score would judge the whole search space, without an agent:
 - `heading_at_truth`: at the true camera centre, the best of 72 headings (5 deg apart, turned about
-  map z) is within 10 deg of the truth (share of frames; `cmr.heading_sweep --truth` on ONNX sets);
+  map z) is within 10 deg of the truth (share of frames; `cmr.heading_sweep --truth` does the
+  same on ONNX sets, turning about camera y);
 - `truth_percentile`: the share of `--global-poses` poses drawn as the paper's protocol draws its
   starts (any heading, the camera within +-10 m in the ground plane), registered ones (5 m /
   10 deg) left out, that score below the truth (mean over frames; 0.5 = no signal), and
@@ -41,19 +42,21 @@ def alignment_score(eps, row: int, pose: np.ndarray) -> float:
     return float(eps.alignment([pose], [row])[0])
 
 
+SWEEP_DEG = np.arange(0.0, 360.0, 5.0)  # the headings of `heading_at_truth`
+
+
 def global_poses(truth: np.ndarray, rng: np.random.Generator, count: int) -> tuple[list[np.ndarray], np.ndarray]:
-    """72 headings at the true camera centre, then `count` protocol-like poses (heading uniform,
-    ground shift uniform in +-10 m); and a mask of the latter that are not registered (5 m / 10 deg)."""
+    """`SWEEP_DEG` headings at the true camera centre, then `count` protocol-like poses (heading
+    uniform, ground shift uniform in +-10 m); and a mask of the latter that are not registered."""
     centre = g.invert(truth)[:3, 3]
-    sweep = [g.apply_action(truth, centre, yaw, 0.0, 0.0, frame=g.MAP_Z) for yaw in np.arange(0.0, 360.0, 5.0)]
+    sweep = [g.apply_action(truth, centre, yaw, 0.0, 0.0, frame=g.MAP_Z) for yaw in SWEEP_DEG]
     drawn, far = [], []
     for _ in range(count):
         yaw = rng.uniform(-180.0, 180.0)
         tx, tz = rng.uniform(-10.0, 10.0, 2)
         pose = g.apply_action(truth, centre, yaw, tx, tz, frame=g.MAP_Z)
-        err = g.pose_error(pose, truth)
         drawn.append(pose)
-        far.append(err["rte_m"] >= 5.0 or err["rre_euler_deg"] >= 10.0)
+        far.append(not g.registered(pose, truth))
     return sweep + drawn, np.asarray(far)
 
 
@@ -81,9 +84,10 @@ def diagnose(models: dict, frames, seed: int = 4321, num_points: int = 40960, ch
                 margins[name].append(margin)
             poses, far = global_poses(s.truth, np.random.default_rng([seed, 7, start + row]), global_count)
             scores = eps.alignment(poses, [row] * len(poses))
-            best = int(np.argmax(scores[:72])) * 5.0
-            heading_hits += min(best, 360.0 - best) <= 10.0
-            others = scores[72:][far]
+            n_sweep = len(SWEEP_DEG)
+            best = SWEEP_DEG[int(np.argmax(scores[:n_sweep]))]
+            heading_hits += min(best, 360.0 - best) <= g.RR_MAX_ROTATION_DEG
+            others = scores[n_sweep:][far]
             percentiles.append(float((others < truth_score).mean()) if len(others) else 1.0)
             beats_all += bool((others < truth_score).all())
     n = len(frames)

@@ -240,6 +240,12 @@ def pose_error(estimate: np.ndarray, truth: np.ndarray) -> dict:
                 rre_geodesic_deg=math.degrees(math.acos(cos)))
 
 
+def registered(estimate: np.ndarray, truth: np.ndarray) -> bool:
+    """Protocol A's success test for one camera_from_map pose: RTE < 5 m and RRE (Euler sum) < 10 deg."""
+    e = pose_error(estimate, truth)
+    return e["rte_m"] < RR_MAX_TRANSLATION_M and e["rre_euler_deg"] < RR_MAX_ROTATION_DEG
+
+
 def p2p_distance(current: np.ndarray, truth: np.ndarray, points_map: np.ndarray) -> float:
     if len(points_map) == 0:
         return 0.0

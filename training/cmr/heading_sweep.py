@@ -30,14 +30,9 @@ from .evaluate import frozen_cases
 from .import_onnx import import_models
 
 
-def registered(pose: np.ndarray, truth: np.ndarray) -> bool:
-    e = g.pose_error(pose, truth)
-    return e["rte_m"] < g.RR_MAX_TRANSLATION_M and e["rre_euler_deg"] < g.RR_MAX_ROTATION_DEG
-
-
 def sweep(eps, pose: np.ndarray, yaws: np.ndarray) -> tuple[np.ndarray, float]:
     """The best-aligned of `pose` turned about its camera centre by each of `yaws` (degrees)."""
-    centre = -pose[:3, :3].T @ pose[:3, 3]
+    centre = g.invert(pose)[:3, 3]
     poses = [g.apply_action(pose, centre, y, 0.0, 0.0, frame=g.CAMERA_Y) for y in yaws]
     scores = eps.alignment(poses, [0] * len(poses))
     k = int(np.argmax(scores))
@@ -58,7 +53,7 @@ def run(models: dict, frames: list, motions: list, step_deg: float, every: int, 
         truth = sample.truth
         cases += 1
         if truth_only:
-            hits["truth_sweep"] += registered(sweep(eps, truth, yaws)[0], truth)
+            hits["truth_sweep"] += g.registered(sweep(eps, truth, yaws)[0], truth)
             continue
         selected, _ = multi_start(models["agent"], eps, 10, 4)
         answer = selected[-1][0]
@@ -71,7 +66,7 @@ def run(models: dict, frames: list, motions: list, step_deg: float, every: int, 
         scored = [(float(eps.alignment([answer], [0])[0]), answer), (swept_score, swept),
                   (float(eps.alignment([walked], [0])[0]), walked), (again_score, again)]
         for name, pose in zip(names, [answer, swept, walked, again, max(scored, key=lambda x: x[0])[1]]):
-            hits[name] += registered(pose, truth)
+            hits[name] += g.registered(pose, truth)
     return dict(cases=cases, step_deg=step_deg, rr={k: v / max(cases, 1) for k, v in hits.items()})
 
 

@@ -257,20 +257,22 @@ class Run:
             wanted = " ".join(f"{k}={v}" for k, v in arch.items())
             raise SystemExit(f"{path} was trained with {wanted}; pass --set {wanted}")
         for k, m in self.models.items():
-            m.load_state_dict(state["models"][k])
-        if "agent_ema" in state:
-            self.models["agent"].load_state_dict(state["agent_ema"])
-        if self.agent_ema is not None:
-            self.agent_ema.load_state_dict(self.models["agent"].state_dict())
+            if k != "agent":
+                m.load_state_dict(state["models"][k])
+        self._set_agent(state)
         print(f"initialised from {path} (embed step {state['embed_step']}, agent iteration {state['agent_iter']})",
               flush=True)
 
     def _init_agent_from(self, path: Path) -> None:
         state = torch.load(path, map_location=self.device, weights_only=False)
+        self._set_agent(state)
+        print(f"agent initialised from {path} (agent iteration {state['agent_iter']})", flush=True)
+
+    def _set_agent(self, state: dict) -> None:
+        """The agent (and its moving average) from a checkpoint: the average when it was saved."""
         self.models["agent"].load_state_dict(state.get("agent_ema", state["models"]["agent"]))
         if self.agent_ema is not None:
             self.agent_ema.load_state_dict(self.models["agent"].state_dict())
-        print(f"agent initialised from {path} (agent iteration {state['agent_iter']})", flush=True)
 
     def log(self, record: dict) -> None:
         with open(self.dir / "log.jsonl", "a") as f:
