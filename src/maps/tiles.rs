@@ -110,8 +110,11 @@ pub const SCAN_BEAMS: usize = 64;
 pub const SCAN_COLUMNS: usize = 2048;
 pub const SCAN_ELEVATION_DEG: (f64, f64) = (-25.0, 3.0);
 
-/// Of `candidates`, the nearest to `sensor` in each elevation × azimuth cell, in cell order.
-fn virtual_scan(candidates: &[u32], point: impl Fn(u32) -> [f32; 3], sensor: [f64; 3]) -> Vec<u32> {
+/// Of `candidates`, the nearest to `sensor` in each elevation × azimuth cell, in cell order
+/// (row-major: elevation row from [`SCAN_ELEVATION_DEG`]`.0` up, then azimuth column from −180°;
+/// the first candidate wins a tie). `training/cmr/data.py::virtual_scan` is its twin, and
+/// `fixtures/conventions.json` pins both.
+pub fn virtual_scan(candidates: &[u32], point: impl Fn(u32) -> [f32; 3], sensor: [f64; 3]) -> Vec<u32> {
     let mut nearest = vec![(f32::INFINITY, u32::MAX); SCAN_BEAMS * SCAN_COLUMNS];
     let (low, high) = SCAN_ELEVATION_DEG;
     for &i in candidates {

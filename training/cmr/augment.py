@@ -41,10 +41,16 @@ class AugmentOptions:
     map_window: int = 0  # frames each side to draw from
     map_scans: int = 3  # scans in the union
     map_window_p: float = 1.0  # share of samples given such a map (the others keep their own scan)
+    # The server's crop of a tiled region (`data.virtual_scan_map`): a virtual scan of such a union
+    # from a sensor up to `virtual_scan_offset_m` from the camera, for this share of the samples
+    # (drawn first; the rest go on to `map_window_p`).
+    virtual_scan_p: float = 0.0
+    virtual_scan_offset_m: float = 6.0
+    virtual_scan_radius_m: float = 60.0  # the server's `--default-radius-m`
 
     @property
     def active(self) -> bool:
-        return self.photometric != "basic" or self.scale_max > 1.0 or self.lidar or self.map_window > 0
+        return self.photometric != "basic" or self.scale_max > 1.0 or self.lidar or self.map_window > 0 or self.virtual_scan_p > 0
 
 
 DEFAULT = AugmentOptions()

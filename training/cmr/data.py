@@ -13,6 +13,11 @@ A sequence directory holds `calib.txt`, `velodyne/NNNNNN.bin` (float32 x, y, z, 
   frame's LiDAR frame with `poses.txt`: the camera is then not at the centre of the map's rings,
   as in a region built from a drive (a model trained only on own scans learns to put the camera
   where the scan was taken);
+- optionally (training, `AugmentOptions.virtual_scan_p` > 0) the map is what the server cuts out
+  of a region built from a drive: a virtual scan (`virtual_scan`, the twin of the server's) of
+  such a union from a sensor moved up to `virtual_scan_offset_m` along the ground from the
+  camera. A localize in a tiled region takes its virtual scan from the prior, so the scan's
+  centre is where the prior is, not where the camera is (docs/server.md, "Known limit");
 - in-frustum labels of every sampled point under the true pose.
 
 Decoded frames (resized image, xyz) are cached in memory: PNG decode dominates on 2 cores.
@@ -137,6 +142,53 @@ def neighbour_map(frame: "Frame", rng: np.random.Generator, window: int, scans: 
     return np.concatenate(parts)
 
 
+# The server's virtual scan of a tiled region (src/maps/tiles.rs): an HDL-64E-like grid.
+SCAN_BEAMS = 64
+SCAN_COLUMNS = 2048
+SCAN_ELEVATION_DEG = (-25.0, 3.0)
+
+
+def virtual_scan(points: np.ndarray, sensor, radius_m: float) -> np.ndarray:
+    """Indices of the points a LiDAR at `sensor` would see: of the points within `radius_m`
+    (ground-plane distance) of it, the nearest in each cell of a SCAN_BEAMS x SCAN_COLUMNS
+    elevation x azimuth grid (elevations SCAN_ELEVATION_DEG; points outside the span are
+    dropped), in cell order (row-major from the lowest elevation and azimuth -180 deg; the
+    earlier point wins a tie). `points`: [M, 3] (read as float32, like the server's storage),
+    `sensor`: (x, y, z) metres, same frame. The twin of `maps::tiles::virtual_scan` (with the
+    radius test of `within`), pinned by `fixtures/conventions.json`."""
+    p = np.asarray(points, dtype=np.float32).astype(np.float64)
+    d = p - np.asarray(sensor, dtype=np.float64)
+    ground = np.hypot(d[:, 0], d[:, 1])
+    low, high = SCAN_ELEVATION_DEG
+    row = np.floor((np.degrees(np.arctan2(d[:, 2], ground)) - low) / (high - low) * SCAN_BEAMS)
+    keep = np.flatnonzero((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= radius_m * radius_m) & (row >= 0) & (row < SCAN_BEAMS))
+    column = np.minimum(((np.arctan2(d[keep, 1], d[keep, 0]) + math.pi) / (2 * math.pi) * SCAN_COLUMNS).astype(np.int64),
+                        SCAN_COLUMNS - 1)
+    cell = row[keep].astype(np.int64) * SCAN_COLUMNS + column
+    distance = np.sqrt(ground[keep] ** 2 + d[keep, 2] ** 2).astype(np.float32)
+    order = np.lexsort((keep, distance, cell))  # by cell, then range, then input order
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = cell[order][1:] != cell[order][:-1]
+    return keep[order][first]
+
+
+def virtual_scan_map(frame: "Frame", rng: np.random.Generator, augment: "aug.AugmentOptions") -> np.ndarray:
+    """The server's crop of a region built from the drive, seen from a wrong place: the union of
+    neighbour scans (`neighbour_map`, `augment.map_window` / `map_scans`), virtually scanned
+    (`virtual_scan`, `augment.virtual_scan_radius_m`) from the camera's position moved along the
+    LiDAR's ground plane by a uniform draw in a disc of `augment.virtual_scan_offset_m`. [M, 3]
+    float64 in `frame`'s LiDAR frame."""
+    union = neighbour_map(frame, rng, max(augment.map_window, 1), augment.map_scans, augment)
+    camera = g.invert(frame.calib.camera_from_lidar)[:3, 3]
+    r = augment.virtual_scan_offset_m * math.sqrt(rng.random())
+    a = rng.uniform(-math.pi, math.pi)
+    sensor = camera + np.array([r * math.cos(a), r * math.sin(a), 0.0])
+    seen = union[virtual_scan(union, sensor, augment.virtual_scan_radius_m)]
+    if len(seen) == 0:
+        raise DataError(f"{frame.sequence} frame {frame.index}: the virtual scan from {sensor} sees no point")
+    return seen
+
+
 def list_frames(sequences: list[Path]) -> list[Frame]:
     frames = []
     for seq in sequences:
@@ -232,7 +284,9 @@ def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points:
     image = ((rgb - IMAGE_MEAN) / IMAGE_STD).transpose(2, 0, 1).astype(np.float32)
     k = g.adjust_intrinsics(plan, frame.calib.intrinsics, w, h)
 
-    if train and augment.map_window > 0 and (augment.map_window_p >= 1.0 or rng.random() < augment.map_window_p):
+    if train and augment.virtual_scan_p > 0 and rng.random() < augment.virtual_scan_p:
+        xyz = virtual_scan_map(frame, rng, augment)
+    elif train and augment.map_window > 0 and (augment.map_window_p >= 1.0 or rng.random() < augment.map_window_p):
         xyz = neighbour_map(frame, rng, augment.map_window, augment.map_scans, augment)
     elif train and augment.lidar:
         xyz = aug.lidar_augment(xyz, rng, augment)

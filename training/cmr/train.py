@@ -126,6 +126,11 @@ class Config:
     map_window: int = 0
     map_scans: int = 3
     map_window_p: float = 1.0  # share of training samples with such a map; the rest keep their own scan
+    # The server's crop of a tiled region seen from a prior off the camera (data.virtual_scan_map):
+    # that share of the samples; map_window / map_scans choose the union it is cut from.
+    virtual_scan_p: float = 0.0
+    virtual_scan_offset_m: float = 6.0
+    virtual_scan_radius_m: float = 60.0
     # Start from another run's checkpoint (its weights only; optimisers and counters start fresh):
     # fine-tuning. Ignored when <out>/last.pt exists (resume wins).
     init_from: str = ""
@@ -191,7 +196,9 @@ class Run:
                                       beam_dropout_p=cfg.beam_dropout_p, density_min=cfg.density_min,
                                       range_noise_m=cfg.range_noise_m, occlusion_p=cfg.occlusion_p,
                                       occlusion_max_deg=cfg.occlusion_max_deg, map_window=cfg.map_window,
-                                      map_scans=cfg.map_scans, map_window_p=cfg.map_window_p)
+                                      map_scans=cfg.map_scans, map_window_p=cfg.map_window_p,
+                                      virtual_scan_p=cfg.virtual_scan_p, virtual_scan_offset_m=cfg.virtual_scan_offset_m,
+                                      virtual_scan_radius_m=cfg.virtual_scan_radius_m)
         embed_params = [p for k in ("point_encoder", "image_encoder", "frustum_head") for p in self.models[k].parameters()]
         self.opt_embed = torch.optim.Adam(embed_params, lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))

@@ -124,3 +124,16 @@ def test_checkpoints_name_their_action_frame():
         action_frame_of({"config": {"action_frame": "map_y"}})
     assert manifest({}, {}, {}, {}, g.MAP_Z)["actions"]["frame"] == "map_z"
     assert manifest({}, {}, {}, {})["actions"]["frame"] == "camera_y"
+
+
+def test_virtual_scan_matches_the_server():
+    """The tiled region's crop (`maps::tiles::virtual_scan`): the same points kept, in the same
+    order; the fixture's pairs on one ray keep only their nearer point."""
+    from cmr.data import virtual_scan
+
+    case = FIXTURE["virtual_scan"]
+    points = np.array(case["points"], dtype=np.float64)
+    kept = virtual_scan(points, case["sensor"], case["radius_m"])
+    assert kept.tolist() == case["indices"]
+    pairs = np.arange(600, len(points)).reshape(-1, 2)  # (farther, nearer) on one ray
+    assert not np.isin(pairs[:, 0], kept).any() and 0.5 * len(pairs) < np.isin(pairs[:, 1], kept).sum()

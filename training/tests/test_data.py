@@ -126,3 +126,36 @@ def test_map_window_p_gives_a_share_of_samples_a_neighbour_map(tiny_dataset):
     assert any(x == 1.0 for x in shares) and any(x < 0.9 for x in shares), shares
     assert all(on_own_scan(0.0, seed) == 1.0 for seed in range(3))
     assert all(on_own_scan(1.0, seed) < 0.9 for seed in range(3))
+
+
+def test_virtual_scan_maps_see_the_drive_from_beside_the_camera(tiny_dataset):
+    """`virtual_scan_p`: the map is a virtual scan of neighbour scans from a sensor displaced from
+    the camera (at most `virtual_scan_offset_m`), points within the radius of it; labels follow
+    the truth; the default options draw exactly what they drew."""
+    from cmr.augment import AugmentOptions
+    from cmr.data import neighbour_map, virtual_scan, virtual_scan_map
+
+    f0 = list_frames(find_sequences(tiny_dataset))[0]
+    camera = g.invert(f0.calib.camera_from_lidar)[:3, 3]
+    opts = AugmentOptions(map_window=3, map_scans=2, virtual_scan_p=1.0, virtual_scan_offset_m=4.0, virtual_scan_radius_m=30.0)
+    seen = virtual_scan_map(f0, np.random.default_rng(5), opts)
+    union = neighbour_map(f0, np.random.default_rng(5), 3, 2)
+    assert 0 < len(seen) < len(union)
+    assert np.linalg.norm(seen[:, :2] - camera[:2], axis=1).max() <= 34.0 + 1e-6
+    # From the camera itself (offset 0) it is exactly the virtual scan of that union there.
+    at_camera = virtual_scan_map(f0, np.random.default_rng(5), AugmentOptions(map_window=3, map_scans=2, virtual_scan_offset_m=0.0,
+                                                                          virtual_scan_radius_m=30.0))
+    assert np.array_equal(at_camera, union[virtual_scan(union, camera, 30.0)])
+    # Different draws look from different places: the scans differ.
+    other = virtual_scan_map(f0, np.random.default_rng(6), opts)
+    assert len(other) != len(seen) or not np.array_equal(other, seen)
+
+    s = make_sample(f0, np.random.default_rng(2), train=True, num_points=4096, augment=opts)
+    p_cam = g.transform(s.truth, s.points.astype(np.float64))
+    uv, front = g.project(s.intrinsics, p_cam)
+    expect = front & (uv[:, 0] >= -0.5) & (uv[:, 0] < 511.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < 159.5)
+    assert np.array_equal(expect, s.labels)
+    a = make_sample(f0, np.random.default_rng(3), train=True, num_points=4096, augment=AugmentOptions(map_window=3, map_scans=2))
+    b = make_sample(f0, np.random.default_rng(3), train=True, num_points=4096,
+                    augment=AugmentOptions(map_window=3, map_scans=2, virtual_scan_p=0.0, virtual_scan_offset_m=9.0))
+    assert np.array_equal(a.points, b.points)
