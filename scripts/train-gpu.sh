@@ -2,7 +2,9 @@
 # One whole training run on a machine with one large GPU, 16 cores, PyTorch installed and no
 # network, in about 9 minutes: world-v2 data from the release binary, both stages with the
 # transfer recipe (heavy photometric + zoom + LiDAR augmentation, GroupNorm encoders, warm-up +
-# cosine stage 1) in the map_z action frame, a brief evaluation, ONNX + manifest.
+# cosine stage 1) in the map_z action frame, a quarter of the maps cut like a fleet region's crop
+# (virtual_scan_p: seen from beside the camera, so no model can take the scan's centre for the
+# camera), a brief evaluation, ONNX + manifest.
 #
 #   OUT=/path/to/out scripts/train-gpu.sh             # the real run (GPU machine)
 #   TINY=1 PYTHON=.venv/bin/python OUT=/tmp/gpu-tiny scripts/train-gpu.sh   # a few minutes on 2 CPU cores
@@ -88,7 +90,8 @@ cd "$ROOT/training"
 # shellcheck disable=SC2086
 "$PYTHON" -m cmr.train --data "$TRAIN_DATA" --val-data "$WORK/val-flat" --out "$RUN" --set \
   action_frame=map_z norm=group embed_schedule=cosine embed_lr=2e-3 embed_lr_min=2e-5 embed_grad_clip=5 \
-  photometric=heavy scale_max=1.5 lidar_aug=true eval_every=0 \
+  photometric=heavy scale_max=1.5 lidar_aug=true map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 \
+  eval_every=0 \
   embed_seconds="$EMBED_S" agent_seconds="$AGENT_S" $TRAIN_SET ${EXTRA_SET:-} > "$OUT/logs/train.log" 2>&1
 cp "$RUN/log.jsonl" "$RUN/config.json" "$OUT/"
 mkdir -p "$OUT/checkpoint" && cp "$RUN/last.pt" "$OUT/checkpoint/last.pt"
