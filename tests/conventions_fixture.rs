@@ -125,7 +125,11 @@ fn virtual_scan_case() -> Value {
         })
         .collect();
     let kept = cmr_agent::maps::tiles::virtual_scan(&candidates, |i| points[i as usize], sensor);
-    json!({"points": points, "sensor": sensor, "radius_m": radius_m, "indices": kept})
+    use cmr_agent::maps::tiles::{SCAN_BEAMS, SCAN_COLUMNS, SCAN_ELEVATION_DEG};
+    json!({
+        "beams": SCAN_BEAMS, "columns": SCAN_COLUMNS, "elevation_deg": [SCAN_ELEVATION_DEG.0, SCAN_ELEVATION_DEG.1],
+        "points": points, "sensor": sensor, "radius_m": radius_m, "indices": kept,
+    })
 }
 
 fn compute() -> Value {

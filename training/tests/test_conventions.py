@@ -129,9 +129,10 @@ def test_checkpoints_name_their_action_frame():
 def test_virtual_scan_matches_the_server():
     """The tiled region's crop (`maps::tiles::virtual_scan`): the same points kept, in the same
     order; the fixture's pairs on one ray keep only their nearer point."""
-    from cmr.data import virtual_scan
+    from cmr.data import SCAN_BEAMS, SCAN_COLUMNS, SCAN_ELEVATION_DEG, virtual_scan
 
     case = FIXTURE["virtual_scan"]
+    assert (SCAN_BEAMS, SCAN_COLUMNS, list(SCAN_ELEVATION_DEG)) == (case["beams"], case["columns"], case["elevation_deg"])
     points = np.array(case["points"], dtype=np.float64)
     kept = virtual_scan(points, case["sensor"], case["radius_m"])
     assert kept.tolist() == case["indices"]
