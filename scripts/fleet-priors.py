@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Localize the held-out frames of a drive in a region built from the drive, from priors 5 m / 30°
+r"""Localize the held-out frames of a drive in a region built from the drive, from priors 5 m / 30°
 off, against a running server, and re-send each answer as the next prior (re-centring the
 region's crop on it), to see whether the answer walks off the prior (docs/server.md, "Known
 limit"). The cases are `tests/fleet_maps.rs`'s: odd frames, the truth moved 5 m in direction
@@ -12,7 +12,8 @@ limit"). The cases are `tests/fleet_maps.rs`'s: odd frames, the truth moved 5 m 
     python3 scripts/fleet-priors.py --server http://localhost:8090 --id drive --sequence D/00 \
         --hypotheses 1 --rounds 3
 
-Prints per frame the position / rotation error after each round and RR (5 m / 10°) per round.
+Prints per frame the position / rotation error after each round, and per round RR (5 m / 10°),
+the answers within 1 m, those turned by more than 150° and the HTTP errors (counted as failures).
 Python standard library only (the sequence helpers of scripts/track-http.py).
 """
 
@@ -56,18 +57,24 @@ def main():
         image = base64.b64encode(open(path, "rb").read()).decode()
         line = f"frame {index:3d}"
         for r in range(args.rounds):
-            pose, _, _ = th.localize(args.server, args.id, image, seq["intrinsics"], prior, args.hypotheses if r == 0 else 1, 10)
+            try:
+                pose, _, _ = th.localize(args.server, args.id, image, seq["intrinsics"], prior, args.hypotheses if r == 0 else 1, 10)
+            except SystemExit as e:  # an HTTP error (track-http's localize exits): a failure of this frame
+                line += f" | round {r + 1}: {e}"
+                rounds[r:] = [errors + [(math.inf, math.inf)] for errors in rounds[r:]]
+                break
             prior = pose
             m = math.dist(th.centre(pose), th.centre(truth))
             deg = th.angle_deg(th.mul(th.inv(pose), truth))
             rounds[r].append((m, deg))
-            line += f" | round {r}: {m:5.2f} m {deg:6.1f} deg"
+            line += f" | round {r + 1}: {m:5.2f} m {deg:6.1f} deg"
         print(line, flush=True)
     for r, errors in enumerate(rounds):
         ok = [e for e in errors if e[0] < 5.0 and e[1] < 10.0]
         mean = sum(e[0] for e in ok) / max(len(ok), 1)
-        print(f"round {r}: RR {len(ok)}/{len(errors)} (5 m / 10 deg), mean position error {mean:.2f} m over the registered, "
-              f"{sum(e[1] > 150 for e in errors)} turned > 150 deg")
+        print(f"round {r + 1}: RR {len(ok)}/{len(errors)} (5 m / 10 deg), mean position error {mean:.2f} m over the registered, "
+              f"{sum(e[0] < 1.0 and e[1] < 10.0 for e in errors)} within 1 m, {sum(150 < e[1] < math.inf for e in errors)} turned > 150 deg, "
+              f"{sum(e[0] == math.inf for e in errors)} HTTP errors")
 
 
 if __name__ == "__main__":

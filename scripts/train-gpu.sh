@@ -4,7 +4,8 @@
 # transfer recipe (heavy photometric + zoom + LiDAR augmentation, GroupNorm encoders, warm-up +
 # cosine stage 1) in the map_z action frame, a quarter of the maps cut like a fleet region's crop
 # (virtual_scan_p: seen from beside the camera, so no model can take the scan's centre for the
-# camera), a brief evaluation, ONNX + manifest.
+# camera; its cost on the GPU machine is not yet measured: 0.14 s per such sample on one CPU
+# core, a loader worker's job), a brief evaluation, ONNX + manifest.
 #
 #   OUT=/path/to/out scripts/train-gpu.sh             # the real run (GPU machine)
 #   TINY=1 PYTHON=.venv/bin/python OUT=/tmp/gpu-tiny scripts/train-gpu.sh   # a few minutes on 2 CPU cores

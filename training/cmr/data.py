@@ -155,7 +155,9 @@ def virtual_scan(points: np.ndarray, sensor, radius_m: float) -> np.ndarray:
     dropped), in cell order (row-major from the lowest elevation and azimuth -180 deg; the
     earlier point wins a tie). `points`: [M, 3] (read as float32, like the server's storage),
     `sensor`: (x, y, z) metres, same frame. The twin of `maps::tiles::virtual_scan` (with the
-    radius test of `within`), pinned by `fixtures/conventions.json`."""
+    radius test of `within`), pinned by `fixtures/conventions.json`. A tie in range goes to the
+    earlier point here and to the earlier candidate there (the region's storage order), which
+    agree for candidates in index order, as in the fixture."""
     p = np.asarray(points, dtype=np.float32).astype(np.float64)
     d = p - np.asarray(sensor, dtype=np.float64)
     ground = np.hypot(d[:, 0], d[:, 1])
