@@ -30,15 +30,6 @@ th = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(th)
 
 
-def perturbed(truth, shift_m, direction_deg, yaw_deg):
-    """`truth` moved `shift_m` along the ground and turned `yaw_deg` about map z through its centre."""
-    cx, cy, _ = th.centre(truth)
-    d, y = math.radians(direction_deg), math.radians(yaw_deg)
-    turned = (math.cos(y) * cx - math.sin(y) * cy, math.sin(y) * cx + math.cos(y) * cy)
-    q = th.ground_motion(y, cx - turned[0] + shift_m * math.cos(d), cy - turned[1] + shift_m * math.sin(d))
-    return th.mul(truth, th.inv(q))
-
-
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--server", default="http://localhost:8080")
@@ -53,7 +44,7 @@ def main():
         if index % 2 != 1:
             continue
         truth = th.truth_camera_from_map(seq, index)
-        prior = perturbed(truth, 5.0, index * 47.0, 30.0 if index % 4 == 1 else -30.0)
+        prior = th.perturbed(truth, 5.0, math.radians(index * 47.0), math.radians(30.0 if index % 4 == 1 else -30.0))
         image = base64.b64encode(open(path, "rb").read()).decode()
         line = f"frame {index:3d}"
         for r in range(args.rounds):

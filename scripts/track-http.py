@@ -105,14 +105,20 @@ def world_from_cam0(seq, camera_from_map):
     return mul(mul(c, map_from_lidar), inv(c))
 
 
-def coarse_prior(truth, noise_m, noise_deg, rng):
-    direction = rng.uniform(0.0, 2.0 * math.pi)
-    yaw = math.radians(noise_deg if rng.random() < 0.5 else -noise_deg)
+def perturbed(truth, shift_m, direction, yaw):
+    """`truth` (camera_from_map) with its camera moved `shift_m` along the ground in `direction`
+    and turned by `yaw` about map z through its own centre (radians)."""
     cx, cy, _ = centre(truth)
-    mx, my = cx + noise_m * math.cos(direction), cy + noise_m * math.sin(direction)
+    mx, my = cx + shift_m * math.cos(direction), cy + shift_m * math.sin(direction)
     turned = (math.cos(yaw) * cx - math.sin(yaw) * cy, math.sin(yaw) * cx + math.cos(yaw) * cy)
     q = ground_motion(yaw, mx - turned[0], my - turned[1])
     return mul(truth, inv(q))
+
+
+def coarse_prior(truth, noise_m, noise_deg, rng):
+    direction = rng.uniform(0.0, 2.0 * math.pi)
+    yaw = math.radians(noise_deg if rng.random() < 0.5 else -noise_deg)
+    return perturbed(truth, noise_m, direction, yaw)
 
 
 def predict(before_last, last):
