@@ -47,10 +47,17 @@ class AugmentOptions:
     virtual_scan_p: float = 0.0
     virtual_scan_offset_m: float = 6.0
     virtual_scan_radius_m: float = 60.0  # the server's `--default-radius-m`
+    # Fleet-like starts (`data.make_sample`): this share of the samples moves the map by a yaw within
+    # +-`near_start_yaw_deg` and a ground shift within a disc of `near_start_shift_m` instead of the
+    # protocol's (+-180 deg, +-10 m), so the agent learns to stop near a good prior.
+    near_start_p: float = 0.0
+    near_start_yaw_deg: float = 30.0
+    near_start_shift_m: float = 5.0
 
     @property
     def active(self) -> bool:
-        return self.photometric != "basic" or self.scale_max > 1.0 or self.lidar or self.map_window > 0 or self.virtual_scan_p > 0
+        return (self.photometric != "basic" or self.scale_max > 1.0 or self.lidar or self.map_window > 0 or self.virtual_scan_p > 0
+                or self.near_start_p > 0)
 
 
 DEFAULT = AugmentOptions()

@@ -294,6 +294,12 @@ def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points:
         xyz = aug.lidar_augment(xyz, rng, augment)
     scan = sample_points(xyz, num_points, rng).astype(np.float64)
     q = g.ground_motion(rng.uniform(-math.pi, math.pi), *rng.uniform(-max_shift_m, max_shift_m, 2))
+    if train and augment.near_start_p > 0 and rng.random() < augment.near_start_p:
+        # drawn after the protocol's motion, so the other options' draws stay as they were
+        radius = augment.near_start_shift_m * math.sqrt(rng.random())
+        heading = rng.uniform(-math.pi, math.pi)
+        q = g.ground_motion(math.radians(rng.uniform(-augment.near_start_yaw_deg, augment.near_start_yaw_deg)),
+                            radius * math.cos(heading), radius * math.sin(heading))
     if motion is not None:
         q = motion
     points = g.transform(q, scan)

@@ -131,6 +131,11 @@ class Config:
     virtual_scan_p: float = 0.0
     virtual_scan_offset_m: float = 6.0
     virtual_scan_radius_m: float = 60.0
+    # Fleet-like starts for a share of the samples (augment.AugmentOptions.near_start_p): yaw within
+    # +-near_start_yaw_deg, ground shift within near_start_shift_m, instead of the protocol's.
+    near_start_p: float = 0.0
+    near_start_yaw_deg: float = 30.0
+    near_start_shift_m: float = 5.0
     # Start from another run's checkpoint (its weights only; optimisers and counters start fresh):
     # fine-tuning. Ignored when <out>/last.pt exists (resume wins).
     init_from: str = ""
@@ -198,7 +203,9 @@ class Run:
                                       occlusion_max_deg=cfg.occlusion_max_deg, map_window=cfg.map_window,
                                       map_scans=cfg.map_scans, map_window_p=cfg.map_window_p,
                                       virtual_scan_p=cfg.virtual_scan_p, virtual_scan_offset_m=cfg.virtual_scan_offset_m,
-                                      virtual_scan_radius_m=cfg.virtual_scan_radius_m)
+                                      virtual_scan_radius_m=cfg.virtual_scan_radius_m,
+                                      near_start_p=cfg.near_start_p, near_start_yaw_deg=cfg.near_start_yaw_deg,
+                                      near_start_shift_m=cfg.near_start_shift_m)
         embed_params = [p for k in ("point_encoder", "image_encoder", "frustum_head") for p in self.models[k].parameters()]
         self.opt_embed = torch.optim.Adam(embed_params, lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))

@@ -1,0 +1,88 @@
+#!/usr/bin/env bash
+# Run v7 (issue 29): both stages on the mix of world-v2 + classic synthetic data and the real
+# frames of ../shared/real-train, on this 2-core CPU, across sessions.
+#
+#   scripts/train-v7.sh data     # makes the data under $DATA (idempotent; synth ~10 min of CPU)
+#   scripts/train-v7.sh start    # starts or resumes the run, niced, in the background
+#   scripts/train-v7.sh save     # copies the run's last.pt to training/checkpoints/v7.pt (commit it)
+#   scripts/train-v7.sh status   # the run's pid, its last log records
+#
+# Resuming: `start` resumes from $RUN/last.pt; when that is missing (a fresh machine) or older
+# than the committed training/checkpoints/v7.pt, the committed file is copied there first, byte
+# for byte, so a run resumes from either place with the same state (sampling is seeded by step).
+# Environment: DATA (default ~/.cache/cmr-agent/data), RUN (default ~/.cache/cmr-agent/runs/v7),
+# NICE (default 10), CMR_AGENT_BIN (default target/release/cmr-agent).
+set -euo pipefail
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+DATA=${DATA:-$HOME/.cache/cmr-agent/data}
+RUN=${RUN:-$HOME/.cache/cmr-agent/runs/v7}
+NICE=${NICE:-10}
+BIN=${CMR_AGENT_BIN:-$ROOT/target/release/cmr-agent}
+PY=$ROOT/.venv/bin/python
+REAL=${REAL:-$ROOT/../shared/real-train}
+SAVED=$ROOT/training/checkpoints/v7.pt
+
+# world v2 (six rigs' blocks + one classic block) and the real split; validation mixes both
+data() {
+  mkdir -p "$DATA/v7/train" "$DATA/v7/val-mix"
+  local k rig
+  for kr in 0:kitti 1:nuscenes 2:wide 3:vlp16 4:os128 5:random; do
+    k=${kr%%:*}; rig=${kr#*:}
+    [ -f "$DATA/v7/train/b$k/.done" ] || { nice -n "$NICE" "$BIN" synth --out "$DATA/v7/train/b$k" --rig "$rig" \
+      --sequences 3 --frames 30 --seed $((40000 + 100 * k)) --image-scale 0.5 --quiet && touch "$DATA/v7/train/b$k/.done"; }
+  done
+  [ -f "$DATA/v7/train/b6/.done" ] || { nice -n "$NICE" "$BIN" synth --out "$DATA/v7/train/b6" --world classic \
+    --look classic --sequences 3 --frames 30 --seed 40600 --image-scale 0.5 --quiet && touch "$DATA/v7/train/b6/.done"; }
+  for rig in kitti nuscenes random; do
+    [ -f "$DATA/v7/val/$rig/.done" ] || { nice -n "$NICE" "$BIN" synth --out "$DATA/v7/val/$rig" --rig "$rig" \
+      --sequences 1 --frames 8 --seed 95000 --style test --image-scale 0.5 --quiet && touch "$DATA/v7/val/$rig/.done"; }
+    ln -sfn "$DATA/v7/val/$rig/00" "$DATA/v7/val-mix/synth-$rig"
+  done
+  (cd "$ROOT/training" && "$PY" -m cmr.real_split --src "$REAL" --out "$DATA/real-split")
+  [ -f "$HOME/.cache/cmr-agent/runs/v3-import.pt" ] || (cd "$ROOT/training" && mkdir -p "$HOME/.cache/cmr-agent/runs" &&
+    "$PY" -m cmr.import_onnx ../models --out "$HOME/.cache/cmr-agent/runs/v3-import.pt")
+  for s in "$DATA"/real-split/val/*; do ln -sfn "$(readlink -f "$s")" "$DATA/v7/val-mix/real-$(basename "$s")"; done
+}
+
+# The real training frames count three times in the draw (97 of ~730 frames otherwise).
+train_roots() {
+  local r=$DATA/real-split/train
+  echo "$(ls -d "$DATA"/v7/train/b* | paste -sd, -),$r,$r,$r"
+}
+
+start() {
+  mkdir -p "$RUN"
+  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$SAVED" -nt "$RUN/last.pt" ]; }; then
+    cp "$SAVED" "$RUN/last.pt"
+    echo "resuming from the committed $SAVED"
+  fi
+  cd "$ROOT/training"
+  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
+    action_frame=map_z norm=group embed_schedule=cosine embed_lr=1e-3 embed_warmup=200 embed_lr_min=2e-5 \
+    embed_grad_clip=5 photometric=heavy scale_max=1.5 lidar_aug=true rank_weight=2 rank_poses=8 rank_far=0.5 \
+    map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 \
+    embed_steps=30000 embed_eval_every=2000 \
+    init_agent_from="$HOME/.cache/cmr-agent/runs/v3-import.pt" agent_iters=3000 agent_lr=3e-4 agent_lr_min=2e-5 agent_ema=0.995 \
+    bc_only_iters=300 expert_mix_start=0.3 expert_mix_iters=300 pool_size=48 update_epochs=2 near_start_p=0.3 \
+    eval_every=250 eval_frames=36 checkpoint_every=100 log_every=20 threads=2 loader_workers=1 \
+    >> "$RUN/stdout.log" 2>&1 &
+  echo $! > "$RUN/pid"
+  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+}
+
+save() {
+  mkdir -p "$(dirname "$SAVED")"
+  cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
+  ls -l "$SAVED"
+  "$PY" -c "import torch,sys; c=torch.load(sys.argv[1], map_location='cpu', weights_only=False); print('embed_step', c['embed_step'], 'agent_iter', c['agent_iter'])" "$SAVED"
+}
+
+status() {
+  [ -f "$RUN/pid" ] && ps -o pid,stat,etime,time,cmd -p "$(cat "$RUN/pid")" | cut -c1-120 || true
+  tail -n 3 "$RUN/stdout.log" 2>/dev/null | cut -c1-400
+}
+
+case "${1:-}" in
+  data|start|save|status) "$1" ;;
+  *) sed -n 2,16p "$0"; exit 2 ;;
+esac
