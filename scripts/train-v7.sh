@@ -11,12 +11,12 @@
 # the committed training/checkpoints/v7.pt (fewer steps), the committed file is copied there first, byte
 # for byte, so a run resumes from either place with the same state (sampling is seeded by step).
 # Environment: DATA (default ~/.cache/cmr-agent/data), RUN (default ~/.cache/cmr-agent/runs/v7),
-# NICE (default 10), CMR_AGENT_BIN (default target/release/cmr-agent).
+# NICE (default 5), CMR_AGENT_BIN (default target/release/cmr-agent).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 DATA=${DATA:-$HOME/.cache/cmr-agent/data}
 RUN=${RUN:-$HOME/.cache/cmr-agent/runs/v7}
-NICE=${NICE:-10}
+NICE=${NICE:-5}
 BIN=${CMR_AGENT_BIN:-$ROOT/target/release/cmr-agent}
 PY=$ROOT/.venv/bin/python
 REAL=${REAL:-$ROOT/../shared/real-train}

@@ -156,14 +156,18 @@ async fn overlay_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, header
 /// The two panels of a localization: the prior and the answer.
 fn localization_panels(loc: &Localization) -> Vec<PosePanel> {
     let best = loc.best();
-    let fin = format!(
-        "final: start {} of {}, {} steps{}, confidence {:.2}",
-        loc.chosen + 1,
-        loc.hypotheses.len(),
-        best.steps.len(),
-        if best.converged { ", converged" } else { "" },
-        loc.confidence.score
-    );
+    let fin = if loc.kept_prior {
+        format!("final: the prior, kept (no start explained the image better), confidence {:.2}", loc.confidence.score)
+    } else {
+        format!(
+            "final: start {} of {}, {} steps{}, confidence {:.2}",
+            loc.chosen + 1,
+            loc.hypotheses.len(),
+            best.steps.len(),
+            if best.converged { ", converged" } else { "" },
+            loc.confidence.score
+        )
+    };
     vec![PosePanel::new("prior", loc.prior), PosePanel::new(fin, loc.camera_from_map())]
 }
 

@@ -165,17 +165,21 @@ pub struct LocalizeResponse {
     /// The starting pose.
     #[schema(value_type = Matrix4x4)]
     pub prior_camera_from_map: Rows4x4,
-    /// The chosen hypothesis's steps.
+    /// The chosen hypothesis's steps (none when the prior was kept).
     pub trajectory: Vec<StepBody>,
     pub confidence: ConfidenceBody,
-    /// True when the chosen hypothesis's agent chose all-zero steps before running out of iterations.
+    /// True when the chosen hypothesis's agent chose all-zero steps before running out of
+    /// iterations (false when the prior was kept).
     pub converged: bool,
-    /// Steps of the chosen hypothesis.
+    /// Steps that led to the answer (0 when the prior was kept).
     pub iterations: usize,
     /// Every start of the search, in order; the first one starts at the prior.
     pub hypotheses: Vec<HypothesisBody>,
-    /// Index into `hypotheses` of the answer.
+    /// Index into `hypotheses` of the answer (0 when the prior was kept).
     pub chosen_hypothesis: usize,
+    /// The answer is the prior, unmoved: its alignment score beat every hypothesis's final pose
+    /// (the server's `--keep-prior`, on by default).
+    pub kept_prior: bool,
     pub timings_ms: TimingsMs,
 }
 
@@ -186,15 +190,15 @@ impl LocalizeResponse {
             map_id: map_id.to_string(),
             pose: loc.camera_from_map().into(),
             prior_camera_from_map: loc.prior.to_rows(),
-            trajectory: best.steps.iter().map(StepBody::from).collect(),
+            trajectory: loc.answer_steps().iter().map(StepBody::from).collect(),
             confidence: ConfidenceBody {
                 score: loc.confidence.score,
                 frustum_iou: loc.confidence.frustum_iou,
                 policy_certainty: loc.confidence.policy_certainty,
                 alignment: loc.confidence.alignment,
             },
-            converged: best.converged,
-            iterations: best.steps.len(),
+            converged: best.converged && !loc.kept_prior,
+            iterations: loc.answer_steps().len(),
             hypotheses: loc
                 .hypotheses
                 .iter()
@@ -210,6 +214,7 @@ impl LocalizeResponse {
                 })
                 .collect(),
             chosen_hypothesis: loc.chosen,
+            kept_prior: loc.kept_prior,
             timings_ms,
         }
     }

@@ -54,6 +54,10 @@ pub struct Args {
     /// frames: 8); the cases of one frame are consecutive.
     #[arg(long, default_value_t = 1)]
     pub cases_per_frame: usize,
+    /// How far the priors are drawn when creating the perturbation file: `protocol` (the paper's:
+    /// any heading, ±10 m) or `fleet` (heading within ±30°, position within 5 m).
+    #[arg(long, value_enum, default_value = "protocol")]
+    pub priors: super::perturbations::Priors,
     /// The greedy expert's action frame: `camera_y` (yaw about camera y, translation along
     /// camera x / z) or `map_z` (yaw about the map's up axis, translation in its ground plane).
     /// Default: the model's `actions.frame`, `camera_y` with --reference-only.
@@ -101,6 +105,7 @@ pub fn main(args: Args) -> Result<()> {
         frame_stride: args.frame_stride,
         max_cases: args.max_cases,
         cases_per_frame: args.cases_per_frame.max(1),
+        priors: args.priors,
         action_frame: args.action_frame,
         num_points: 40_960,
         ransac: RansacOptions { iterations: args.ransac_iterations, inlier_px: args.inlier_px, ..RansacOptions::default() },
