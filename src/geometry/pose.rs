@@ -18,12 +18,14 @@ impl Pose {
     }
 
     /// From a row-major 3x4 `[R | t]`, the layout KITTI's calib.txt and poses.txt use.
-    pub fn from_row_major_3x4(values: &[f64; 12]) -> Self {
+    /// Errors: R is not a rotation ([`check_rotation`]; the message starts "is not a rotation").
+    pub fn from_row_major_3x4(values: &[f64; 12]) -> Result<Self, String> {
         let r = Matrix3::new(
             values[0], values[1], values[2], values[4], values[5], values[6], values[8], values[9],
             values[10],
         );
-        Self::from_rt(r, Vector3::new(values[3], values[7], values[11]))
+        check_rotation(&r)?;
+        Ok(Self::from_rt(r, Vector3::new(values[3], values[7], values[11])))
     }
 
     pub fn to_row_major_3x4(&self) -> [f64; 12] {
@@ -38,7 +40,7 @@ impl Pose {
     }
 
     /// From a row-major 4x4 matrix (a map-frame camera_from_map); the last row must be
-    /// (0, 0, 0, 1), R orthonormal and the camera's position −Rᵀt within ±[`MAX_COORDINATE_M`]
+    /// (0, 0, 0, 1), R a rotation ([`check_rotation`]) and the camera's position −Rᵀt within ±[`MAX_COORDINATE_M`]
     /// on each axis, the bound of every map-frame coordinate.
     pub fn from_matrix(m: &[[f64; 4]; 4]) -> Result<Self, String> {
         if m.iter().flatten().any(|v| !v.is_finite()) {
@@ -53,10 +55,7 @@ impl Pose {
             return Err("pose's last row must be [0, 0, 0, 1]".into());
         }
         let r = Matrix3::new(m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2]);
-        let orthonormality = (r.transpose() * r - Matrix3::identity()).abs().max();
-        if orthonormality > 1e-3 || r.determinant() < 0.0 {
-            return Err("pose's rotation block is not a rotation matrix".into());
-        }
+        check_rotation(&r).map_err(|e| format!("pose's rotation block {e}"))?;
         let pose = Self::from_rt(r, Vector3::new(m[0][3], m[1][3], m[2][3]));
         let c = pose.camera_position_in_map();
         if c.iter().any(|v| v.abs() > MAX_COORDINATE_M) {
@@ -116,6 +115,14 @@ impl Pose {
         forward_in_map.y.atan2(forward_in_map.x).to_degrees()
     }
 
+    /// camera_from_map of a level camera (camera y = map −z) at `position` (map frame, metres)
+    /// whose optical axis points along the map's +x axis: a KITTI-like rig at its LiDAR, the
+    /// localize default for a region with no prior (`serving::PriorSource::Default`).
+    pub fn level_camera_along_x(position: Vector3<f64>) -> Self {
+        let r = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
+        Self::from_rt(r, -(r * position))
+    }
+
     /// A rotation by `angle_rad` about the map's z axis followed by a translation: the
     /// ground-plane perturbation of the paper's protocol.
     pub fn ground_motion(yaw_rad: f64, dx: f64, dy: f64) -> Self {
@@ -124,6 +131,48 @@ impl Pose {
             UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw_rad),
         ))
     }
+}
+
+/// How far a 3x3 block may be from a rotation and still be read as one: every entry of RᵀR − I
+/// within ±this (dimensionless). Text files keep 6 to 13 significant digits (KITTI's poses.txt
+/// about 7, so ~1e-6 off), well inside; a scaled (R00 = 2), sheared, zeroed (a lost track) or
+/// half-written block is far outside. Python's twin is `geometry.ROTATION_TOLERANCE`; both are
+/// pinned by fixtures/conventions.json.
+pub const ROTATION_TOLERANCE: f64 = 1e-3;
+
+/// Whether `r` is a rotation: finite, orthonormal (every entry of RᵀR − I within
+/// ±[`ROTATION_TOLERANCE`]) and det R = +1. The determinant is checked by its sign: with RᵀR
+/// within the tolerance of I, det R is ±1 to within 1.5 × the tolerance, so a negative one is a
+/// reflection. This is the one check of every rotation the project reads: the API's priors and
+/// regions' `initial_camera_from_map`, KITTI's calib `Tr` / `R0_rect` and poses.txt (map build,
+/// track, eval, synth); `geometry.check_rotation` in training/cmr/geometry.py is its twin, with
+/// the same messages.
+///
+/// Errors: a message that starts "is not a rotation: " and says what is wrong (a non-finite
+/// entry; every entry 0; the rows' lengths and how far RᵀR is from I; a negative determinant),
+/// to be prefixed by the caller with what was read (file and line, or field).
+pub fn check_rotation(r: &Matrix3<f64>) -> Result<(), String> {
+    if r.iter().any(|v| !v.is_finite()) {
+        return Err("is not a rotation: it has a non-finite entry".into());
+    }
+    if r.iter().all(|&v| v == 0.0) {
+        return Err("is not a rotation: every entry is 0 (an unset pose, such as a lost track)".into());
+    }
+    let deviation = (r.transpose() * r - Matrix3::identity()).abs().max();
+    if deviation > ROTATION_TOLERANCE {
+        let len = |i: usize| r.row(i).norm();
+        return Err(format!(
+            "is not a rotation: its rows have lengths {:.4}, {:.4}, {:.4} and RᵀR differs from the identity by up to {deviation:.4} (tolerance {ROTATION_TOLERANCE})",
+            len(0),
+            len(1),
+            len(2)
+        ));
+    }
+    let det = r.determinant();
+    if det < 0.0 {
+        return Err(format!("is not a rotation: its determinant is {det:.4}, a reflection (a rotation's is +1)"));
+    }
+    Ok(())
 }
 
 /// The largest map-frame coordinate (metres, any axis) of a map point, a region's origin or a
@@ -205,7 +254,7 @@ mod tests {
             Rotation3::from_euler_angles(0.1, -0.2, 0.05).into_inner(),
             Vector3::new(0.5, 0.25, -1.0),
         ));
-        let back = Pose::from_row_major_3x4(&p.to_row_major_3x4());
+        let back = Pose::from_row_major_3x4(&p.to_row_major_3x4()).unwrap();
         assert!((back.matrix() - p.matrix()).abs().max() < 1e-12);
         let back = Pose::from_matrix(&p.to_rows()).unwrap();
         assert!((back.matrix() - p.matrix()).abs().max() < 1e-12);
@@ -225,11 +274,40 @@ mod tests {
     }
 
     #[test]
+    fn rotation_check_names_what_is_wrong() {
+        let rig = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
+        assert_eq!(check_rotation(&rig), Ok(()));
+        // KITTI's poses.txt keeps about 7 significant digits: still a rotation.
+        let rounded = Rotation3::from_euler_angles(0.1, -0.2, 0.05).into_inner().map(|v: f64| (v * 1e6).round() / 1e6);
+        assert_eq!(check_rotation(&rounded), Ok(()));
+        let cases = [
+            (Matrix3::zeros(), "every entry is 0"),
+            (Matrix3::new(2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), "lengths 2.0000, 1.0000, 1.0000 and RᵀR differs from the identity by up to 3.0000"),
+            (Matrix3::identity() * 1.001, "tolerance 0.001"),
+            (Matrix3::new(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0), "determinant is -1.0000, a reflection"),
+            (Matrix3::new(f64::NAN, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), "non-finite"),
+        ];
+        for (m, want) in cases {
+            let err = check_rotation(&m).unwrap_err();
+            assert!(err.starts_with("is not a rotation: ") && err.contains(want), "{err}");
+        }
+        // The API's reader and the files' reader give the same verdict (one check).
+        let mut rows = Pose::identity().to_rows();
+        rows[0][0] = 2.0;
+        let api = Pose::from_matrix(&rows).unwrap_err();
+        let file = Pose::from_row_major_3x4(&[2.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]).unwrap_err();
+        assert_eq!(api, format!("pose's rotation block {file}"));
+    }
+
+    #[test]
     fn heading_of_a_kitti_like_rig() {
         // Camera looking along the map's +x axis: camera z = map x, camera x = -map y, camera y = -map z.
         let r = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
         let rig = Pose::from_rt(r, Vector3::new(0.0, -0.08, -0.27));
         assert!(rig.camera_heading_in_map_deg().abs() < 1e-9);
+        let default = Pose::level_camera_along_x(Vector3::new(1.0, 2.0, 3.0));
+        assert!((default.rotation() - r).abs().max() < 1e-12 && default.camera_heading_in_map_deg().abs() < 1e-9);
+        assert!((default.camera_position_in_map() - Vector3::new(1.0, 2.0, 3.0)).norm() < 1e-12);
         let turned = rig.compose(&Pose::ground_motion(-std::f64::consts::FRAC_PI_2, 0.0, 0.0));
         assert!((turned.camera_heading_in_map_deg() - 90.0).abs() < 1e-9);
     }
