@@ -61,7 +61,7 @@ pub fn run(args: LocalizeArgs) -> Result<()> {
     let loc = &done.localization;
     let timings = TimingsMs::new(done.queue_ms, done.decode_ms, &loc.timings, started.elapsed().as_secs_f64() * 1000.0);
     let name = args.map.file_stem().and_then(|s| s.to_str()).unwrap_or(id);
-    println!("{}", serde_json::to_string_pretty(&LocalizeResponse::new(name, loc, timings))?);
+    println!("{}", serde_json::to_string_pretty(&LocalizeResponse::new(name, loc, done.prior_source, timings))?);
     Ok(())
 }
 

@@ -19,7 +19,7 @@ use crate::agent::Localization;
 use crate::geometry::Pose;
 use crate::geometry::pose::Matrix4x4;
 use crate::render::{Overlay, PosePanel};
-use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest, PictureInput};
+use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest, PictureInput, PriorSource};
 
 use super::AppState;
 use super::error::{ApiError, ErrorBody};
@@ -132,7 +132,7 @@ async fn overlay_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, header
             let (done, picture) = st.localizer.localize_for_picture(admission, id, &request, payload).await?;
             let loc = &done.localization;
             let strip_panels = if strip { iteration_panels(loc) } else { Vec::new() };
-            (localization_panels(loc), strip_panels, picture, loc.camera_from_map())
+            (localization_panels(loc, done.prior_source), strip_panels, picture, loc.camera_from_map())
         }
         Wanted::Pose(request, pose) => {
             if strip {
@@ -154,7 +154,7 @@ async fn overlay_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, header
 }
 
 /// The two panels of a localization: the prior and the answer.
-fn localization_panels(loc: &Localization) -> Vec<PosePanel> {
+fn localization_panels(loc: &Localization, prior_source: PriorSource) -> Vec<PosePanel> {
     let best = loc.best();
     let fin = if loc.kept_prior {
         format!("final: the prior, kept (no start explained the image better), confidence {:.2}", loc.confidence.score)
@@ -168,7 +168,11 @@ fn localization_panels(loc: &Localization) -> Vec<PosePanel> {
             loc.confidence.score
         )
     };
-    vec![PosePanel::new("prior", loc.prior), PosePanel::new(fin, loc.camera_from_map())]
+    let prior = match prior_source {
+        PriorSource::Request | PriorSource::Region => "prior",
+        PriorSource::Default => "prior (default: level at the map's origin, along +x)",
+    };
+    vec![PosePanel::new(prior, loc.prior), PosePanel::new(fin, loc.camera_from_map())]
 }
 
 /// Every pose of the chosen start: its start and each step.

@@ -329,7 +329,7 @@ async fn localize_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, heade
     let loc = &done.localization;
     let timings = TimingsMs::new(done.queue_ms, done.decode_ms, &loc.timings, done.total_ms);
     metrics::histogram!("cmr_iterations").record(loc.iterations() as f64);
-    let body = LocalizeResponse::new(id, loc, timings);
+    let body = LocalizeResponse::new(id, loc, done.prior_source, timings);
     let mut response = Json(body).into_response();
     if let Ok(v) = HeaderValue::from_str(&timings.header()) {
         response.headers_mut().insert("server-timing", v);

@@ -6,7 +6,7 @@ use utoipa::ToSchema;
 use crate::agent::{Localization, Step};
 use crate::geometry::Pose;
 use crate::maps::{Extent, MapEntry, MapMetadata, Maps};
-use crate::serving::Matrix4x4;
+use crate::serving::{Matrix4x4, PriorSource};
 
 use super::error::ApiError;
 
@@ -165,6 +165,10 @@ pub struct LocalizeResponse {
     /// The starting pose.
     #[schema(value_type = Matrix4x4)]
     pub prior_camera_from_map: Rows4x4,
+    /// Where the starting pose came from: `request` (its `prior_camera_from_map`), `region` (the
+    /// region's `initial_camera_from_map`) or `default` (neither: a level camera at the map
+    /// frame's origin looking along the map's +x axis; docs/server.md, "The prior").
+    pub prior_source: PriorSource,
     /// The chosen hypothesis's steps (none when the prior was kept).
     pub trajectory: Vec<StepBody>,
     pub confidence: ConfidenceBody,
@@ -184,12 +188,13 @@ pub struct LocalizeResponse {
 }
 
 impl LocalizeResponse {
-    pub fn new(map_id: &str, loc: &Localization, timings_ms: TimingsMs) -> Self {
+    pub fn new(map_id: &str, loc: &Localization, prior_source: PriorSource, timings_ms: TimingsMs) -> Self {
         let best = loc.best();
         LocalizeResponse {
             map_id: map_id.to_string(),
             pose: loc.camera_from_map().into(),
             prior_camera_from_map: loc.prior.to_rows(),
+            prior_source,
             trajectory: loc.answer_steps().iter().map(StepBody::from).collect(),
             confidence: ConfidenceBody {
                 score: loc.confidence.score,
