@@ -91,6 +91,14 @@ async fn service_endpoints_and_a_localization() {
     let missing = c.get(server.url("/no/such/thing")).send().await.unwrap();
     assert_eq!(missing.status(), 404);
 
+    // Every answer carries a request id: the client's own when it sends a sane one, else a new one.
+    let r = c.get(server.url("/health")).header("x-request-id", "fleet-7.a:1").send().await.unwrap();
+    assert_eq!(r.headers()["x-request-id"], "fleet-7.a:1");
+    let ids: Vec<String> = [c.get(server.url("/health")).header("x-request-id", "has space").send().await.unwrap(), missing]
+        .iter()
+        .map(|r| r.headers()["x-request-id"].to_str().unwrap().to_string())
+        .collect();
+    assert!(ids[0] != ids[1] && ids.iter().all(|id| id.len() > 8 && id.contains('-') && !id.contains(' ')), "{ids:?}");
     server.stop().await;
 }
 
@@ -133,6 +141,62 @@ async fn a_region_without_a_prior_starts_from_the_documented_default_or_says_wha
     let (status, body, _) = server.localize("utm-street", &kitti_request(2)).await;
     assert_eq!((status, &body["prior_source"]), (200, &json!("region")), "{body}");
     server.stop().await;
+}
+
+/// The binary's own log: one access line per request (method, path without the query, status,
+/// latency, request id), and no ANSI colour codes when stderr is not a terminal (a pipe here).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_server_logs_one_plain_access_line_per_request() {
+    use std::io::BufRead;
+    let maps = maps_dir_with_street();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
+        .args(["serve", "--host", "127.0.0.1", "--port", "0", "--intra-threads", "1", "--models"])
+        .arg(tiny_model())
+        .arg("--maps")
+        .arg(maps.path())
+        .env_remove("NO_COLOR")
+        .env("RUST_LOG", "info")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    let stderr = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    let mut seen = Vec::new();
+    let next_line = |what: &str, seen: &mut Vec<String>| -> String {
+        let line = rx.recv_timeout(Duration::from_secs(60)).unwrap_or_else(|_| panic!("no {what} in the log: {seen:#?}"));
+        seen.push(line.clone());
+        line
+    };
+    let base = loop {
+        let line = next_line("listening line", &mut seen);
+        if let Some(at) = line.find("listening on http://") {
+            break line[at + "listening on ".len()..].trim().to_string();
+        }
+    };
+    let client = reqwest::Client::new();
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while client.get(format!("{base}/ready")).send().await.map(|r| r.status() != 200).unwrap_or(true) {
+        assert!(std::time::Instant::now() < deadline, "never ready: {seen:#?}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let r = client.get(format!("{base}/v1/maps/nothing-here?token=secret")).header("x-request-id", "log-test-1").send().await.unwrap();
+    assert_eq!(r.status(), 404);
+    let access = loop {
+        let line = next_line("access line", &mut seen);
+        if line.contains("request_id=log-test-1") {
+            break line;
+        }
+    };
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(access.contains("INFO access: method=GET path=/v1/maps/nothing-here status=404 latency_ms="), "{access}");
+    assert!(!access.contains("secret"), "the query is not logged: {access}");
+    assert!(seen.iter().all(|l| !l.contains('\u{1b}')), "colour codes in a piped log: {seen:#?}");
 }
 
 /// A float64 PLY of `cloud` moved by `offset` (UTM-size coordinates stay exact).

@@ -135,25 +135,57 @@ pub fn router(state: Arc<AppState>) -> Router {
             body_deadline::limit_body_time,
         ))
         .layer(axum::middleware::from_fn_with_state(state.lifecycle.clone(), close_when_draining))
-        .layer(axum::middleware::from_fn(count_requests))
-        .layer(tower_http::trace::TraceLayer::new_for_http())
+        .layer(axum::middleware::from_fn(access_log))
         .with_state(state)
 }
 
-/// Counts every HTTP request by route template, method and status, with its latency.
-async fn count_requests(request: axum::extract::Request, next: axum::middleware::Next) -> axum::response::Response {
+/// The response header that carries a request's id (also read from the request, see [`request_id`]).
+pub const REQUEST_ID_HEADER: &str = "x-request-id";
+
+/// Every HTTP request, once it is answered: one `info` line on the `access` target (method,
+/// path without the query, status, latency in ms, request id), the Prometheus counters
+/// (`cmr_http_requests_total` by route template, method and status; `cmr_http_request_seconds`),
+/// and the `x-request-id` response header. Logs made while handling it (a localization's) are in
+/// a `request{id=...}` span, so they carry the same id.
+async fn access_log(request: axum::extract::Request, next: axum::middleware::Next) -> axum::response::Response {
+    use tracing::Instrument;
     let route = request
         .extensions()
         .get::<axum::extract::MatchedPath>()
         .map(|p| p.as_str().to_string())
         .unwrap_or_else(|| "unmatched".into());
-    let method = request.method().to_string();
+    let method = request.method().clone();
+    let path: String = request.uri().path().chars().take(256).collect();
+    let id = request_id(request.headers());
     let started = std::time::Instant::now();
-    let response = next.run(request).await;
-    let status = response.status().as_u16().to_string();
-    metrics::counter!("cmr_http_requests_total", "route" => route.clone(), "method" => method, "status" => status).increment(1);
-    metrics::histogram!("cmr_http_request_seconds", "route" => route).record(started.elapsed().as_secs_f64());
+    let mut response = next.run(request).instrument(tracing::info_span!("request", id = %id)).await;
+    let latency = started.elapsed();
+    let status = response.status().as_u16();
+    tracing::info!(target: "access", %method, path = %path, status = %status, latency_ms = format_args!("{:.1}", latency.as_secs_f64() * 1000.0), request_id = %id);
+    metrics::counter!("cmr_http_requests_total", "route" => route.clone(), "method" => method.to_string(), "status" => status.to_string()).increment(1);
+    metrics::histogram!("cmr_http_request_seconds", "route" => route).record(latency.as_secs_f64());
+    if let Ok(v) = axum::http::HeaderValue::from_str(&id) {
+        response.headers_mut().insert(REQUEST_ID_HEADER, v);
+    }
     response
+}
+
+/// The request's id: the client's `x-request-id` when it is 1 to 64 characters of
+/// `[A-Za-z0-9._:-]` (so a proxy's id follows the request through), else a new one: this
+/// process's random 8-hex-digit prefix, a dash and a counter (`3f9a0c12-17`).
+pub fn request_id(headers: &HeaderMap) -> String {
+    static PREFIX: OnceLock<u32> = OnceLock::new();
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let given = headers.get(REQUEST_ID_HEADER).and_then(|v| v.to_str().ok()).filter(|v| {
+        (1..=64).contains(&v.len()) && v.bytes().all(|b| b.is_ascii_alphanumeric() || b"._:-".contains(&b))
+    });
+    match given {
+        Some(v) => v.to_string(),
+        None => {
+            let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            format!("{:08x}-{n}", PREFIX.get_or_init(rand::random::<u32>))
+        }
+    }
 }
 
 /// While draining, every response asks the client to close its connection, so kept-alive
