@@ -237,7 +237,9 @@ impl utoipa::PartialSchema for Matrix4x4 {
             .items(row)
             .min_items(Some(4))
             .max_items(Some(4))
-            .description(Some("Row-major 4x4 rigid transform: 4 rows of 4 numbers, last row [0, 0, 0, 1]."))
+            .description(Some(format!(
+                "Row-major 4x4 rigid transform: 4 rows of 4 numbers, last row [0, 0, 0, 1], the top-left 3x3 a rotation (every entry of RᵀR − I within ±{ROTATION_TOLERANCE}, det R > 0)."
+            )))
             .into()
     }
 }

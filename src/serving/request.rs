@@ -104,6 +104,7 @@ pub struct ValidLocalizeRequest {
     pub frame: LocalFrame,
     /// camera_from_local of the starting pose.
     pub prior: Pose,
+    /// Where `prior` came from (the response's `prior_source`).
     pub prior_source: PriorSource,
     pub search: SearchConfig,
     /// Set for a tiled region.
