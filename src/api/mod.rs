@@ -90,23 +90,24 @@ pub fn metrics_handle() -> PrometheusHandle {
 
 /// Loads models and maps and starts the workers. Model problems fail here, with one message.
 pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
-    let options = BackendOptions { intra_threads: config.intra_threads(), ort_lib: config.ort_lib.clone() };
-    crate::model::runtime::environment(config.ort_lib.as_deref())?;
-    let models = ModelSet::load(&config.models, options).with_context(|| format!("cannot load the models in {}", config.models.display()))?;
+    let engine = &config.engine;
+    let options = BackendOptions { intra_threads: config.intra_threads(), ort_lib: engine.ort_lib.clone() };
+    crate::model::runtime::environment(engine.ort_lib.as_deref())?;
+    let models = ModelSet::load(&engine.models, options).with_context(|| format!("cannot load the models in {}", engine.models.display()))?;
     let (store, warnings) = MapStore::open(&config.maps).map_err(|e| anyhow::anyhow!("{e}"))?;
     for w in warnings {
         tracing::warn!("map store: {w}");
     }
-    let cache = MapCache::new(config.cache_mb.saturating_mul(1024 * 1024));
+    let cache = MapCache::new(engine.cache_mb.saturating_mul(1024 * 1024));
     // Registering a map runs the point encoder once, rarely and one at a time: all cores for it.
     let encoder = ModelSet { options: BackendOptions { intra_threads: config::cores(), ..models.options.clone() }, ..models.clone() };
-    let maps = Arc::new(Maps::new(store, cache, Box::new(encoder.backend()?), config.regions()));
+    let maps = Arc::new(Maps::new(store, cache, Box::new(encoder.backend()?), engine.regions()));
     // With several workers, one more set of sessions with every core's threads, for whichever
     // worker is alone with work (a lone request then has the idle cores; about 25 MB).
     let lone = (config.workers() > 1 && config.intra_threads() < config::cores()).then(|| encoder.factory());
     let scheduler = Arc::new(Scheduler::start_with_lone(&models.factory(), lone.as_ref(), config.scheduler())?);
     let lifecycle = Arc::new(Lifecycle::default());
-    let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), config.localizer());
+    let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), engine.localizer());
     Ok(Arc::new(AppState { config, models, localizer, maps, scheduler, lifecycle, metrics: metrics_handle() }))
 }
 

@@ -60,14 +60,15 @@ pub async fn metrics(State(st): Shared) -> Response {
 /// Model manifest, limits and version.
 #[utoipa::path(get, path = "/v1/info", responses((status = 200, body = Info)))]
 pub async fn info(State(st): Shared) -> Json<Info> {
-    let c = &st.config;
+    let c = &st.config.engine;
+    let serve = &st.config;
     Json(Info {
         name: env!("CARGO_PKG_NAME").into(),
         version: env!("CARGO_PKG_VERSION").into(),
         manifest: serde_json::to_value(&*st.models.manifest).unwrap_or_default(),
         limits: Limits {
-            max_body_bytes: c.max_body_bytes,
-            max_map_bytes: c.max_map_bytes,
+            max_body_bytes: serve.max_body_bytes,
+            max_map_bytes: serve.max_map_bytes,
             max_image_side: c.max_image_side,
             max_iterations: MAX_ITERATIONS,
             default_max_iterations: c.default_max_iterations,
@@ -75,16 +76,16 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             default_hypotheses: c.default_hypotheses,
             narrow_after: c.search.narrow_after,
             merge_duplicates: c.search.merge_duplicates,
-            queue_capacity: c.queue_capacity,
+            queue_capacity: serve.queue_capacity,
             max_batch: c.max_batch,
             request_timeout_ms: c.request_timeout_ms,
-            body_timeout_ms: c.body_timeout_ms,
+            body_timeout_ms: serve.body_timeout_ms,
             cache_budget_bytes: st.maps.cache.budget_bytes(),
             max_map_points: c.max_map_points,
             tile_above_points: c.tile_above_points,
             default_radius_m: c.default_radius_m,
         },
-        workers: c.workers(),
+        workers: serve.workers(),
         onnxruntime_library: crate::model::runtime::loaded_library().map(|p| p.display().to_string()),
     })
 }

@@ -311,7 +311,15 @@ impl MapStore {
 
     /// Every region in the directory (including those other replicas added), by id.
     pub fn list(&self) -> Vec<MapEntry> {
-        let on_disk: Vec<String> = std::fs::read_dir(&self.dir)
+        let mut ids: std::collections::BTreeSet<String> = self.ids().into_iter().collect();
+        ids.extend(self.registry.read().expect("registry").keys().cloned());
+        ids.iter().filter_map(|id| self.get(id).ok()).collect()
+    }
+
+    /// The ids of the `<id>.bin` files in the directory now, sorted, without reading them (a
+    /// file that would not load is named too; [`MapStore::list`] reads and checks each).
+    pub fn ids(&self) -> Vec<String> {
+        let mut ids: Vec<String> = std::fs::read_dir(&self.dir)
             .map(|rd| {
                 rd.filter_map(|e| e.ok())
                     .filter_map(|e| e.file_name().to_str().and_then(|n| n.strip_suffix(".bin")).map(str::to_string))
@@ -319,9 +327,13 @@ impl MapStore {
                     .collect()
             })
             .unwrap_or_default();
-        let mut ids: std::collections::BTreeSet<String> = on_disk.into_iter().collect();
-        ids.extend(self.registry.read().expect("registry").keys().cloned());
-        ids.iter().filter_map(|id| self.get(id).ok()).collect()
+        ids.sort();
+        ids
+    }
+
+    /// The directory the store reads and writes.
+    pub fn dir(&self) -> &Path {
+        &self.dir
     }
 
     fn register(&self, id: &str, entry: &MapEntry) {
