@@ -15,6 +15,13 @@ pub struct ServeArgs {
     pub host: String,
     #[arg(long, env = "CMR_PORT", default_value_t = 8080)]
     pub port: u16,
+    /// A second port, on the same address, that answers only `/health`, `/ready` and `/metrics`
+    /// with connections of its own (at most 32; headers within 2 s, idle ones closed after 2 s):
+    /// an orchestrator's probes get their answer however many clients hold the main port's
+    /// `--max-connections`. For probes and scrapers, not clients: keep it off the public
+    /// network. Default: none (probes then wait with every other connection).
+    #[arg(long, env = "CMR_PROBE_PORT")]
+    pub probe_port: Option<u16>,
     /// Directory of map regions (<id>.bin + <id>.json [+ <id>.emb]); created if missing.
     #[arg(long, env = "CMR_MAPS", default_value = "maps")]
     pub maps: PathBuf,
