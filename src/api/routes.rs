@@ -123,7 +123,7 @@ pub const DEFAULT_POINTS_QUERY: u32 = 20_000;
 /// 100,000 × 12 bytes = 1.2 MB. Preparing a region that is not prepared yet runs the point
 /// encoder once (as localize would).
 #[utoipa::path(get, path = "/v1/maps/{id}/points", params(MapIdParam, PointsParams),
-    responses((status = 200, content_type = "application/octet-stream", body = Vec<u8>,
+    responses((status = 200, content_type = "application/octet-stream", body = BinaryBody,
             description = "count × (x, y, z) little-endian float32, metres, relative to the region's origin (x-map-origin)",
             headers(("x-point-count" = u32, description = "points in the body"),
                 ("x-points-total" = u64, description = "finite points of the stored cloud"),
@@ -182,7 +182,7 @@ fn gzip_encoded(headers: &HeaderMap) -> Result<bool, ApiError> {
 /// checked before the body is read.
 #[utoipa::path(put, path = "/v1/maps/{id}", params(MapIdParam, UploadParams,
         ("Content-Encoding" = Option<String>, Header, description = "`gzip` when the body is gzip-compressed (also recognised without it); `identity` or absent otherwise")),
-    request_body(content = Vec<u8>, content_type = "application/octet-stream",
+    request_body(content = BinaryBody, content_type = "application/octet-stream",
         description = "The point-cloud file: KITTI .bin (float32 x, y, z, intensity), PCD (ascii, binary, binary_compressed), PLY (ascii, binary), LAS 1.0-1.4 and LAZ; optionally gzip-compressed"),
     responses((status = 201, body = RegisterResponse, description = "new region"), (status = 200, body = RegisterResponse, description = "region replaced"),
         (status = 400, body = ErrorBody, description = "invalid map id or unreadable body"),
@@ -274,7 +274,7 @@ pub async fn delete_map(_admin: Admin, State(st): Shared, MapId(id): MapId) -> R
 /// request, or the raw JPEG/PNG bytes (`content-type: image/jpeg|image/png`) with the intrinsics
 /// fx, fy, cx, cy in the query. Capacity is checked before the body is read: a 429 costs nothing.
 #[utoipa::path(post, path = "/v1/maps/{id}/localize", params(MapIdParam, RawLocalizeParams),
-    request_body(content((LocalizeRequest = "application/json"), (Vec<u8> = "image/jpeg"), (Vec<u8> = "image/png"))),
+    request_body(content((LocalizeRequest = "application/json"), (BinaryBody = "image/jpeg"), (BinaryBody = "image/png"))),
     responses((status = 200, body = LocalizeResponse), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody),
         (status = 408, body = ErrorBody), (status = 413, body = ErrorBody), (status = 415, body = ErrorBody), (status = 422, body = ErrorBody),
         (status = 429, body = ErrorBody), (status = 500, body = ErrorBody), (status = 503, body = ErrorBody)))]
