@@ -90,23 +90,24 @@ pub fn metrics_handle() -> PrometheusHandle {
 
 /// Loads models and maps and starts the workers. Model problems fail here, with one message.
 pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
-    let options = BackendOptions { intra_threads: config.intra_threads(), ort_lib: config.ort_lib.clone() };
-    crate::model::runtime::environment(config.ort_lib.as_deref())?;
-    let models = ModelSet::load(&config.models, options).with_context(|| format!("cannot load the models in {}", config.models.display()))?;
+    let engine = &config.engine;
+    let options = BackendOptions { intra_threads: config.intra_threads(), ort_lib: engine.ort_lib.clone() };
+    crate::model::runtime::environment(engine.ort_lib.as_deref())?;
+    let models = ModelSet::load(&engine.models, options).with_context(|| format!("cannot load the models in {}", engine.models.display()))?;
     let (store, warnings) = MapStore::open(&config.maps).map_err(|e| anyhow::anyhow!("{e}"))?;
     for w in warnings {
         tracing::warn!("map store: {w}");
     }
-    let cache = MapCache::new(config.cache_mb.saturating_mul(1024 * 1024));
+    let cache = MapCache::new(engine.cache_mb.saturating_mul(1024 * 1024));
     // Registering a map runs the point encoder once, rarely and one at a time: all cores for it.
     let encoder = ModelSet { options: BackendOptions { intra_threads: config::cores(), ..models.options.clone() }, ..models.clone() };
-    let maps = Arc::new(Maps::new(store, cache, Box::new(encoder.backend()?), config.regions()));
+    let maps = Arc::new(Maps::new(store, cache, Box::new(encoder.backend()?), engine.regions()));
     // With several workers, one more set of sessions with every core's threads, for whichever
     // worker is alone with work (a lone request then has the idle cores; about 25 MB).
     let lone = (config.workers() > 1 && config.intra_threads() < config::cores()).then(|| encoder.factory());
     let scheduler = Arc::new(Scheduler::start_with_lone(&models.factory(), lone.as_ref(), config.scheduler())?);
     let lifecycle = Arc::new(Lifecycle::default());
-    let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), config.localizer());
+    let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), engine.localizer());
     Ok(Arc::new(AppState { config, models, localizer, maps, scheduler, lifecycle, metrics: metrics_handle() }))
 }
 
@@ -218,16 +219,39 @@ pub fn warm_up(state: &AppState) -> Result<()> {
     Ok(())
 }
 
-/// Serves on `listener` until `shutdown` resolves, then drains in three phases:
-/// 1. draining: the listener still answers (`/ready` 503, new localizations 503 `draining`)
+/// The probe port's connection limit and header/idle timeout (stated in `--probe-port`'s help).
+pub const PROBE_MAX_CONNECTIONS: usize = 32;
+pub const PROBE_HEADER_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// The probe port's routes: liveness, readiness and metrics, the same handlers as the main port's.
+pub fn probe_router(state: Arc<AppState>) -> Router {
+    Router::new()
+        .route("/health", get(routes::health))
+        .route("/ready", get(routes::ready))
+        .route("/metrics", get(routes::metrics))
+        .fallback(routes::not_found)
+        .layer(axum::middleware::from_fn_with_state(state.lifecycle.clone(), close_when_draining))
+        .with_state(state)
+}
+
+/// Serves on `listener` (and the probe routes on `probe`, when given: [`probe_router`], with
+/// its own [`PROBE_MAX_CONNECTIONS`] connections, so probes never wait behind the main port's
+/// `max_connections`) until `shutdown` resolves, then drains in three phases:
+/// 1. draining: both listeners still answer (`/ready` 503, new localizations 503 `draining`)
 ///    while in-flight localizations finish, at most `shutdown_grace_s`;
-/// 2. the listener closes; open connections finish their current request (kept-alive idle ones
+/// 2. the listeners close; open connections finish their current request (kept-alive idle ones
 ///    close) within what is left of the grace;
 /// 3. the agent workers stop, and the queued `<id>.emb` writes finish.
 ///
-/// Connections: at most `max_connections` at once (more wait in the backlog), headers must
-/// arrive within `header_timeout_s`, and a kept-alive connection idle for that long is closed.
-pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<()> {
+/// Connections: at most `max_connections` at once on the main port (more wait in the backlog),
+/// headers must arrive within `header_timeout_s`, and a kept-alive connection idle for that long
+/// is closed.
+pub async fn serve(
+    state: Arc<AppState>,
+    listener: tokio::net::TcpListener,
+    probe: Option<tokio::net::TcpListener>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<()> {
     let addr: SocketAddr = listener.local_addr()?;
     tracing::info!("listening on http://{addr}");
     let warm_state = state.clone();
@@ -240,7 +264,8 @@ pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shut
     });
     let grace = Duration::from_secs(state.config.shutdown_grace_s);
     let lifecycle = state.lifecycle.clone();
-    let (drained_tx, drained_rx) = tokio::sync::oneshot::channel::<tokio::time::Instant>();
+    // Set to the end of the grace once draining is over: the listeners close then.
+    let (drained_tx, drained_rx) = tokio::sync::watch::channel::<Option<tokio::time::Instant>>(None);
     tokio::spawn(async move {
         shutdown.await;
         let grace_ends = tokio::time::Instant::now() + grace;
@@ -249,10 +274,26 @@ pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shut
         if tokio::time::timeout_at(grace_ends, lifecycle.idle()).await.is_err() {
             tracing::warn!(in_flight = lifecycle.in_flight(), "grace period over with localizations still in flight");
         }
-        let _ = drained_tx.send(grace_ends);
+        let _ = drained_tx.send(Some(grace_ends));
     });
 
-    accept(&state, listener, drained_rx).await;
+    let probes = match probe {
+        Some(probe) => {
+            tracing::info!("probes (/health, /ready, /metrics) on http://{}", probe.local_addr()?);
+            let port = Port { app: probe_router(state.clone()), max_connections: PROBE_MAX_CONNECTIONS, header_timeout: PROBE_HEADER_TIMEOUT };
+            Some(tokio::spawn(accept(port, probe, drained_rx.clone())))
+        }
+        None => None,
+    };
+    let main = Port {
+        app: router(state.clone()),
+        max_connections: state.config.max_connections,
+        header_timeout: Duration::from_secs(state.config.header_timeout_s.max(1)),
+    };
+    accept(main, listener, drained_rx).await;
+    if let Some(probes) = probes {
+        let _ = probes.await;
+    }
     let scheduler = state.scheduler.clone();
     let finished = tokio::task::spawn_blocking(move || scheduler.shutdown(Duration::from_secs(2))).await.unwrap_or(false);
     if !finished {
@@ -263,20 +304,34 @@ pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shut
     Ok(())
 }
 
-/// The accept loop: serves connections until `stop` fires, then closes the listener and lets
-/// open connections finish until the grace ends.
-async fn accept(state: &Arc<AppState>, listener: tokio::net::TcpListener, stop: tokio::sync::oneshot::Receiver<tokio::time::Instant>) {
+/// One listening port's service and connection rules.
+struct Port {
+    app: Router,
+    /// Open connections at most; more wait in the listen backlog.
+    max_connections: usize,
+    /// Headers must arrive within this, and a kept-alive connection idle this long is closed.
+    header_timeout: Duration,
+}
+
+/// The accept loop of one port: serves connections until `stop` holds the grace's end, then
+/// closes the listener and lets open connections finish until the grace ends.
+async fn accept(port: Port, listener: tokio::net::TcpListener, mut stop: tokio::sync::watch::Receiver<Option<tokio::time::Instant>>) {
     use hyper_util::rt::{TokioIo, TokioTimer};
-    let app = router(state.clone());
     let mut http = hyper::server::conn::http1::Builder::new();
-    http.timer(TokioTimer::new()).header_read_timeout(Duration::from_secs(state.config.header_timeout_s.max(1))).keep_alive(true);
+    http.timer(TokioTimer::new()).header_read_timeout(port.header_timeout).keep_alive(true);
     let graceful = hyper_util::server::graceful::GracefulShutdown::new();
-    let connections = Arc::new(tokio::sync::Semaphore::new(state.config.max_connections.max(1)));
-    tokio::pin!(stop);
+    let connections = Arc::new(tokio::sync::Semaphore::new(port.max_connections.max(1)));
+    let stopped = async move {
+        match stop.wait_for(Option::is_some).await {
+            Ok(ends) => (*ends).expect("waited for Some"),
+            Err(_) => tokio::time::Instant::now(), // the sender is gone: stop now
+        }
+    };
+    tokio::pin!(stopped);
     let grace_ends = loop {
         let permit = tokio::select! {
             permit = connections.clone().acquire_owned() => permit.expect("never closed"),
-            ends = &mut stop => break ends.unwrap_or_else(|_| tokio::time::Instant::now()),
+            ends = &mut stopped => break ends,
         };
         let stream = tokio::select! {
             accepted = listener.accept() => match accepted {
@@ -288,10 +343,10 @@ async fn accept(state: &Arc<AppState>, listener: tokio::net::TcpListener, stop: 
                     continue;
                 }
             },
-            ends = &mut stop => break ends.unwrap_or_else(|_| tokio::time::Instant::now()),
+            ends = &mut stopped => break ends,
         };
         let _ = stream.set_nodelay(true);
-        let service = hyper_util::service::TowerToHyperService::new(app.clone());
+        let service = hyper_util::service::TowerToHyperService::new(port.app.clone());
         let connection = graceful.watch(http.serve_connection(TokioIo::new(stream), service));
         tokio::spawn(async move {
             let _ = connection.await;
@@ -309,9 +364,14 @@ pub fn run_serve(config: ServeArgs) -> Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     runtime.block_on(async move {
         let addr = format!("{}:{}", config.host, config.port);
+        let probe_addr = config.probe_port.map(|p| format!("{}:{p}", config.host));
         let state = build_state(config)?;
         let listener = tokio::net::TcpListener::bind(&addr).await.with_context(|| format!("cannot listen on {addr}"))?;
-        serve(state, listener, shutdown_signal()).await
+        let probe = match probe_addr {
+            Some(a) => Some(tokio::net::TcpListener::bind(&a).await.with_context(|| format!("cannot listen on {a} (--probe-port)"))?),
+            None => None,
+        };
+        serve(state, listener, probe, shutdown_signal()).await
     })
 }
 

@@ -25,7 +25,7 @@ use super::AppState;
 use super::error::{ApiError, ErrorBody};
 use super::extract::{MapId, MapIdParam};
 use super::routes::{parse_json, read_body, serde_urlencoded_query};
-use super::types::RawLocalizeParams;
+use super::types::{BinaryBody, RawLocalizeParams};
 
 /// The overlay's JSON body: localize's request, or an image, its intrinsics and an explicit
 /// `camera_from_map` to draw without running the agent.
@@ -61,6 +61,7 @@ pub struct OverlayRequest {
 
 /// Query of the overlay: localize's raw-image parameters, and `iterations`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct OverlayParams {
     /// Focal length along x, pixels (> 0). Required with a raw image body.
@@ -101,8 +102,8 @@ enum Wanted {
 /// JSON body with `camera_from_map` draws that pose alone and does not run the agent. The
 /// `x-camera-from-map` header carries the drawn final pose as 16 row-major numbers.
 #[utoipa::path(post, path = "/v1/maps/{id}/overlay", params(MapIdParam, OverlayParams),
-    request_body(content((OverlayRequest = "application/json"), (Vec<u8> = "image/jpeg"), (Vec<u8> = "image/png"))),
-    responses((status = 200, content_type = "image/png", body = Vec<u8>, description = "the picture"),
+    request_body(content((OverlayRequest = "application/json"), (BinaryBody = "image/jpeg"), (BinaryBody = "image/png"))),
+    responses((status = 200, content_type = "image/png", body = BinaryBody, description = "the picture"),
         (status = 400, body = ErrorBody), (status = 404, body = ErrorBody),
         (status = 408, body = ErrorBody), (status = 413, body = ErrorBody), (status = 415, body = ErrorBody), (status = 422, body = ErrorBody),
         (status = 429, body = ErrorBody), (status = 500, body = ErrorBody), (status = 503, body = ErrorBody)))]

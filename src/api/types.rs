@@ -311,17 +311,21 @@ pub struct RegisterTimingsMs {
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct UploadParams {
-    /// `kitti_bin`, `pcd`, `ply` or `las`; sniffed from the bytes when absent (a body whose own
-    /// header names another format is refused with 422).
+    /// `kitti_bin` (or `kitti`, `bin`), `pcd`, `ply` or `las` (or `laz`); sniffed from the bytes
+    /// when absent or empty (a body whose own header names another format is refused with 422).
+    #[param(pattern = r"^(kitti_bin|kitti|bin|pcd|ply|las|laz)?$")]
     pub format: Option<String>,
-    /// Optional description stored in the sidecar (metadata can also be set with PUT .../metadata).
+    /// Optional description stored in the sidecar (metadata can also be set with PUT .../metadata),
+    /// at most 4096 characters.
+    #[param(max_length = 4096)]
     pub description: Option<String>,
     /// The region's local-frame origin, map frame, metres: `x,y,z` (e.g. `500000,5400000,0`).
     /// Points are stored relative to it (float32); default: the cloud's box centre rounded to a
     /// multiple of 1 km (so a region near the map frame's origin keeps origin 0,0,0).
     pub origin: Option<String>,
     /// Voxel downsampling before storing: one point (the centroid) per cube of this side,
-    /// metres, 0.01..=100. Default: none.
+    /// metres, 0.01..=100 (`geometry::voxel::MIN_VOXEL_M`, `MAX_VOXEL_M`). Default: none.
+    #[param(minimum = 0.01, maximum = 100.0)]
     pub voxel_m: Option<f64>,
 }
 
@@ -339,8 +343,9 @@ impl UploadParams {
 
 /// Query of the raw-image variant of localize (body = the JPEG/PNG bytes, `content-type:
 /// image/jpeg` or `image/png`): fx, fy, cx and cy are required with it, and unused with a JSON
-/// body.
+/// body (a rule OpenAPI cannot state: a parameter cannot be required for one media type only).
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct RawLocalizeParams {
     /// Focal length along x, pixels (> 0). Required with a raw image body.
@@ -382,6 +387,7 @@ impl RawLocalizeParams {
 
 /// Query of `GET /v1/maps/{id}/points`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct PointsParams {
     /// At most this many points, 1..=100000; default 20000. The answer holds
@@ -440,3 +446,16 @@ pub struct Info {
     pub workers: usize,
     pub onnxruntime_library: Option<String>,
 }
+
+/// A request or response body of raw bytes (a point-cloud file, a JPEG/PNG image, float32
+/// points): `{"type": "string", "format": "binary"}` in the OpenAPI document.
+pub struct BinaryBody;
+
+impl utoipa::PartialSchema for BinaryBody {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, SchemaFormat, Type};
+        ObjectBuilder::new().schema_type(Type::String).format(Some(SchemaFormat::KnownFormat(KnownFormat::Binary))).into()
+    }
+}
+
+impl utoipa::ToSchema for BinaryBody {}

@@ -39,20 +39,28 @@ impl Pose {
         out
     }
 
-    /// From a row-major 4x4 matrix (a map-frame camera_from_map); the last row must be
-    /// (0, 0, 0, 1), R a rotation ([`check_rotation`]) and the camera's position −Rᵀt within ±[`MAX_COORDINATE_M`]
-    /// on each axis, the bound of every map-frame coordinate.
+    /// From a row-major 4x4 matrix (a map-frame camera_from_map). Each entry must lie within its
+    /// [`entry_bounds`] (what the API's `Matrix4x4` schema states: rotation entries within
+    /// ±[`MAX_ROTATION_ENTRY`], translation within ±[`MAX_TRANSLATION_M`] m, the last row
+    /// (0, 0, 0, 1) within [`LAST_ROW_TOLERANCE`]); then R must be a rotation
+    /// ([`check_rotation`]), and the camera's position −Rᵀt within
+    /// ±[`MAX_COORDINATE_M`] on each axis, the bound of every map-frame coordinate (these two
+    /// relate entries to each other, which a JSON Schema cannot state).
     pub fn from_matrix(m: &[[f64; 4]; 4]) -> Result<Self, String> {
         if m.iter().flatten().any(|v| !v.is_finite()) {
             return Err("pose contains a non-finite value".into());
         }
-        // Checked before the rotation so a huge translation is named as such.
-        if (0..3).any(|r| m[r][3].abs() > MAX_COORDINATE_M * 3f64.sqrt()) {
-            return Err(format!("pose's translation is beyond ±{:e} m", MAX_COORDINATE_M * 3f64.sqrt()));
-        }
-        let last = m[3];
-        if (last[0].abs() + last[1].abs() + last[2].abs() + (last[3] - 1.0).abs()) > 1e-6 {
-            return Err("pose's last row must be [0, 0, 0, 1]".into());
+        // Translation first, so a huge translation is named as such.
+        for (row, col) in (0..3).map(|r| (r, 3)).chain((0..4).flat_map(|r| (0..4).map(move |c| (r, c)))) {
+            let (low, high) = entry_bounds(row, col);
+            let v = m[row][col];
+            if !(low..=high).contains(&v) {
+                return Err(match (row, col) {
+                    (3, _) => format!("pose's last row must be [0, 0, 0, 1] (each within {LAST_ROW_TOLERANCE:e}), has {v} at column {col}"),
+                    (_, 3) => format!("pose's translation is beyond ±{MAX_TRANSLATION_M:e} m ({v} in row {row})"),
+                    _ => format!("pose's rotation block is not a rotation matrix: entry ({row}, {col}) = {v} is beyond ±{MAX_ROTATION_ENTRY}"),
+                });
+            }
         }
         let r = Matrix3::new(m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2]);
         check_rotation(&r).map_err(|e| format!("pose's rotation block {e}"))?;
@@ -181,6 +189,29 @@ pub fn check_rotation(r: &Matrix3<f64>) -> Result<(), String> {
 /// √3 times this.
 pub const MAX_COORDINATE_M: f64 = 1e7;
 
+/// The largest translation entry of a camera_from_map, metres: √3 · [`MAX_COORDINATE_M`], since
+/// t = −R·position.
+pub const MAX_TRANSLATION_M: f64 = MAX_COORDINATE_M * 1.732_050_807_568_877_2;
+
+/// The largest rotation entry that tolerance lets through: a column holding a larger entry has
+/// a squared norm above 1 + [`ROTATION_TOLERANCE`]. Checked entry by entry, so the bound the
+/// API's schema states is exactly the one applied.
+pub const MAX_ROTATION_ENTRY: f64 = 1.0005;
+
+/// How far each entry of a pose's last row may be from (0, 0, 0, 1).
+pub const LAST_ROW_TOLERANCE: f64 = 1e-6;
+
+/// The closed range of entry (row, col) of a row-major camera_from_map that
+/// [`Pose::from_matrix`] accepts; the API's `Matrix4x4` schema states these very numbers.
+pub fn entry_bounds(row: usize, col: usize) -> (f64, f64) {
+    match (row, col) {
+        (3, 3) => (1.0 - LAST_ROW_TOLERANCE, 1.0 + LAST_ROW_TOLERANCE),
+        (3, _) => (-LAST_ROW_TOLERANCE, LAST_ROW_TOLERANCE),
+        (_, 3) => (-MAX_TRANSLATION_M, MAX_TRANSLATION_M),
+        _ => (-MAX_ROTATION_ENTRY, MAX_ROTATION_ENTRY),
+    }
+}
+
 /// The JSON shape of a pose in the API and in manifests: a row-major 4x4 matrix.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 pub struct PoseMatrix(pub [[f64; 4]; 4]);
@@ -230,15 +261,26 @@ impl Matrix4x4 {
 }
 
 impl utoipa::PartialSchema for Matrix4x4 {
+    /// 4 rows of 4 numbers, each entry within its [`entry_bounds`] (row by row with
+    /// `prefixItems`); what a JSON Schema cannot state (R orthonormal, the camera position's
+    /// bound) is in the description.
     fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
-        use utoipa::openapi::schema::{ArrayBuilder, ObjectBuilder, Type};
-        let row = ArrayBuilder::new().items(ObjectBuilder::new().schema_type(Type::Number)).min_items(Some(4)).max_items(Some(4));
+        use utoipa::openapi::schema::{ArrayBuilder, ArrayItems, ObjectBuilder, Type};
+        let entry = |row: usize, col: usize| {
+            let (low, high) = entry_bounds(row, col);
+            ObjectBuilder::new().schema_type(Type::Number).minimum(Some(low)).maximum(Some(high)).build()
+        };
+        let row = |r: usize| ArrayBuilder::new().prefix_items((0..4).map(|c| entry(r, c))).items(ArrayItems::False).min_items(Some(4)).max_items(Some(4)).build();
         ArrayBuilder::new()
-            .items(row)
+            .prefix_items((0..4).map(row))
+            .items(ArrayItems::False)
             .min_items(Some(4))
             .max_items(Some(4))
             .description(Some(format!(
-                "Row-major 4x4 rigid transform: 4 rows of 4 numbers, last row [0, 0, 0, 1], the top-left 3x3 a rotation (every entry of RᵀR − I within ±{ROTATION_TOLERANCE}, det R > 0)."
+                "Row-major 4x4 rigid transform [R t; 0 0 0 1]: 4 rows of 4 numbers, each within the bounds stated per entry \
+                 (rotation ±{MAX_ROTATION_ENTRY}, translation ±{MAX_TRANSLATION_M} m, last row 0 0 0 1 within ±{LAST_ROW_TOLERANCE:e}). \
+                 Also refused with 422, as a JSON Schema cannot state them: R not orthonormal within {ROTATION_TOLERANCE:e} \
+                 (largest entry of RᵀR − I) or with determinant < 0, and a camera position −Rᵀt beyond ±{MAX_COORDINATE_M:e} m on an axis."
             )))
             .into()
     }
