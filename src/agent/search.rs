@@ -235,6 +235,7 @@ impl Search {
         }
         let chosen = best_of(self.episodes.iter().map(Episode::alignment));
         let confidence = self.episodes[chosen].confidence(map, layout);
+        let max_iterations = self.episodes[chosen].max_iterations;
         let hypotheses = self
             .episodes
             .into_iter()
@@ -248,7 +249,7 @@ impl Search {
                 dropped: e.dropped,
             })
             .collect();
-        Localization { prior: self.prior, hypotheses, chosen, confidence, timings }
+        Localization { prior: self.prior, hypotheses, chosen, confidence, max_iterations, timings, verdict: Default::default() }
     }
 }
 
