@@ -156,8 +156,13 @@ async fn overlay_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, header
 /// The two panels of a localization: the prior and the answer.
 fn localization_panels(loc: &Localization) -> Vec<PosePanel> {
     let best = loc.best();
+    let verdict = match loc.verdict.p_registered {
+        Some(p) if loc.verdict.localized => format!("localized (p {p:.2})"),
+        Some(p) => format!("NOT localized (p {p:.2})"),
+        None => "not localized (no calibrator)".to_string(),
+    };
     let fin = format!(
-        "final: start {} of {}, {} steps{}, confidence {:.2}",
+        "final: {verdict}, start {} of {}, {} steps{}, confidence {:.2}",
         loc.chosen + 1,
         loc.hypotheses.len(),
         best.steps.len(),
