@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use anyhow::Result;
 
 use super::matching::MatchStrategy;
+use super::perturbations::{MAX_SHIFT_M, MAX_YAW_DEG, NearPrior};
 use super::pnp::RansacOptions;
 use super::run::{EvalConfig, run};
 
@@ -81,12 +82,34 @@ pub struct Args {
     /// on offline (`scripts/search-rules.py`).
     #[arg(long)]
     pub record_hypotheses: bool,
+    /// Skip the one-shot baseline (most of a case's time): for runs that only need the agent,
+    /// such as the calibrator's fitting data.
+    #[arg(long)]
+    pub no_baseline: bool,
+    /// When creating the perturbation file: draw near the prior (the fleet regime) with yaw
+    /// uniform in ±this many degrees (needs --max-shift-m). Default: the paper's protocol
+    /// (±180°, ±10 m per axis).
+    #[arg(long, requires = "max_shift_m")]
+    pub max_yaw_deg: Option<f64>,
+    /// ... and the shift uniform over the disc of this radius, metres (needs --max-yaw-deg).
+    #[arg(long, requires = "max_yaw_deg")]
+    pub max_shift_m: Option<f64>,
 }
 
 pub fn main(args: Args) -> Result<()> {
     if args.iterations == 0 {
         anyhow::bail!("--iterations must be at least 1");
     }
+    let near = match (args.max_yaw_deg, args.max_shift_m) {
+        (Some(max_yaw_deg), Some(max_shift_m)) => {
+            let (yaw_ok, shift_ok) = ((0.0..=MAX_YAW_DEG).contains(&max_yaw_deg), (0.0..=MAX_SHIFT_M).contains(&max_shift_m));
+            if !(yaw_ok && shift_ok) {
+                anyhow::bail!("--max-yaw-deg must be in 0..={MAX_YAW_DEG} and --max-shift-m in 0..={MAX_SHIFT_M}");
+            }
+            Some(NearPrior { max_yaw_deg, max_shift_m })
+        }
+        _ => None,
+    };
     let config = EvalConfig {
         data: args.data,
         perturbations: args.perturbations,
@@ -109,9 +132,11 @@ pub fn main(args: Args) -> Result<()> {
         command: std::env::args().collect::<Vec<_>>().join(" "),
         worst: args.worst,
         record_hypotheses: args.record_hypotheses,
+        baseline: !args.no_baseline,
+        near,
     };
     let report = run(&config)?;
     print!("{}", report.markdown());
-    eprintln!("wrote {}/{{eval.json,cases.json,tables.md,fig5_rotation.png,fig5_translation.png,worst/}}", config.out.display());
+    eprintln!("wrote {}/{{eval.json,cases.json,tables.md,fig5_rotation.png,fig5_translation.png,reliability.png,worst/}}", config.out.display());
     Ok(())
 }

@@ -4,6 +4,10 @@
 //! file back, so two evaluations compare exactly the same cases. Q = rotation about the map's z
 //! axis by `yaw_deg` ∈ [−180°, 180°), then translation (`dx_m`, `dy_m`) ∈ [−10, 10] m each; the
 //! map is Q·scan and the ground truth camera_from_map is camera_from_lidar · Q⁻¹.
+//!
+//! A file drawn [`NearPrior`] instead (`cmr-agent eval --max-yaw-deg 30 --max-shift-m 5`) holds
+//! the priors a fleet has: yaw uniform in ±`max_yaw_deg`, the shift uniform in the disc of radius
+//! `max_shift_m` (so the no-op's error is at most that); the file records the bounds.
 
 use std::path::Path;
 
@@ -44,6 +48,14 @@ impl Perturbation {
     }
 }
 
+/// Bounds of a near-prior draw (the fleet regime): |yaw| ≤ `max_yaw_deg`, √(dx² + dy²) ≤
+/// `max_shift_m`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct NearPrior {
+    pub max_yaw_deg: f64,
+    pub max_shift_m: f64,
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PerturbationFile {
     pub format: String,
@@ -51,6 +63,9 @@ pub struct PerturbationFile {
     pub seed: u64,
     /// The seed of the N-point sampling (see [`SAMPLING_SEED`]).
     pub sampling_seed: u64,
+    /// Present when the motions were drawn near the prior (not the paper's protocol).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub near: Option<NearPrior>,
     pub cases: Vec<Perturbation>,
 }
 
@@ -68,7 +83,26 @@ impl PerturbationFile {
                 dy_m: micro(rng.random_range(-MAX_SHIFT_M..=MAX_SHIFT_M)),
             })
             .collect();
-        PerturbationFile { format: FORMAT.into(), seed, sampling_seed: SAMPLING_SEED, cases }
+        PerturbationFile { format: FORMAT.into(), seed, sampling_seed: SAMPLING_SEED, near: None, cases }
+    }
+
+    /// Draws one motion per frame near the prior, in the order given, from `seed`: yaw uniform
+    /// in [−max_yaw_deg, max_yaw_deg], the shift at a uniform angle and radius max_shift_m·√u
+    /// (uniform over the disc; `training/cmr/data.py`'s `near_start_p` draws the same way).
+    pub fn generate_near(frames: &[(String, usize)], seed: u64, near: NearPrior) -> Self {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let cases = frames
+            .iter()
+            .map(|(sequence, frame)| {
+                let yaw_deg = micro(rng.random_range(-near.max_yaw_deg..=near.max_yaw_deg));
+                let radius = near.max_shift_m * rng.random_range(0.0f64..1.0).sqrt();
+                let angle = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+                // Rounding must not leave the disc.
+                let (dx_m, dy_m) = (micro(radius * angle.cos() * (1.0 - 1e-6)), micro(radius * angle.sin() * (1.0 - 1e-6)));
+                Perturbation { sequence: sequence.clone(), frame: *frame, yaw_deg, dx_m, dy_m }
+            })
+            .collect();
+        PerturbationFile { format: FORMAT.into(), seed, sampling_seed: SAMPLING_SEED, near: Some(near), cases }
     }
 
     pub fn read(path: &Path) -> Result<Self> {
@@ -93,6 +127,10 @@ impl PerturbationFile {
             if !finite || c.yaw_deg.abs() > MAX_YAW_DEG || c.dx_m.abs() > MAX_SHIFT_M || c.dy_m.abs() > MAX_SHIFT_M {
                 bail!("case {i} ({} frame {}) is outside the protocol's range", c.sequence, c.frame);
             }
+            let outside_near = self.near.is_some_and(|n| c.yaw_deg.abs() > n.max_yaw_deg || c.dx_m.hypot(c.dy_m) > n.max_shift_m);
+            if outside_near {
+                bail!("case {i} ({} frame {}) is outside the file's near-prior bounds", c.sequence, c.frame);
+            }
         }
         Ok(())
     }
@@ -106,14 +144,18 @@ impl PerturbationFile {
         Ok(write_atomic(path, json.as_bytes())?)
     }
 
-    /// Reads `path` when it exists; otherwise draws the cases for `frames` from `seed` and
-    /// writes them there. Returns the file and whether it was created. Either way the cases are
-    /// the ones parsed from the file, so every run evaluates the file's text, bit for bit.
-    pub fn load_or_create(path: &Path, frames: &[(String, usize)], seed: u64) -> Result<(Self, bool)> {
+    /// Reads `path` when it exists; otherwise draws the cases for `frames` from `seed` (the
+    /// paper's protocol, or `near` the prior) and writes them there. Returns the file and
+    /// whether it was created. Either way the cases are the ones parsed from the file, so every
+    /// run evaluates the file's text, bit for bit.
+    pub fn load_or_create(path: &Path, frames: &[(String, usize)], seed: u64, near: Option<NearPrior>) -> Result<(Self, bool)> {
         if path.exists() {
             return Ok((Self::read(path)?, false));
         }
-        let file = Self::generate(frames, seed);
+        let file = match near {
+            Some(near) => Self::generate_near(frames, seed, near),
+            None => Self::generate(frames, seed),
+        };
         file.validate()?;
         file.write(path)?;
         Ok((Self::read(path)?, true))
@@ -141,14 +183,38 @@ mod tests {
         assert_ne!(a, PerturbationFile::generate(&frames(), 8));
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("cases.json");
-        let (created, fresh) = PerturbationFile::load_or_create(&path, &frames(), 7).unwrap();
+        let (created, fresh) = PerturbationFile::load_or_create(&path, &frames(), 7, None).unwrap();
         assert!(fresh);
         // A second run reads the file, whatever seed or frames it is given.
-        let (read, fresh) = PerturbationFile::load_or_create(&path, &frames()[..3], 99).unwrap();
+        let (read, fresh) = PerturbationFile::load_or_create(&path, &frames()[..3], 99, None).unwrap();
         assert!(!fresh);
         assert_eq!(read, created);
         assert_eq!(read, a);
         assert!(a.cases.iter().all(|c| c.yaw_deg >= -180.0 && c.yaw_deg < 180.0 && c.dx_m.abs() <= 10.0));
+    }
+
+    /// The fleet regime: every case within the bounds, filling them (some near each edge),
+    /// seeded, recorded in the file and checked when read back.
+    #[test]
+    fn near_prior_draws_stay_within_their_bounds() {
+        let near = NearPrior { max_yaw_deg: 30.0, max_shift_m: 5.0 };
+        let frames: Vec<(String, usize)> = (0..400).map(|i| ("00".to_string(), i)).collect();
+        let a = PerturbationFile::generate_near(&frames, 3, near);
+        assert_eq!(a, PerturbationFile::generate_near(&frames, 3, near));
+        assert!(a.cases.iter().all(|c| c.yaw_deg.abs() <= 30.0 && c.dx_m.hypot(c.dy_m) <= 5.0));
+        assert!(a.cases.iter().any(|c| c.yaw_deg > 28.0) && a.cases.iter().any(|c| c.yaw_deg < -28.0));
+        assert!(a.cases.iter().any(|c| c.dx_m.hypot(c.dy_m) > 4.8));
+        // Uniform over the disc: about a quarter of the cases within half the radius.
+        let inner = a.cases.iter().filter(|c| c.dx_m.hypot(c.dy_m) < 2.5).count();
+        assert!((70..130).contains(&inner), "{inner}");
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("fleet.json");
+        let (created, fresh) = PerturbationFile::load_or_create(&path, &frames, 3, Some(near)).unwrap();
+        assert!(fresh && created == a && created.near == Some(near));
+        let mut outside = a.clone();
+        outside.cases[0].yaw_deg = 31.0;
+        outside.write(&path).unwrap();
+        assert!(format!("{:#}", PerturbationFile::read(&path).unwrap_err()).contains("near-prior bounds"));
     }
 
     #[test]
