@@ -26,6 +26,8 @@ fn calibrator() -> Calibrator {
         std: vec![0.1, 0.15, 0.35, 0.08, 0.2, 0.49, 1.0, 0.15],
         weights: vec![-0.15, 0.9, 0.4, 0.3, 0.2, -0.1, 0.25, 0.3],
         bias: -0.3,
+        // Tight enough that some of the random signals below are cut.
+        clip: Some(1.5),
         threshold: 0.7,
         provenance: json!({"command": "tests/calibration_fixture.rs"}),
     }

@@ -4,7 +4,7 @@
 //! standardised [`Signals`] of one localization, fitted offline on `cmr-agent eval` outputs
 //! (`python -m cmr.calibrate`, training/cmr/calibrate.py, its twin; `fixtures/calibration.json`
 //! pins both), and the threshold above which an answer is called `localized`. With
-//! x_i = (signal_i − mean_i) / std_i,
+//! x_i = clamp((signal_i − mean_i) / std_i, −clip, clip) (no clamp when `clip` is absent),
 //!
 //! ```text
 //! p_registered = 1 / (1 + exp(−(bias + Σ_i weight_i · x_i)))
@@ -106,6 +106,11 @@ pub struct Calibrator {
     /// One weight per standardised signal, and the intercept.
     pub weights: Vec<f64>,
     pub bias: f64,
+    /// Each standardised signal is clamped to [−clip, clip] (> 0) before it is weighted, so an
+    /// input far outside the fitting data (e.g. a map cropped to the camera's view, whose
+    /// frustum IoU is unlike any street's) cannot push p to 0 or 1 on its own; absent: no clamp.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub clip: Option<f64>,
     /// `localized` = p_registered ≥ this, in [0, 1]; chosen on the calibration data for the
     /// precision of `localized` (see `provenance`). `serve --localized-threshold` overrides it.
     pub threshold: f64,
@@ -147,6 +152,9 @@ impl Calibrator {
         if !self.bias.is_finite() {
             return Err("calibrator.bias is not finite".into());
         }
+        if self.clip.is_some_and(|c| !(c > 0.0 && c.is_finite())) {
+            return Err("calibrator.clip must be a positive number".into());
+        }
         if !(0.0..=1.0).contains(&self.threshold) {
             return Err(format!("calibrator.threshold {} is outside [0, 1]", self.threshold));
         }
@@ -156,13 +164,14 @@ impl Calibrator {
     /// p_registered for `signals`, in [0, 1]; `None` when a signal it reads is not finite (no
     /// probability is made up for an answer whose own numbers are broken).
     pub fn probability(&self, signals: &Signals) -> Option<f64> {
+        let clip = self.clip.unwrap_or(f64::INFINITY);
         let mut z = self.bias;
         for (i, name) in self.features.iter().enumerate() {
             let x = signals.get(name)?;
             if !x.is_finite() {
                 return None;
             }
-            z += self.weights[i] * (x - self.mean[i]) / self.std[i];
+            z += self.weights[i] * ((x - self.mean[i]) / self.std[i]).clamp(-clip, clip);
         }
         Some(1.0 / (1.0 + (-z).exp()))
     }
@@ -236,6 +245,7 @@ mod tests {
             std: vec![0.1, 0.5],
             weights: vec![2.0, -1.5],
             bias: 0.25,
+            clip: None,
             threshold: 0.7,
             provenance: serde_json::Value::Null,
         }
@@ -262,6 +272,11 @@ mod tests {
         assert!(c.probability(&Signals { alignment: f64::NAN, ..signals() }).is_none());
         // Signals the calibrator does not read do not matter, even when broken.
         assert_eq!(c.probability(&Signals { in_view: f64::NAN, ..signals() }), Some(p));
+        // A clamp bounds each standardised signal: alignment's z of 1 and agreement's of 2/3
+        // are both cut to 0.5.
+        let clipped = Calibrator { clip: Some(0.5), ..c.clone() };
+        let z: f64 = 0.25 + 2.0 * 0.5 - 1.5 * 0.5;
+        assert!((clipped.probability(&signals()).unwrap() - 1.0 / (1.0 + (-z).exp())).abs() < 1e-15);
     }
 
     #[test]
@@ -295,6 +310,7 @@ mod tests {
             (Box::new(|c| c.std[0] = 0.0), "std must be positive"),
             (Box::new(|c| c.mean[0] = f64::INFINITY), "calibrator.mean"),
             (Box::new(|c| c.threshold = 1.5), "threshold"),
+            (Box::new(|c| c.clip = Some(0.0)), "calibrator.clip"),
             (Box::new(|c| c.features.clear()), "empty"),
         ];
         assert_eq!(calibrator().validate(), Ok(()));

@@ -474,6 +474,7 @@ mod tests {
             "std": [0.12, 0.3, 1.0],
             "weights": [1.5, 0.75, -0.25],
             "bias": -0.5,
+            "clip": 3.0,
             "threshold": 0.83,
             "provenance": {"command": "python -m cmr.calibrate", "metrics": {"auc": 0.9}},
         });
