@@ -5,8 +5,12 @@ The same loop as `cmr-agent track` (src/track/mod.rs), over HTTP: the first fram
 with the full search from a coarse prior (the truth moved --prior-noise-m in the ground plane and
 turned --prior-noise-deg about the vertical), every later frame from the previous estimate moved
 by a constant-velocity prediction with a small search (--tracked-hypotheses starts,
---tracked-iterations steps); an answer whose confidence score is below --fallback-below is redone
-with the full search (the server's defaults) from the same prior.
+--tracked-iterations steps). That answer is kept when the server says it is `localized` (the model
+set's calibrated verdict) and its confidence score is at least --fallback-below; otherwise the frame
+is redone with the full search (the server's defaults) from the same prior, and when that answer is
+not `localized` either, the frame is dead-reckoned (its estimate is the prediction). Without a
+calibrator on the server (`p_registered` null) the score alone decides and the full search's
+answer is kept.
 
 The map region must already be stored on the server (PUT /v1/maps/{id}) in the sequence's map
 frame: the LiDAR's frame at the sequence's frame 0 (see docs/tracking.md).
@@ -144,7 +148,12 @@ def localize(server, map_id, image_b64, intrinsics, prior, hypotheses, iteration
     except urllib.error.HTTPError as e:
         raise SystemExit(f"localize failed: HTTP {e.code}: {e.read().decode(errors='replace')}")
     latency_ms = (time.perf_counter() - started) * 1000.0
-    return answer["pose"]["camera_from_map"], answer["confidence"]["score"], latency_ms
+    return answer["pose"]["camera_from_map"], answer["confidence"], latency_ms
+
+
+def trusted(confidence):
+    """The answer's verdict: `localized`, or None when the server has no calibrator (p_registered null)."""
+    return None if confidence.get("p_registered") is None else bool(confidence["localized"])
 
 
 def main():
@@ -178,22 +187,26 @@ def main():
         full = (args.full_hypotheses, args.full_iterations)
         if position == 0:
             prior = coarse_prior(truth, args.prior_noise_m, args.prior_noise_deg, rng)
-            pose, confidence, latency = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
+            pose, answer, latency = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
             mode, tracked_confidence = "cold", None
         else:
             prior = predict(estimates[-2] if position >= 2 else None, estimates[-1])
-            pose, confidence, latency = localize(
+            pose, answer, latency = localize(
                 args.server, args.id, image_b64, seq["intrinsics"], prior, args.tracked_hypotheses, args.tracked_iterations
             )
-            mode, tracked_confidence = "tracked", confidence
-            if confidence < args.fallback_below:
-                pose, confidence, more = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
+            mode, tracked_confidence = "tracked", answer["score"]
+            if answer["score"] < args.fallback_below or trusted(answer) is False:
+                pose, answer, more = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
                 mode, latency = "fallback", latency + more
+                if trusted(answer) is False:
+                    pose, mode = prior, "dead_reckoning"
+        confidence = answer["score"]
         estimates.append(pose)
         est, gt = centre(pose), centre(truth)
         row = {
             "position": position, "frame": index, "mode": mode, "confidence": confidence,
             "tracked_confidence": tracked_confidence, "latency_ms": latency,
+            "p_registered": answer.get("p_registered"), "localized": answer.get("localized"),
             "position_error_m": math.dist(est, gt), "rpe_translation_m": None, "rpe_rotation_deg": None,
             "estimate_x": est[0], "estimate_y": est[1], "truth_x": gt[0], "truth_y": gt[1],
         }
@@ -225,6 +238,7 @@ def main():
         "rpe_translation_rmse_m": rms(rpe_t),
         "rpe_rotation_rmse_deg": rms(rpe_r),
         "fallbacks": sum(r["mode"] == "fallback" for r in rows),
+        "dead_reckoned": sum(r["mode"] == "dead_reckoning" for r in rows),
         "first_frame_ms": rows[0]["latency_ms"],
         "mean_per_frame_ms": sum(later) / len(later) if later else 0.0,
     }

@@ -139,7 +139,9 @@ async fn track_a_drive_offline_and_over_http() {
     print_figures("cmr-agent track", &summary);
     assert_eq!(summary["frames"], frames);
     assert_eq!(summary["modes"]["cold"], 1);
-    assert_eq!(summary["modes"]["tracked"].as_u64().unwrap() + summary["modes"]["fallback"].as_u64().unwrap(), frames as u64 - 1);
+    let modes = &summary["modes"];
+    let later = ["tracked", "fallback", "dead_reckoning"].iter().map(|m| modes[m].as_u64().unwrap()).sum::<u64>();
+    assert_eq!(later, frames as u64 - 1, "{modes}");
     let ate = summary["error"]["ate_rmse_m"].as_f64().unwrap();
     assert!(ate <= 0.3, "ATE {ate} m over the drive");
     assert_eq!(summary["cold_reference"]["registration_recall"], 1.0, "every cold localization registers");
@@ -166,9 +168,21 @@ async fn track_a_drive_offline_and_over_http() {
     })
     .await
     .unwrap();
-    assert_eq!(summary["modes"], serde_json::json!({"cold": 1, "tracked": 0, "fallback": 3}));
+    assert_eq!(summary["modes"], serde_json::json!({"cold": 1, "tracked": 0, "fallback": 3, "dead_reckoning": 0}));
     assert_eq!(summary["first_frame"], 45);
     assert!(summary["error"]["ate_rmse_m"].as_f64().unwrap() <= 0.3);
+    // A threshold no answer reaches: nothing is localized, so every later frame is dead-reckoned
+    // (the constant-velocity prediction: here, standing still where the first frame landed).
+    let unsure = root.path().join("track-dead-reckoning");
+    let summary = tokio::task::spawn_blocking({
+        let (maps, sequence, unsure) = (maps.clone(), sequence.clone(), unsure.clone());
+        move || track(&maps, &sequence, &unsure, &["--first", "45", "--frames", "3", "--localized-threshold", "2"])
+    })
+    .await
+    .unwrap();
+    assert_eq!(summary["modes"], serde_json::json!({"cold": 1, "tracked": 0, "fallback": 0, "dead_reckoning": 2}));
+    let csv = std::fs::read_to_string(unsure.join("frames.csv")).unwrap();
+    assert!(csv.lines().skip(2).all(|l| l.contains(",dead_reckoning,") && l.ends_with(",false")), "{csv}");
 
     // Over HTTP: the server's maps directory starts empty; the region is uploaded.
     let served = tempfile::tempdir().unwrap();
@@ -195,7 +209,16 @@ async fn track_a_drive_offline_and_over_http() {
     forced.arg("--sequence").arg(&sequence).arg("--out").arg(root.path().join("track-http-fallback"));
     let printed = tokio::task::spawn_blocking(move || run_ok(forced)).await.unwrap();
     let forced: serde_json::Value = serde_json::from_str(&printed).unwrap();
-    assert_eq!(forced["fallbacks"], 2, "{forced}");
+    assert_eq!((&forced["fallbacks"], &forced["dead_reckoned"]), (&2.into(), &0.into()), "{forced}");
+    // A server whose threshold no answer reaches: the script dead-reckons every later frame.
+    let unsure = TestServer::start(&default_model(), served.path(), &["--localized-threshold", "2"]).await;
+    let mut dead = Command::new("python3");
+    dead.arg(&script).args(["--server", &unsure.base, "--id", "drive", "--first", "45", "--frames", "3"]);
+    dead.arg("--sequence").arg(&sequence).arg("--out").arg(root.path().join("track-http-dead"));
+    let printed = tokio::task::spawn_blocking(move || run_ok(dead)).await.unwrap();
+    let dead: serde_json::Value = serde_json::from_str(&printed).unwrap();
+    assert_eq!((&dead["fallbacks"], &dead["dead_reckoned"]), (&0.into(), &2.into()), "{dead}");
+    unsure.stop().await;
     // A map the server does not hold: the script stops with the server's error.
     let mut missing = Command::new("python3");
     missing.arg(&script).args(["--server", &server.base, "--id", "nowhere", "--frames", "1"]);

@@ -289,6 +289,16 @@ async fn web_page_in_chromium() {
     assert_eq!(text(&c, "#r-iterations").await, iterations.to_string());
     assert_eq!(text(&c, "#r-converged").await.starts_with("yes"), answer["converged"].as_bool().unwrap());
     assert!(text(&c, "#r-confidence").await.starts_with(&format!("{:.3}", answer["confidence"]["score"].as_f64().unwrap())));
+    // The calibrated verdict beside the pose: the API's probability and yes/no.
+    let verdict = text(&c, "#r-verdict").await;
+    match answer["confidence"]["p_registered"].as_f64() {
+        Some(p) => {
+            let localized = answer["confidence"]["localized"].as_bool().unwrap();
+            assert!(verdict.starts_with(if localized { "localized" } else { "NOT localized" }), "{verdict}");
+            assert!(verdict.contains(&format!("p_registered {p:.3}")), "{verdict} vs {p}");
+        }
+        None => assert!(verdict.starts_with("not localized: the model set has no calibrator"), "{verdict}"),
+    }
     assert!(text(&c, "#timings").await.contains("agent steps"));
 
     // The page's projection (app.js projectPoints) is src/geometry's: the same points, pose and

@@ -322,6 +322,14 @@ function cell(tag, text, cls) {
   return e;
 }
 
+// The calibrated verdict in words (docs/server.md, "Is the answer right?"): whether to act on
+// the pose, with the probability behind it.
+function verdictText(c) {
+  if (c.p_registered === null || c.p_registered === undefined) return 'not localized: the model set has no calibrator';
+  const p = `p_registered ${fmt(c.p_registered, 3)}`;
+  return c.localized ? `localized (${p})` : `NOT localized (${p}): do not act on this pose`;
+}
+
 function showResult(r) {
   const out = $('results');
   out.textContent = '';
@@ -329,6 +337,7 @@ function showResult(r) {
   const summary = document.createElement('dl');
   const chosen = r.hypotheses[r.chosen_hypothesis];
   const rows = [
+    ['verdict', verdictText(r.confidence), 'verdict'],
     ['confidence', `${fmt(r.confidence.score, 3)}  (frustum IoU ${fmt(r.confidence.frustum_iou, 3)}, policy ${fmt(r.confidence.policy_certainty, 3)}, alignment ${fmt(r.confidence.alignment, 3)})`, 'confidence'],
     ['converged', r.converged ? 'yes' : 'no (ran out of iterations)', 'converged'],
     ['iterations', String(r.iterations), 'iterations'],
@@ -340,6 +349,7 @@ function showResult(r) {
     summary.appendChild(cell('dt', k));
     const dd = cell('dd', v);
     dd.id = `r-${id}`;
+    if (id === 'verdict') dd.className = r.confidence.localized ? 'verdict-yes' : 'verdict-no';
     summary.appendChild(dd);
   }
   out.appendChild(summary);

@@ -39,6 +39,8 @@ pub struct Confidence {
     pub score: f32,
     /// The final pose's alignment score (mean point/image feature agreement, in [−1, 1]).
     pub alignment: f32,
+    /// Share of the M state points in the model input's frustum at the final pose, in [0, 1].
+    pub in_view: f32,
 }
 
 /// What every hypothesis of one request shares: computed once per request, never copied.
@@ -165,8 +167,8 @@ impl Episode {
 
     fn confidence_of(&self, map: &PreparedMap, layout: &StateLayout, pose: &Pose, policy_certainty: f32, alignment: f32) -> Confidence {
         let e = &self.evidence;
-        let frustum_iou = frustum_iou(&map.points, &e.frustum_probs, &e.intrinsics, layout, pose);
-        Confidence { frustum_iou, policy_certainty, score: (frustum_iou * policy_certainty).sqrt(), alignment }
+        let (frustum_iou, in_view) = frustum_overlap(&map.points, &e.frustum_probs, &e.intrinsics, layout, pose);
+        Confidence { frustum_iou, policy_certainty, score: (frustum_iou * policy_certainty).sqrt(), alignment, in_view }
     }
 }
 
@@ -175,15 +177,25 @@ impl Episode {
 /// and the points in the model input's frustum at `camera_from_map` (crop intrinsics `k`,
 /// `layout`'s image size); 0 when both sets are empty.
 pub fn frustum_iou(points: &[[f32; 3]], frustum_probs: &[f32], k: &Intrinsics, layout: &StateLayout, camera_from_map: &Pose) -> f32 {
-    let (mut both, mut either) = (0usize, 0usize);
+    frustum_overlap(points, frustum_probs, k, layout, camera_from_map).0
+}
+
+/// [`frustum_iou`], and the share of those points (the ones that have a probability) that are
+/// in the frustum at `camera_from_map` (0 when there are none).
+pub fn frustum_overlap(points: &[[f32; 3]], frustum_probs: &[f32], k: &Intrinsics, layout: &StateLayout, camera_from_map: &Pose) -> (f32, f32) {
+    let (mut both, mut either, mut seen, mut total) = (0usize, 0usize, 0usize, 0usize);
     for (p, prob) in points.iter().zip(frustum_probs) {
         let p_cam = camera_from_map.0 * nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64);
         let in_view = k.in_frustum(&p_cam, layout.image_width, layout.image_height);
         let predicted = *prob > 0.5;
         both += (in_view && predicted) as usize;
         either += (in_view || predicted) as usize;
+        seen += in_view as usize;
+        total += 1;
     }
-    if either == 0 { 0.0 } else { both as f32 / either as f32 }
+    let iou = if either == 0 { 0.0 } else { both as f32 / either as f32 };
+    let share = if total == 0 { 0.0 } else { seen as f32 / total as f32 };
+    (iou, share)
 }
 
 pub fn softmax(logits: &[f32]) -> Vec<f32> {

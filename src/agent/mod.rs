@@ -13,9 +13,9 @@ use std::time::Instant;
 
 use anyhow::Result;
 
-use crate::geometry::{Intrinsics, Pose};
+use crate::geometry::{Intrinsics, Pose, PoseError};
 use crate::maps::PreparedMap;
-use crate::model::Backend;
+use crate::model::{Backend, Signals, Verdict};
 
 pub use batch::{Batch, Start, StepError};
 pub use episode::{Confidence, Episode, ImageEvidence, Step};
@@ -50,7 +50,13 @@ pub struct Localization {
     pub prior_competes: bool,
     /// Of the answer (the chosen hypothesis's final pose, or the prior).
     pub confidence: Confidence,
+    /// The request's policy steps per hypothesis.
+    pub max_iterations: usize,
     pub timings: Timings,
+    /// The calibrated verdict on the answer: uncalibrated (`p_registered: None, localized:
+    /// false`) as the search leaves it; set from [`Localization::signals`] by whoever holds the
+    /// model set's [`crate::model::Calibration`] (`serving::Localizer`, `cmr-agent eval`).
+    pub verdict: Verdict,
 }
 
 impl Localization {
@@ -90,6 +96,40 @@ impl Localization {
         }
     }
 
+    /// What the calibrator reads (`model::calibrator::Signals`; its fields say what each is).
+    /// "Agreeing" starts end within the search's duplicate radius of the answer.
+    pub fn signals(&self) -> Signals {
+        let best = self.best();
+        let answer = best.camera_from_map();
+        let others: Vec<&Hypothesis> = self.hypotheses.iter().enumerate().filter(|(h, _)| *h != self.chosen).map(|(_, h)| h).collect();
+        let (margin, agreement) = if others.is_empty() {
+            (0.0, 0.0)
+        } else {
+            let runner_up = others.iter().map(|h| h.alignment()).fold(f32::NEG_INFINITY, f32::max);
+            let agreeing = others
+                .iter()
+                .filter(|h| {
+                    let e = PoseError::between(&h.camera_from_map(), &answer);
+                    e.rte_m < search::DUPLICATE_RTE_M && e.rre_geodesic_deg < search::DUPLICATE_RRE_DEG
+                })
+                .count();
+            ((best.alignment() - runner_up) as f64, agreeing as f64 / others.len() as f64)
+        };
+        let start_mean = self.hypotheses.iter().map(|h| h.start_alignment as f64).sum::<f64>() / self.hypotheses.len().max(1) as f64;
+        Signals {
+            alignment: best.alignment() as f64,
+            alignment_gain: best.alignment() as f64 - start_mean,
+            alignment_margin: margin,
+            agreement,
+            frustum_iou: self.confidence.frustum_iou as f64,
+            policy_certainty: self.confidence.policy_certainty as f64,
+            converged: if best.converged { 1.0 } else { 0.0 },
+            steps_fraction: best.steps.len() as f64 / self.max_iterations.max(1) as f64,
+            in_view: self.confidence.in_view as f64,
+            log2_starts: (self.hypotheses.len().max(1) as f64).log2(),
+        }
+    }
+
     /// Steps taken by the longest hypothesis.
     pub fn iterations(&self) -> usize {
         self.hypotheses.iter().map(|h| h.steps.len()).max().unwrap_or(0)
@@ -120,4 +160,44 @@ pub fn localize(
 
 pub fn ms(since: Instant) -> f64 {
     since.elapsed().as_secs_f64() * 1000.0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Matrix3, Vector3};
+
+    fn hypothesis(x_m: f64, alignment: f32) -> Hypothesis {
+        Hypothesis {
+            start_yaw_offset_deg: 0.0,
+            start: Pose::from_rt(Matrix3::identity(), Vector3::new(x_m, 0.0, 0.0)),
+            start_alignment: alignment,
+            steps: Vec::new(),
+            converged: true,
+            dropped: false,
+        }
+    }
+
+    fn localization(hypotheses: Vec<Hypothesis>, chosen: usize) -> Localization {
+        let confidence = Confidence { frustum_iou: 0.25, policy_certainty: 0.5, score: 0.3, alignment: hypotheses[chosen].alignment(), in_view: 0.125 };
+        Localization { prior: Pose::identity(), hypotheses, chosen, confidence, max_iterations: 10, timings: Timings::default(), verdict: Verdict::default() }
+    }
+
+    /// The margin is over the best other start; agreement counts the others within the
+    /// duplicate radius of the answer; one start has neither.
+    #[test]
+    fn signals_read_the_search() {
+        let near = search::DUPLICATE_RTE_M / 2.0;
+        let far = search::DUPLICATE_RTE_M * 3.0;
+        let loc = localization(vec![hypothesis(0.0, 0.5), hypothesis(near, 0.75), hypothesis(far, 0.625), hypothesis(-far, 0.25)], 1);
+        let s = loc.signals();
+        assert_eq!((s.alignment, s.alignment_margin), (0.75, 0.125));
+        // Every test hypothesis is its own start: the starts' mean is (0.5 + 0.75 + 0.625 + 0.25) / 4.
+        assert!((s.alignment_gain - (0.75 - 0.53125)).abs() < 1e-12, "{}", s.alignment_gain);
+        assert!((s.agreement - 1.0 / 3.0).abs() < 1e-12, "{}", s.agreement);
+        assert_eq!((s.frustum_iou, s.policy_certainty, s.in_view), (0.25, 0.5, 0.125));
+        assert_eq!((s.converged, s.steps_fraction, s.log2_starts), (1.0, 0.0, 2.0));
+        let single = localization(vec![hypothesis(0.0, 0.5)], 0).signals();
+        assert_eq!((single.alignment_margin, single.agreement, single.log2_starts), (0.0, 0.0, 0.0));
+    }
 }

@@ -261,6 +261,7 @@ impl Search {
         } else {
             self.episodes[chosen].confidence(map, layout)
         };
+        let max_iterations = self.episodes[chosen].max_iterations;
         let hypotheses = self
             .episodes
             .into_iter()
@@ -274,7 +275,7 @@ impl Search {
                 dropped: e.dropped,
             })
             .collect();
-        Localization { prior: self.prior, hypotheses, chosen, kept_prior, prior_competes: self.keep_prior, confidence, timings }
+        Localization { prior: self.prior, hypotheses, chosen, kept_prior, prior_competes: self.keep_prior, confidence, max_iterations, timings, verdict: Default::default() }
     }
 }
 

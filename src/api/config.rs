@@ -127,6 +127,11 @@ pub struct EngineArgs {
     pub default_hypotheses: u32,
     #[command(flatten)]
     pub search: SearchTuning,
+    /// An answer is `localized` when its `confidence.p_registered` is at least this (0..=1; above
+    /// 1: never). Default: the model set's `calibrator.threshold` (docs/server.md, "Is the answer
+    /// right?"). Without a calibrator in the manifest no answer is localized, whatever this says.
+    #[arg(long, env = "CMR_LOCALIZED_THRESHOLD", value_parser = threshold)]
+    pub localized_threshold: Option<f64>,
 }
 
 impl ServeArgs {
@@ -175,12 +180,21 @@ impl EngineArgs {
             },
             request_timeout: std::time::Duration::from_millis(self.request_timeout_ms),
             decode_permits: if self.decode_concurrency > 0 { self.decode_concurrency } else { cores() },
+            localized_threshold: self.localized_threshold,
         }
     }
 
     /// How regions are stored and prepared.
     pub fn regions(&self) -> RegionConfig {
         RegionConfig { tile_above_points: self.tile_above_points, max_points: self.max_map_points, crop_embeddings: self.crop_embeddings, ..RegionConfig::default() }
+    }
+}
+
+/// `--localized-threshold`: a probability, or more than 1 (never localized); not negative, not NaN.
+fn threshold(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(t) if t >= 0.0 && t.is_finite() => Ok(t),
+        _ => Err(format!("{text:?} is not a threshold (a number from 0; above 1 means never)")),
     }
 }
 

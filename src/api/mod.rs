@@ -108,6 +108,10 @@ pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
     let scheduler = Arc::new(Scheduler::start_with_lone(&models.factory(), lone.as_ref(), config.scheduler())?);
     let lifecycle = Arc::new(Lifecycle::default());
     let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), engine.localizer());
+    match localizer.calibration.threshold() {
+        Some(t) => tracing::info!(threshold = t, "answers are localized when p_registered >= threshold"),
+        None => tracing::warn!("the model set has no calibrator: every answer is p_registered null, localized false"),
+    }
     Ok(Arc::new(AppState { config, models, localizer, maps, scheduler, lifecycle, metrics: metrics_handle() }))
 }
 

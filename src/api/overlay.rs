@@ -157,11 +157,16 @@ async fn overlay_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, header
 /// The two panels of a localization: the prior and the answer.
 fn localization_panels(loc: &Localization, prior_source: PriorSource) -> Vec<PosePanel> {
     let best = loc.best();
+    let verdict = match loc.verdict.p_registered {
+        Some(p) if loc.verdict.localized => format!("localized (p {p:.2})"),
+        Some(p) => format!("NOT localized (p {p:.2})"),
+        None => "not localized (no calibrator)".to_string(),
+    };
     let fin = if loc.kept_prior {
-        format!("final: the prior, kept (no start explained the image better), confidence {:.2}", loc.confidence.score)
+        format!("final: {verdict}, the prior, kept (no start explained the image better), confidence {:.2}", loc.confidence.score)
     } else {
         format!(
-            "final: start {} of {}, {} steps{}, confidence {:.2}",
+            "final: {verdict}, start {} of {}, {} steps{}, confidence {:.2}",
             loc.chosen + 1,
             loc.hypotheses.len(),
             best.steps.len(),

@@ -85,6 +85,7 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             tile_above_points: c.tile_above_points,
             default_radius_m: c.default_radius_m,
         },
+        localized_threshold: st.localizer.calibration.threshold(),
         workers: serve.workers(),
         onnxruntime_library: crate::model::runtime::loaded_library().map(|p| p.display().to_string()),
     })

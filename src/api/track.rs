@@ -107,7 +107,7 @@ impl FrameLocalizer for StoredRegion<'_> {
             .map_err(|e| anyhow!("frame {} ({}): {e}", frame.index, frame.image_path.display()))?;
         let latency_ms = crate::agent::ms(started);
         let loc = &done.localization;
-        Ok(FrameAnswer { camera_from_map: loc.camera_from_map(), confidence: loc.confidence.score, iterations: loc.answer_steps().len(), latency_ms })
+        Ok(FrameAnswer { camera_from_map: loc.camera_from_map(), confidence: loc.confidence.score, verdict: loc.verdict, iterations: loc.answer_steps().len(), latency_ms })
     }
 }
 

@@ -88,9 +88,24 @@ impl From<&Step> for StepBody {
     }
 }
 
-/// score = sqrt(frustum_iou · policy_certainty).
+/// How sure the answer is: the calibrated verdict (`p_registered`, `localized`), then the raw
+/// signals. score = sqrt(frustum_iou · policy_certainty).
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct ConfidenceBody {
+    /// Probability (0..1) that `pose` is within the paper's protocol A of the truth (rotation
+    /// error, sum of absolute Euler angles, < 10° and translation error < 5 m), from the model
+    /// set's calibrator over `signals` (manifest `calibrator`, fitted on evaluation outputs by
+    /// `python -m cmr.calibrate`). Null when the model set has no calibrator (manifests made
+    /// before it) or a signal it reads is not finite.
+    #[schema(required = true, minimum = 0.0, maximum = 1.0)]
+    pub p_registered: Option<f64>,
+    /// `p_registered` ≥ the threshold in force (`localized_threshold` of `/v1/info`: the
+    /// manifest's, chosen on calibration data for a precision of at least 95 %, or `serve
+    /// --localized-threshold`). False whenever `p_registered` is null. Act on the pose only when
+    /// true; otherwise treat it as unknown.
+    pub localized: bool,
+    /// What the calibrator reads (each field documented in the schema).
+    pub signals: crate::model::Signals,
     pub score: f32,
     /// IoU of the points the frustum head predicts in view and the points in view at the final
     /// pose, over the model's state points (a random sample of M = 2,048 of the region's points).
@@ -197,6 +212,9 @@ impl LocalizeResponse {
             prior_source,
             trajectory: loc.answer_steps().iter().map(StepBody::from).collect(),
             confidence: ConfidenceBody {
+                p_registered: loc.verdict.p_registered,
+                localized: loc.verdict.localized,
+                signals: loc.signals(),
                 score: loc.confidence.score,
                 frustum_iou: loc.confidence.frustum_iou,
                 policy_certainty: loc.confidence.policy_certainty,
@@ -443,6 +461,10 @@ pub struct Info {
     #[schema(value_type = Object)]
     pub manifest: serde_json::Value,
     pub limits: Limits,
+    /// An answer is `localized` when its `confidence.p_registered` is at least this; null when
+    /// the model set has no calibrator (then no answer is localized).
+    #[schema(required = true, minimum = 0.0)]
+    pub localized_threshold: Option<f64>,
     pub workers: usize,
     pub onnxruntime_library: Option<String>,
 }

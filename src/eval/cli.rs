@@ -85,6 +85,10 @@ pub struct Args {
     /// on offline (`scripts/search-rules.py`).
     #[arg(long)]
     pub record_hypotheses: bool,
+    /// Skip the one-shot baseline (most of a case's time): for runs that only need the agent,
+    /// such as the calibrator's fitting data.
+    #[arg(long)]
+    pub no_baseline: bool,
 }
 
 pub fn main(args: Args) -> Result<()> {
@@ -114,9 +118,10 @@ pub fn main(args: Args) -> Result<()> {
         command: std::env::args().collect::<Vec<_>>().join(" "),
         worst: args.worst,
         record_hypotheses: args.record_hypotheses,
+        baseline: !args.no_baseline,
     };
     let report = run(&config)?;
     print!("{}", report.markdown());
-    eprintln!("wrote {}/{{eval.json,cases.json,tables.md,fig5_rotation.png,fig5_translation.png,worst/}}", config.out.display());
+    eprintln!("wrote {}/{{eval.json,cases.json,tables.md,fig5_rotation.png,fig5_translation.png,reliability.png,worst/}}", config.out.display());
     Ok(())
 }

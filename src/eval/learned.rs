@@ -17,7 +17,7 @@ use std::sync::Arc;
 use crate::agent::{self, SearchConfig, ms};
 use crate::geometry::{Pose, PoseError};
 use crate::maps::{PreparedMap, prepare_map};
-use crate::model::Backend;
+use crate::model::{Backend, Calibration};
 
 use super::matching::{MatchStrategy, cell_centre, find_matches};
 use super::methods::{EvalCase, Method, MethodRun};
@@ -31,6 +31,10 @@ pub const BASELINE: &str = "one-shot matching + RANSAC";
 
 pub struct Learned {
     backend: Box<dyn Backend>,
+    /// The model set's calibrator at its own threshold: the verdict the server gives.
+    calibration: Calibration,
+    /// Run the one-shot baseline too.
+    baseline: bool,
     /// The agent's search as served; K = `search.max_iterations`.
     search: SearchConfig,
     ransac: RansacOptions,
@@ -40,8 +44,10 @@ pub struct Learned {
 }
 
 impl Learned {
-    pub fn new(backend: Box<dyn Backend>, search: SearchConfig, ransac: RansacOptions, matching: MatchStrategy, record_hypotheses: bool) -> Self {
-        Learned { backend, search, ransac, matching, record_hypotheses }
+    /// `baseline`: run the one-shot baseline as well as the agent.
+    pub fn new(backend: Box<dyn Backend>, search: SearchConfig, ransac: RansacOptions, matching: MatchStrategy, record_hypotheses: bool, baseline: bool) -> Self {
+        let calibration = Calibration::new(backend.manifest().calibrator.as_ref(), None);
+        Learned { backend, calibration, baseline, search, ransac, matching, record_hypotheses }
     }
 
     /// Parameters each method runs: the agent all four graphs, the baseline all but the agent.
@@ -58,7 +64,10 @@ impl Learned {
         let (tensor, crop_intrinsics) = agent::prepare_image(&case.image, &case.intrinsics, &manifest)?;
         let image_ms = ms(start);
         let k = search.max_iterations;
-        let loc = agent::localize(self.backend.as_mut(), map, &tensor, crop_intrinsics, case.initial, search)?;
+        let mut loc = agent::localize(self.backend.as_mut(), map, &tensor, crop_intrinsics, case.initial, search)?;
+        // The server's verdict (`serving::Localizer` does the same after its search).
+        let signals = loc.signals();
+        loc.verdict = self.calibration.judge(&signals);
         let t = loc.timings;
         // localize reports one total for all steps, so the time to reach step k is the time before
         // the loop plus k equal shares of it. Once hypotheses stop (merged, converged) later steps
@@ -78,6 +87,10 @@ impl Learned {
             "alignment": loc.hypotheses.iter().map(|h| h.alignment()).collect::<Vec<_>>(),
             // Policy rows this case cost: steps over all hypotheses (the search's price).
             "policy_rows": loc.hypotheses.iter().map(|h| h.steps.len()).sum::<usize>(),
+            // The calibrated verdict (null / false without a calibrator) and what it read.
+            "p_registered": loc.verdict.p_registered,
+            "localized": loc.verdict.localized,
+            "signals": signals,
         });
         if self.record_hypotheses && method == AGENT {
             // The frustum head again (the search keeps its answers to itself), for the IoU of
@@ -182,10 +195,14 @@ pub fn one_shot_correspondences(
 
 impl Method for Learned {
     fn names(&self) -> Vec<String> {
-        match self.search.hypotheses {
-            1 => vec![AGENT.into(), BASELINE.into()],
-            _ => vec![AGENT.into(), AGENT_SINGLE_START.into(), BASELINE.into()],
+        let mut names = vec![AGENT.to_string()];
+        if self.search.hypotheses > 1 {
+            names.push(AGENT_SINGLE_START.into());
         }
+        if self.baseline {
+            names.push(BASELINE.into());
+        }
+        names
     }
 
     fn run(&mut self, case: &EvalCase) -> Result<Vec<MethodRun>> {
@@ -198,7 +215,9 @@ impl Method for Learned {
         if self.search.hypotheses > 1 {
             runs.push(self.run_agent(case, &map, AGENT_SINGLE_START, SearchConfig::single(self.search.max_iterations))?);
         }
-        runs.push(self.run_baseline(case, &map)?);
+        if self.baseline {
+            runs.push(self.run_baseline(case, &map)?);
+        }
         Ok(runs)
     }
 }

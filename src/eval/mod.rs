@@ -7,9 +7,11 @@
 //! - `data`: cases from a KITTI-odometry directory (through `crate::kitti`);
 //! - `learned`: the agent (the server's `agent::localize`) and the one-shot baseline on the
 //!   same embeddings (`matching` + `pnp`);
-//! - `summary`: protocol A / B aggregation; `report`: per-case records and tables; `plots`: Fig. 5;
+//! - `summary`: protocol A / B aggregation; `report`: per-case records and tables; `plots`: Fig. 5
+//!   and the reliability diagram; `calibration`: the calibrated verdict's figures;
 //! - `run`: the whole evaluation; `cli`: `cmr-agent eval`.
 
+pub mod calibration;
 pub mod cli;
 pub mod data;
 pub mod learned;

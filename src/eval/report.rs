@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::geometry::PoseError;
 
+use super::calibration::CalibrationReport;
 use super::summary::{MeanStd, Summary, success_curves};
 
 /// One method on one case.
@@ -74,6 +75,10 @@ pub struct EvalReport {
     pub translation_thresholds_m: Vec<f64>,
     pub methods: Vec<MethodReport>,
     pub resources: Resources,
+    /// The calibrated verdict's figures per agent method (`notes.p_registered` and
+    /// `notes.localized` of its records); empty when the model set has no calibrator.
+    #[serde(default)]
+    pub calibration: Vec<CalibrationReport>,
 }
 
 pub fn rotation_thresholds() -> Vec<f64> {
@@ -197,6 +202,39 @@ impl EvalReport {
                     pct(s.accuracy_5deg_2m),
                     row.elapsed_ms.mean
                 );
+            }
+        }
+
+        let _ = writeln!(md, "\n## Is the answer right? The calibrated verdict (`localized` = p_registered >= threshold; outcome: protocol A)\n");
+        if self.calibration.is_empty() {
+            let _ = writeln!(md, "No calibrator in this model set: every answer is p_registered null, localized false.");
+        } else {
+            let _ = writeln!(md, "| Method | Cases | Registered | Threshold | Localized | Precision (%) | Recall (%) | Brier (base rate's) | AUC | ECE |");
+            let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|");
+            let opt = |x: Option<f64>| x.map_or("–".to_string(), pct);
+            for c in &self.calibration {
+                let _ = writeln!(
+                    md,
+                    "| {} | {} | {} | {:.3} | {} | {} ({}/{}) | {} | {:.4} ({:.4}) | {} | {:.4} |",
+                    c.method,
+                    c.cases,
+                    c.registered,
+                    c.threshold,
+                    c.localized,
+                    opt(c.precision),
+                    c.localized_registered,
+                    c.localized,
+                    opt(c.recall),
+                    c.brier,
+                    c.brier_base_rate,
+                    c.auc.map_or("–".to_string(), |a| format!("{a:.3}")),
+                    c.ece
+                );
+            }
+            let _ = writeln!(md, "\nReliability (mean p → registered share, cases per bin of width 0.1; `reliability.png`):\n");
+            for c in &self.calibration {
+                let bins: Vec<String> = c.bins.iter().filter(|b| b.cases > 0).map(|b| format!("[{:.1}, {:.1}): {:.2} → {:.2} ({})", b.lower, b.upper, b.mean_p, b.registered_share, b.cases)).collect();
+                let _ = writeln!(md, "- {}: {}", c.method, bins.join("; "));
             }
         }
 

@@ -12,13 +12,14 @@ use crate::geometry::{ActionFrame, ActionSet, Pose, PoseError};
 use crate::model::{BackendOptions, ModelSet};
 
 use super::data::Dataset;
-use super::learned::{AGENT, Learned};
+use super::calibration::CalibrationReport;
+use super::learned::{AGENT, AGENT_SINGLE_START, Learned};
 use super::matching::MatchStrategy;
 use super::methods::{EvalCase, Expert, Method, NoOp};
 use super::perturbations::{PerturbationFile, Priors};
 use crate::atomic_file::write_atomic;
 use super::pnp::RansacOptions;
-use super::plots::write_figure5;
+use super::plots::{RELIABILITY_PNG, write_figure5, write_reliability};
 use super::report::{CaseRecord, EvalReport, Resources, rotation_thresholds, summarise, translation_thresholds};
 use super::summary::MeanStd;
 
@@ -60,6 +61,8 @@ pub struct EvalConfig {
     pub worst: usize,
     /// Every hypothesis's trajectory in the agent's case records (`Learned::run_agent`).
     pub record_hypotheses: bool,
+    /// Run the one-shot baseline (with a model).
+    pub baseline: bool,
 }
 
 impl EvalConfig {
@@ -145,7 +148,9 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
     let (mut num_points, mut actions) = (config.num_points, ActionSet::default());
     let mut learned_index = None;
     let mut provenance = serde_json::Value::Null;
+    let mut threshold = None;
     if let Some(set) = &models {
+        threshold = set.manifest.calibrator.as_ref().map(|c| c.threshold);
         num_points = set.manifest.points.num_points;
         provenance = set.manifest.provenance.clone();
         actions = set.manifest.action_set();
@@ -153,7 +158,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
             graph_parameters = map.iter().filter_map(|(k, v)| v.as_u64().map(|n| (k.clone(), n))).collect();
         }
         learned_index = Some(methods.len());
-        methods.push(Box::new(Learned::new(Box::new(set.backend()?), config.search(), config.ransac, config.matching, config.record_hypotheses)));
+        methods.push(Box::new(Learned::new(Box::new(set.backend()?), config.search(), config.ransac, config.matching, config.record_hypotheses, config.baseline)));
     }
     if let Some(frame) = config.action_frame {
         actions = actions.with_frame(frame);
@@ -176,6 +181,18 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
         (!times.is_empty()).then(|| MeanStd::of(times))
     });
     let parameters = Learned::parameters(&graph_parameters);
+    // The verdict's figures for each agent method (none without a calibrator).
+    let calibration = threshold
+        .map(|t| {
+            [AGENT, AGENT_SINGLE_START]
+                .into_iter()
+                .filter_map(|m| {
+                    let judged = CalibrationReport::judged(&records, m);
+                    (!judged.is_empty()).then(|| CalibrationReport::of(m, t, &judged))
+                })
+                .collect()
+        })
+        .unwrap_or_default();
     let report = EvalReport {
         format: "cmr-agent-eval/1".into(),
         data: config.data.display().to_string(),
@@ -199,6 +216,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
         translation_thresholds_m: translation_thresholds(),
         methods: summarise(&records, &parameters),
         resources: Resources { peak_rss_bytes: peak_rss_bytes(), graph_parameters, map_prepare_ms },
+        calibration,
     };
     write_outputs(&report, &records, &config.out)?;
     if config.worst > 0 {
@@ -285,6 +303,9 @@ pub fn write_outputs(report: &EvalReport, records: &[CaseRecord], out: &Path) ->
     write_atomic(&out.join("eval.json"), serde_json::to_string_pretty(report)?.as_bytes())?;
     write_atomic(&out.join("cases.json"), serde_json::to_string(records)?.as_bytes())?;
     write_atomic(&out.join("tables.md"), report.markdown().as_bytes())?;
+    if !report.calibration.is_empty() {
+        write_reliability(&report.calibration, &out.join(RELIABILITY_PNG))?;
+    }
     write_figure5(report, out)
 }
 
@@ -345,6 +366,7 @@ pub(crate) mod tests {
             command: "test".into(),
             worst: 2,
             record_hypotheses: false,
+            baseline: true,
         }
     }
 
@@ -451,12 +473,17 @@ pub(crate) mod tests {
         assert!(agent.phases_ms.contains_key("agent steps") && report.methods[2].phases_ms.contains_key("matching"));
         assert!(report.resources.map_prepare_ms.is_some_and(|m| m.n == 2));
         assert!(report.resources.peak_rss_bytes.is_some_and(|b| b > 0));
+        assert!(report.calibration.is_empty(), "no calibrator, no verdict figures");
         let records: Vec<CaseRecord> = serde_json::from_str(&std::fs::read_to_string(out.join("cases.json")).unwrap()).unwrap();
         assert_eq!(records.len(), 2 * 5);
         for r in records.iter().filter(|r| r.method == AGENT || r.method == single) {
             assert_eq!(r.errors.len(), 4);
             assert!(r.elapsed_ms.windows(2).all(|w| w[0] <= w[1]));
             assert!(r.notes["iterations_run"].as_u64().unwrap() >= 1);
+            // The tiny model has no calibrator: no probability, never localized; the signals
+            // are recorded all the same (what a calibrator is fitted on).
+            assert!(r.notes["p_registered"].is_null() && r.notes["localized"] == false);
+            assert_eq!(r.notes["signals"]["log2_starts"], if r.method == AGENT { 1.0 } else { 0.0 });
             let starts = if r.method == AGENT { 2 } else { 1 };
             assert_eq!(r.notes["alignment"].as_array().unwrap().len(), starts);
             // `--record-hypotheses`: every start's trajectory, on the searched agent only; its

@@ -10,6 +10,8 @@ use sha2::{Digest, Sha256};
 
 use crate::geometry::{ActionFrame, ActionSet};
 
+use super::calibrator::Calibrator;
+
 /// The only manifest format this build understands.
 pub const MANIFEST_FORMAT: &str = "cmr-agent-manifest/1";
 
@@ -33,6 +35,11 @@ pub struct Manifest {
     pub validation: serde_json::Value,
     #[serde(default)]
     pub parameters: serde_json::Value,
+    /// How sure an answer is (`model::calibrator`): fitted on `cmr-agent eval` outputs by
+    /// `python -m cmr.calibrate`; absent in model sets made before it (then every answer is
+    /// `p_registered: null, localized: false`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibrator: Option<Calibrator>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -258,6 +265,9 @@ impl Manifest {
         }
         self.action_set().validate().map_err(|e| format!("actions: {e}"))?;
         self.state_2d.validate(f)?;
+        if let Some(calibrator) = &self.calibrator {
+            calibrator.validate()?;
+        }
         for name in GRAPH_NAMES {
             let spec = self.graphs.get(name).ok_or_else(|| format!("graph {name:?} is missing"))?;
             let contract = self.contract(name);
@@ -447,6 +457,37 @@ mod tests {
             let err = Manifest::load(dir.path()).unwrap_err().to_string();
             assert!(err.contains(needle), "{err} should mention {needle}");
         }
+    }
+
+    /// A calibrator section survives load and write unchanged (the Python fitter writes it, the
+    /// server reads it), is absent when absent, and a malformed one stops the load.
+    #[test]
+    fn the_calibrator_round_trips_and_is_checked() {
+        let m = Manifest::load(&fixture_dir()).unwrap();
+        assert!(m.calibrator.is_none());
+        assert!(serde_json::to_value(&m).unwrap().get("calibrator").is_none(), "absent stays absent");
+        let section = serde_json::json!({
+            "kind": "logistic",
+            "target": "registered (protocol A)",
+            "features": ["alignment", "agreement", "log2_starts"],
+            "mean": [0.41, 0.2, 1.0],
+            "std": [0.12, 0.3, 1.0],
+            "weights": [1.5, 0.75, -0.25],
+            "bias": -0.5,
+            "clip": 3.0,
+            "threshold": 0.83,
+            "provenance": {"command": "python -m cmr.calibrate", "metrics": {"auc": 0.9}},
+        });
+        let dir = tempfile::tempdir().unwrap();
+        copy_fixture(dir.path());
+        edit_manifest(dir.path(), |v| v["calibrator"] = section.clone());
+        let m = Manifest::load(dir.path()).unwrap();
+        let c = m.calibrator.as_ref().unwrap();
+        assert_eq!((c.features.len(), c.threshold), (3, 0.83));
+        assert_eq!(serde_json::to_value(&m).unwrap()["calibrator"], section);
+        edit_manifest(dir.path(), |v| v["calibrator"]["features"][2] = "confidence".into());
+        let err = Manifest::load(dir.path()).unwrap_err().to_string();
+        assert!(err.contains("unknown signal \"confidence\""), "{err}");
     }
 
     #[test]

@@ -3,6 +3,7 @@
 //! everything around them (scheduler, search, admission).
 
 pub mod backend;
+pub mod calibrator;
 pub mod fake;
 pub mod manifest;
 pub mod runtime;
@@ -12,6 +13,7 @@ use std::sync::Arc;
 use anyhow::Result;
 
 pub use backend::{BackendOptions, ModelSet, OrtBackend};
+pub use calibrator::{Calibration, Calibrator, Signals, Verdict};
 pub use fake::FakeBackend;
 pub use manifest::{MANIFEST_FORMAT, MAX_CORRELATION_SHIFTS, Manifest, State2dSpec};
 

@@ -17,7 +17,7 @@ use tracing::Instrument;
 
 use crate::agent::{Localization, Start, ms};
 use crate::maps::{CropEmbeddings, Maps, validate_id};
-use crate::model::Manifest;
+use crate::model::{Calibration, Manifest};
 
 use image::RgbImage;
 
@@ -39,6 +39,8 @@ pub struct LocalizerConfig {
     pub request_timeout: Duration,
     /// Images decoded at once (each may hold up to `image.max_pixels` of RGB and a resize).
     pub decode_permits: usize,
+    /// Replaces the manifest's `calibrator.threshold` for `localized` (`None`: the manifest's).
+    pub localized_threshold: Option<f64>,
 }
 
 /// An admitted request: its place in the queue, its clock, and its count as in flight.
@@ -76,12 +78,15 @@ pub struct Localizer {
     manifest: Arc<Manifest>,
     config: LocalizerConfig,
     decodes: Arc<Semaphore>,
+    /// The model set's calibrator with the threshold in force: every answer's verdict.
+    pub calibration: Calibration,
 }
 
 impl Localizer {
     pub fn new(maps: Arc<Maps>, scheduler: Arc<Scheduler>, lifecycle: Arc<Lifecycle>, manifest: Arc<Manifest>, config: LocalizerConfig) -> Self {
         let decodes = Arc::new(Semaphore::new(config.decode_permits.max(1)));
-        Self { maps, scheduler, lifecycle, manifest, config, decodes }
+        let calibration = Calibration::new(manifest.calibrator.as_ref(), config.localized_threshold);
+        Self { maps, scheduler, lifecycle, manifest, config, decodes, calibration }
     }
 
     /// Admission control: call before reading or decoding anything of the request.
@@ -177,6 +182,7 @@ impl Localizer {
             Err(_) => return Err(LocalizeError::DeadlineExceeded),
         };
         let mut localization = finished.localization;
+        localization.verdict = self.calibration.judge(&localization.signals());
         if !valid.frame.is_identity() {
             localization.map_poses(|p| valid.frame.camera_from_map(p));
         }

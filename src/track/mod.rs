@@ -4,10 +4,16 @@
 //! - The first frame starts from a coarse prior (GNSS-like: [`coarse_prior`]) and runs the full
 //!   multi-start search (a cold localize).
 //! - Every later frame starts from [`predict`]ed pose and runs a small search (by default one
-//!   start, three policy steps). When that answer's confidence score (`agent::Confidence::score`
-//!   = sqrt(frustum IoU × the last step's policy certainty), in [0, 1]) is below
-//!   [`TrackConfig::fallback_below`], the frame is localized again with the full search from
-//!   the same predicted prior, and that answer is kept.
+//!   start, three policy steps). That answer is kept when it is trusted: `localized` (the model
+//!   set's calibrated verdict, `model::calibrator`) and its confidence score
+//!   (`agent::Confidence::score` = sqrt(frustum IoU × the last step's policy certainty), in
+//!   [0, 1]) at least [`TrackConfig::fallback_below`]. Otherwise the frame is localized again
+//!   with the full search from the same predicted prior ([`Mode::Fallback`]); when that answer
+//!   is not `localized` either, the frame is dead-reckoned: its estimate is the prediction
+//!   ([`Mode::DeadReckoning`]).
+//! - A model set without a calibrator gives no verdict (`p_registered: None`): then the score
+//!   alone decides the small search, and the full search's answer is always kept (the loop as it
+//!   was before the calibrator).
 //!
 //! The loop does no I/O and knows nothing of HTTP or the server: a [`FrameLocalizer`] answers one
 //! frame (`cmr-agent track` implements it with `serving::Localizer`, the path
@@ -27,6 +33,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
 use crate::geometry::Pose;
+use crate::model::Verdict;
 
 /// How large one localization's search is: starts of the multi-start search and policy steps
 /// per start (the localize request's `hypotheses` and `max_iterations`).
@@ -43,8 +50,8 @@ pub struct TrackConfig {
     pub tracked: SearchSize,
     /// The search of the first frame and of a fallback.
     pub full: SearchSize,
-    /// A tracked answer whose confidence score is below this falls back to the full search.
-    /// 0 never falls back; anything above 1 always does.
+    /// A tracked answer whose confidence score is below this (or that is not `localized`) falls
+    /// back to the full search. Anything above 1 always does.
     pub fallback_below: f32,
 }
 
@@ -55,6 +62,8 @@ pub struct FrameAnswer {
     pub camera_from_map: Pose,
     /// `agent::Confidence::score` of the answer, in [0, 1].
     pub confidence: f32,
+    /// The calibrated verdict (`p_registered: None, localized: false` without a calibrator).
+    pub verdict: Verdict,
     /// Steps of the chosen hypothesis.
     pub iterations: usize,
     /// Time the localization took as the caller sees it (the localize call, or the HTTP round
@@ -77,6 +86,8 @@ pub enum Mode {
     Tracked,
     /// The small search was not; the full search from the prediction answered.
     Fallback,
+    /// Neither search was `localized`: the estimate is the prediction itself.
+    DeadReckoning,
 }
 
 impl Mode {
@@ -85,6 +96,7 @@ impl Mode {
             Mode::Cold => "cold",
             Mode::Tracked => "tracked",
             Mode::Fallback => "fallback",
+            Mode::DeadReckoning => "dead_reckoning",
         }
     }
 }
@@ -99,9 +111,11 @@ pub struct TrackedFrame {
     pub prior: Pose,
     /// The answer kept (camera_from_map).
     pub estimate: Pose,
-    /// Confidence score of the kept answer.
+    /// Confidence score of the kept answer (of the full search's for a dead-reckoned frame).
     pub confidence: f32,
-    /// Confidence score of the small search, for tracked and fallback frames.
+    /// Its calibrated verdict (the full search's for a dead-reckoned frame).
+    pub verdict: Verdict,
+    /// Confidence score of the small search, for every frame after the first.
     pub tracked_confidence: Option<f32>,
     /// Steps of the kept answer's chosen hypothesis.
     pub iterations: usize,
@@ -159,11 +173,18 @@ pub fn track(
             let before_last = position.checked_sub(2).map(|i| &done[i].estimate);
             let prior = predict(before_last, last);
             let small = localizer.localize(position, &prior, config.tracked).with_context(at)?;
-            if small.confidence >= config.fallback_below {
+            let calibrated = small.verdict.p_registered.is_some();
+            if small.confidence >= config.fallback_below && (small.verdict.localized || !calibrated) {
                 tracked_frame(position, Mode::Tracked, prior, &small, Some(small.confidence), small.latency_ms)
             } else {
                 let full = localizer.localize(position, &prior, config.full).with_context(at)?;
-                tracked_frame(position, Mode::Fallback, prior, &full, Some(small.confidence), small.latency_ms + full.latency_ms)
+                let latency_ms = small.latency_ms + full.latency_ms;
+                if full.verdict.localized || full.verdict.p_registered.is_none() {
+                    tracked_frame(position, Mode::Fallback, prior, &full, Some(small.confidence), latency_ms)
+                } else {
+                    let predicted = FrameAnswer { camera_from_map: prior, ..full };
+                    tracked_frame(position, Mode::DeadReckoning, prior, &predicted, Some(small.confidence), latency_ms)
+                }
             }
         };
         on_frame(&frame);
@@ -179,6 +200,7 @@ fn tracked_frame(position: usize, mode: Mode, prior: Pose, answer: &FrameAnswer,
         prior,
         estimate: answer.camera_from_map,
         confidence: answer.confidence,
+        verdict: answer.verdict,
         tracked_confidence,
         iterations: answer.iterations,
         latency_ms,
@@ -252,6 +274,9 @@ mod tests {
         truth: Vec<Pose>,
         reach_m: f64,
         calls: Vec<(usize, SearchSize)>,
+        /// Gives a verdict (localized when it reached the truth); else none, like a model set
+        /// without a calibrator.
+        calibrated: bool,
     }
 
     impl FrameLocalizer for Basin {
@@ -262,7 +287,11 @@ mod tests {
             // The full search reaches 3 times as far.
             let reach = if search.hypotheses > 1 { 3.0 * self.reach_m } else { self.reach_m };
             let (pose, confidence) = if off <= reach { (truth, 0.9) } else { (*prior, 0.1) };
-            Ok(FrameAnswer { camera_from_map: pose, confidence, iterations: 3, latency_ms: search.hypotheses as f64 })
+            let verdict = match self.calibrated {
+                true => Verdict { p_registered: Some(confidence as f64), localized: confidence > 0.5 },
+                false => Verdict::default(),
+            };
+            Ok(FrameAnswer { camera_from_map: pose, confidence, verdict, iterations: 3, latency_ms: search.hypotheses as f64 })
         }
     }
 
@@ -299,7 +328,7 @@ mod tests {
         let truth = drive(6);
         // 1.5 m reach: every prediction is reached by the small search (frame 1's, standing
         // still, is 1 m behind; later ones are exact).
-        let mut basin = Basin { truth: truth.clone(), reach_m: 1.5, calls: vec![] };
+        let mut basin = Basin { truth: truth.clone(), reach_m: 1.5, calls: vec![], calibrated: false };
         let first = coarse_prior(&truth[0], 3.0, 0.0, 1);
         let frames = track(&mut basin, 6, first, &CONFIG, |_| {}).unwrap();
         assert_eq!(frames[0].mode, Mode::Cold);
@@ -310,7 +339,7 @@ mod tests {
         assert!(e.rte_m < 1e-9 && e.rre_geodesic_deg < 1e-9, "exact prediction from exact estimates: {e:?}");
         // 0.5 m reach (1.5 m for the full search): frame 1 (predicted standing still, 1 m off)
         // needs the full search.
-        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![] };
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: false };
         let first = coarse_prior(&truth[0], 1.0, 0.0, 1);
         let frames = track(&mut basin, 6, first, &CONFIG, |_| {}).unwrap();
         assert_eq!(frames[0].estimate, truth[0]);
@@ -320,6 +349,33 @@ mod tests {
         assert_eq!(frames[1].latency_ms, 1.0 + 4.0, "both searches count");
         assert!(frames[2..].iter().all(|f| f.mode == Mode::Tracked));
         assert_eq!(basin.calls[1..3], [(1, CONFIG.tracked), (1, CONFIG.full)]);
+    }
+
+    /// With a verdict: an unlocalized small search falls back, and an unlocalized full search
+    /// leaves the frame to dead reckoning (the prediction), counted as such.
+    #[test]
+    fn unlocalized_answers_fall_back_then_dead_reckon() {
+        let truth = drive(5);
+        // 0.5 m reach (1.5 m for the full search): frame 1's prediction (1 m off) needs the full
+        // search; its answer is then exact, so later predictions are reached by the small one.
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true };
+        let frames = track(&mut basin, 5, coarse_prior(&truth[0], 1.0, 0.0, 1), &CONFIG, |_| {}).unwrap();
+        let modes: Vec<Mode> = frames.iter().map(|f| f.mode).collect();
+        assert_eq!(modes, [Mode::Cold, Mode::Fallback, Mode::Tracked, Mode::Tracked, Mode::Tracked]);
+        assert!(frames[1].verdict.localized && frames[1].verdict.p_registered == Some(0.9f32 as f64));
+        // 0.2 m reach (0.6 m for the full search): frame 1 is out of both; it is dead-reckoned at
+        // the prediction (the first estimate, standing still), and so is every later frame.
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.2, calls: vec![], calibrated: true };
+        let frames = track(&mut basin, 3, coarse_prior(&truth[0], 0.5, 0.0, 1), &CONFIG, |_| {}).unwrap();
+        assert_eq!(frames[0].estimate, truth[0]);
+        assert!(frames[1..].iter().all(|f| f.mode == Mode::DeadReckoning && f.estimate == f.prior && !f.verdict.localized));
+        assert_eq!(frames[1].latency_ms, 1.0 + 4.0, "both searches count");
+        assert_eq!(basin.calls.len(), 1 + 2 * 2);
+        // Without a verdict the same drive keeps the full search's answers (as before the calibrator).
+        let first = coarse_prior(&truth[0], 0.5, 0.0, 1);
+        let mut basin = Basin { truth, reach_m: 0.2, calls: vec![], calibrated: false };
+        let frames = track(&mut basin, 3, first, &CONFIG, |_| {}).unwrap();
+        assert!(frames[1..].iter().all(|f| f.mode == Mode::Fallback));
     }
 
     #[test]

@@ -61,6 +61,10 @@ pub struct FrameRow {
     pub estimate_y: f64,
     pub truth_x: f64,
     pub truth_y: f64,
+    /// The kept answer's calibrated probability (empty without a calibrator) and verdict (for a
+    /// dead-reckoned frame: the full search's, which was not localized).
+    pub p_registered: Option<f64>,
+    pub localized: bool,
 }
 
 #[derive(Debug, Clone, Copy, Serialize)]
@@ -68,6 +72,8 @@ pub struct ModeCounts {
     pub cold: usize,
     pub tracked: usize,
     pub fallback: usize,
+    /// Frames neither search localized: the estimate is the constant-velocity prediction.
+    pub dead_reckoning: usize,
 }
 
 /// Per-frame latency, milliseconds (a fallback frame counts both of its searches).
@@ -173,7 +179,7 @@ impl TrackRun<'_> {
             prior_noise_deg: self.prior_noise_deg,
             seed: self.seed,
             error: trajectory_error(&errors),
-            modes: ModeCounts { cold: count(Mode::Cold), tracked: count(Mode::Tracked), fallback: count(Mode::Fallback) },
+            modes: ModeCounts { cold: count(Mode::Cold), tracked: count(Mode::Tracked), fallback: count(Mode::Fallback), dead_reckoning: count(Mode::DeadReckoning) },
             latency,
             cold_reference,
             tracked_to_cold_latency,
@@ -211,6 +217,8 @@ impl TrackRun<'_> {
                     estimate_y: est_c.y,
                     truth_x: gt_c.x,
                     truth_y: gt_c.y,
+                    p_registered: f.verdict.p_registered,
+                    localized: f.verdict.localized,
                 }
             })
             .collect())

@@ -46,8 +46,13 @@ pub fn top_view(path: &Path, run: &TrackRun, map_points: &[[f32; 3]]) -> Result<
         root.fill(&WHITE).map_err(err)?;
         let summary = run.summary()?;
         let title = format!(
-            "{} frames: ATE {:.3} m, RPE {:.3} m / {:.2}°, {} fallbacks",
-            summary.frames, summary.error.ate_rmse_m, summary.error.rpe_translation_rmse_m, summary.error.rpe_rotation_rmse_deg, summary.modes.fallback
+            "{} frames: ATE {:.3} m, RPE {:.3} m / {:.2}°, {} fallbacks, {} dead-reckoned",
+            summary.frames,
+            summary.error.ate_rmse_m,
+            summary.error.rpe_translation_rmse_m,
+            summary.error.rpe_rotation_rmse_deg,
+            summary.modes.fallback,
+            summary.modes.dead_reckoning
         );
         let mut chart = ChartBuilder::on(&root)
             .caption(title, ("sans-serif", 22))

@@ -22,9 +22,6 @@ import datetime as _dt
 import hashlib
 import io
 import json
-import os
-import subprocess
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -34,6 +31,7 @@ import onnx.utils
 import torch
 
 from . import geometry as g
+from .files import atomic_write_bytes, git_commit  # noqa: F401 (re-exported: quantize, model_card, evaluate)
 from .flops import count as count_flops
 from .models import (COLUMN_SHIFTS, FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, IMAGE_HEIGHT, IMAGE_WIDTH, NUM_DOFS,
                      NUM_STEPS, ROW_SHIFTS, STRIDE, Agent, arch_of, build_all, parameter_counts)
@@ -123,22 +121,6 @@ def graph_inputs(name: str, module: torch.nn.Module, correlation: bool, batch: i
     return inputs
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.fchmod(fd, 0o644)  # mkstemp creates 0600; models are read by other users (e.g. a service account)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def onnx_bytes(name: str, module: torch.nn.Module, correlation: bool = True) -> bytes:
     """One graph as ONNX bytes; `correlation`: export an agent that has `correlate` in the
     correlation form (else the features form)."""
@@ -214,14 +196,6 @@ def without_empty_guards(model: onnx.ModelProto) -> onnx.ModelProto:
     graph.node.extend(reversed(live))
     onnx.checker.check_model(model)
     return model
-
-
-def git_commit() -> str:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=True,
-                              cwd=Path(__file__).parent).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 def action_frame_of(meta: dict) -> str:

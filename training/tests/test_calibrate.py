@@ -1,0 +1,116 @@
+"""The calibrator: fitting recovers a known relation, the Python twins agree with Rust on the shared
+fixture, the threshold rule holds, and the command rewrites only the manifest's calibrator."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cmr import calibrate as c
+
+FIXTURE = json.loads((Path(__file__).resolve().parents[2] / "fixtures" / "calibration.json").read_text())
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_signal_names_are_rusts():
+    assert tuple(FIXTURE["signal_names"]) == c.SIGNALS
+
+
+def test_probability_matches_rust():
+    cal = FIXTURE["calibrator"]
+    signals = np.array([[case["signals"][name] for name in c.SIGNALS] for case in FIXTURE["cases"]])
+    expected = np.array([case["p_registered"] for case in FIXTURE["cases"]])
+    assert np.allclose(c.probability(cal, signals), expected, rtol=1e-12, atol=1e-15)
+    assert np.mean((expected > 0.05) & (expected < 0.95)) > 0.75  # the cases span the curve, not its flat ends
+
+
+def test_scores_match_rust():
+    s = FIXTURE["scored"]
+    p, y = np.array(s["p"]), np.array(s["registered"], dtype=bool)
+    got = c.scores(p, y, s["threshold"])
+    want = s["report"]
+    for key, value in got.items():
+        if value is None or want[key] is None:
+            assert value is None and want[key] is None, key
+        else:
+            assert value == pytest.approx(want[key], abs=1e-12), key
+    assert c.reliability_bins(p, y) == pytest.approx(want["bins"], abs=1e-12)
+
+
+def test_fit_recovers_a_known_relation():
+    """Standardised signals with a known logistic relation: the fit finds its weights and bias,
+    and the probabilities it gives are calibrated."""
+    rng = np.random.default_rng(3)
+    n = 40_000
+    x = np.column_stack([rng.normal(0.5, 0.2, n), rng.uniform(0, 1, n), rng.integers(0, 2, n).astype(float)])
+    mean, std = c.standardisation(x)
+    w_true, b_true = np.array([1.5, -0.8, 0.0]), -0.4
+    p_true = 1 / (1 + np.exp(-(b_true + ((x - mean) / std) @ w_true)))
+    y = rng.uniform(size=n) < p_true
+    w, b = c.fit_logistic((x - mean) / std, y, l2=1.0)
+    assert np.allclose(w, w_true, atol=0.05) and abs(b - b_true) < 0.05, (w, b)
+    cal = dict(features=["alignment", "agreement", "converged"], mean=mean.tolist(), std=std.tolist(), weights=w.tolist(), bias=b)
+    signals = np.zeros((n, len(c.SIGNALS)))
+    signals[:, [c.SIGNALS.index(f) for f in cal["features"]]] = x
+    p = c.probability(cal, signals)
+    assert c.scores(p, y, 0.5)["ece"] < 0.02
+    assert c.brier(p, y) < c.scores(p, y, 0.5)["brier_base_rate"]
+
+
+def test_the_threshold_holds_the_precision_at_and_above_it():
+    p = np.array([0.95, 0.9, 0.85, 0.8, 0.7, 0.6, 0.5, 0.3])
+    y = np.array([True, True, False, True, True, True, False, False])
+    candidates = np.unique(np.concatenate([p, [1.0]]))
+    # Precision of p >= t from the top: 1, 1, 2/3, 3/4, 4/5, 5/6, 5/7, 5/8.
+    assert c.smallest_safe_threshold(p, y, candidates, 0.75) == 0.9  # 2/3 at 0.85: nothing below 0.9 is safe
+    assert c.smallest_safe_threshold(p, y, candidates, 0.66) == 0.5  # 5/8 at 0.3
+    assert c.smallest_safe_threshold(p, y, candidates, 0.6) == 0.3
+    assert c.smallest_safe_threshold(p, np.zeros_like(y), candidates, 0.95) == 1.0  # nothing is ever right
+
+
+def _cases_json(path: Path, rng, n: int, data: str) -> Path:
+    """A cases.json (and eval.json) as cmr-agent eval writes them, with signals that predict the outcome."""
+    records = []
+    for i in range(n):
+        good = rng.uniform() < 0.4
+        signals = {name: float(rng.uniform()) for name in c.SIGNALS}
+        signals["alignment"] = float(rng.normal(0.6 if good else 0.35, 0.08))
+        err = dict(rte_m=0.5 if good else 12.0, rre_euler_deg=2.0 if good else 90.0, rre_geodesic_deg=2.0)
+        for method in c.METHODS:
+            records.append(dict(sequence=f"{i % 7:02d}", frame=i, method=method, errors=[err], elapsed_ms=[1.0],
+                                phases_ms={}, notes=dict(signals=signals, p_registered=None, localized=False)))
+        records.append(dict(sequence="00", frame=i, method="no-op", errors=[err], elapsed_ms=[0.0], phases_ms={}))
+    path.mkdir(parents=True)
+    (path / "cases.json").write_text(json.dumps(records))
+    (path / "eval.json").write_text(json.dumps(dict(data=data)))
+    return path / "cases.json"
+
+
+def test_the_command_writes_only_the_calibrator(tmp_path):
+    rng = np.random.default_rng(5)
+    files = [_cases_json(tmp_path / name, rng, 150, data) for name, data in (("a", "synth"), ("b", "synth"), ("c", "real"))]
+    models = tmp_path / "models"
+    models.mkdir()
+    original = (REPO / "tests" / "fixtures" / "tiny-model" / "manifest.json").read_text()
+    (models / "manifest.json").write_text(original)
+    c.main(["--cases", ",".join(map(str, files)), "--models", str(models), "--features", "alignment,agreement"])
+    doc = json.loads((models / "manifest.json").read_text())
+    cal = doc.pop("calibrator")
+    assert doc == json.loads(original)
+    assert cal["features"] == ["alignment", "agreement"] and cal["kind"] == "logistic"
+    assert cal["weights"][0] > 1.0  # alignment carries the outcome
+    assert 0.5 < cal["threshold"] <= 1.0
+    oof = cal["provenance"]["out_of_fold"]
+    assert oof["pooled"]["cases"] == 900 and oof["pooled"]["auc"] > 0.9
+    for scores in oof["per_file"].values():
+        assert scores["precision"] is None or scores["precision"] >= 0.95
+    assert [d["records"] for d in cal["provenance"]["data"]] == [300, 300, 300]
+
+
+def test_folds_keep_groups_whole():
+    groups = np.array(["a", "b", "a", "c", "d", "b", "e", "a"])
+    folds = c.folds_of(groups, 3, 0)
+    for name in set(groups):
+        assert len(set(folds[groups == name])) == 1
+    assert set(folds) == {0, 1, 2}
