@@ -100,8 +100,10 @@ impl Localization {
     /// "Agreeing" starts end within the search's duplicate radius of the answer.
     pub fn signals(&self) -> Signals {
         let best = self.best();
-        let answer = best.camera_from_map();
-        let others: Vec<&Hypothesis> = self.hypotheses.iter().enumerate().filter(|(h, _)| *h != self.chosen).map(|(_, h)| h).collect();
+        let answer = self.camera_from_map();
+        // The answer's own score: the chosen final pose's, or the prior's when it was kept.
+        let answer_alignment = if self.kept_prior { best.start_alignment } else { best.alignment() };
+        let others: Vec<&Hypothesis> = self.hypotheses.iter().enumerate().filter(|(h, _)| self.kept_prior || *h != self.chosen).map(|(_, h)| h).collect();
         let (margin, agreement) = if others.is_empty() {
             (0.0, 0.0)
         } else {
@@ -113,18 +115,19 @@ impl Localization {
                     e.rte_m < search::DUPLICATE_RTE_M && e.rre_geodesic_deg < search::DUPLICATE_RRE_DEG
                 })
                 .count();
-            ((best.alignment() - runner_up) as f64, agreeing as f64 / others.len() as f64)
+            ((answer_alignment - runner_up) as f64, agreeing as f64 / others.len() as f64)
         };
         let start_mean = self.hypotheses.iter().map(|h| h.start_alignment as f64).sum::<f64>() / self.hypotheses.len().max(1) as f64;
+        let steps = self.answer_steps().len();
         Signals {
-            alignment: best.alignment() as f64,
-            alignment_gain: best.alignment() as f64 - start_mean,
+            alignment: answer_alignment as f64,
+            alignment_gain: answer_alignment as f64 - start_mean,
             alignment_margin: margin,
             agreement,
             frustum_iou: self.confidence.frustum_iou as f64,
             policy_certainty: self.confidence.policy_certainty as f64,
-            converged: if best.converged { 1.0 } else { 0.0 },
-            steps_fraction: best.steps.len() as f64 / self.max_iterations.max(1) as f64,
+            converged: if best.converged && !self.kept_prior { 1.0 } else { 0.0 },
+            steps_fraction: steps as f64 / self.max_iterations.max(1) as f64,
             in_view: self.confidence.in_view as f64,
             log2_starts: (self.hypotheses.len().max(1) as f64).log2(),
         }
@@ -180,7 +183,7 @@ mod tests {
 
     fn localization(hypotheses: Vec<Hypothesis>, chosen: usize) -> Localization {
         let confidence = Confidence { frustum_iou: 0.25, policy_certainty: 0.5, score: 0.3, alignment: hypotheses[chosen].alignment(), in_view: 0.125 };
-        Localization { prior: Pose::identity(), hypotheses, chosen, confidence, max_iterations: 10, timings: Timings::default(), verdict: Verdict::default() }
+        Localization { prior: Pose::identity(), hypotheses, chosen, kept_prior: false, prior_competes: false, confidence, max_iterations: 10, timings: Timings::default(), verdict: Verdict::default() }
     }
 
     /// The margin is over the best other start; agreement counts the others within the
