@@ -180,7 +180,7 @@ mod tests {
 
     fn localization(hypotheses: Vec<Hypothesis>, chosen: usize) -> Localization {
         let confidence = Confidence { frustum_iou: 0.25, policy_certainty: 0.5, score: 0.3, alignment: hypotheses[chosen].alignment(), in_view: 0.125 };
-        Localization { prior: Pose::identity(), hypotheses, chosen, confidence, max_iterations: 10, timings: Timings::default(), verdict: Verdict::default() }
+        Localization { prior: Pose::identity(), hypotheses, chosen, kept_prior: false, prior_competes: false, confidence, max_iterations: 10, timings: Timings::default(), verdict: Verdict::default() }
     }
 
     /// The margin is over the best other start; agreement counts the others within the
