@@ -337,12 +337,24 @@ mod tests {
             let err = check_rotation(&m).unwrap_err();
             assert!(err.starts_with("is not a rotation: ") && err.contains(want), "{err}");
         }
-        // The API's reader and the files' reader give the same verdict (one check).
-        let mut rows = Pose::identity().to_rows();
-        rows[0][0] = 2.0;
-        let api = Pose::from_matrix(&rows).unwrap_err();
-        let file = Pose::from_row_major_3x4(&[2.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]).unwrap_err();
-        assert_eq!(api, format!("pose's rotation block {file}"));
+        // The API's reader (which also bounds each entry, as its schema states) and the files'
+        // reader accept exactly the same rotation blocks, and say "not a rotation" of the others.
+        let scaled = |k: f64| rig * k;
+        for r in [rig, rounded, Matrix3::identity() * 2.0, scaled(1.0004), scaled(1.0006), scaled(1.00049), Matrix3::zeros(), -rig] {
+            let mut rows = Pose::identity().to_rows();
+            let mut values = [0.0; 12];
+            for i in 0..3 {
+                for j in 0..3 {
+                    rows[i][j] = r[(i, j)];
+                    values[i * 4 + j] = r[(i, j)];
+                }
+            }
+            let (api, file) = (Pose::from_matrix(&rows), Pose::from_row_major_3x4(&values));
+            assert_eq!(api.is_ok(), file.is_ok(), "{r}: API {api:?}, file {file:?}");
+            if let (Err(api), Err(file)) = (api, file) {
+                assert!(api.starts_with("pose's rotation block is not a rotation") && file.starts_with("is not a rotation"), "{api} / {file}");
+            }
+        }
     }
 
     #[test]
