@@ -9,6 +9,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 replicas=${1:-3}
 base_port=${BASE_PORT:-18081}
+probe_base_port=${PROBE_BASE_PORT:-18181}   # replica i's probe port (/health, /ready): probe_base_port + i
 proxy_port=${PROXY_PORT:-18080}
 bin=./target/release/cmr-agent
 command -v nginx >/dev/null || { echo "nginx not found: apt-get install nginx-light" >&2; exit 1; }
@@ -31,7 +32,7 @@ cp maps/demo.bin maps/demo.json "$work/maps/"   # the shared map directory
 upstreams=""
 for i in $(seq 0 $((replicas - 1))); do
     port=$((base_port + i))
-    CMR_HOST=127.0.0.1 CMR_PORT=$port CMR_MAPS="$work/maps" CMR_INTRA_THREADS=1 \
+    CMR_HOST=127.0.0.1 CMR_PORT=$port CMR_PROBE_PORT=$((probe_base_port + i)) CMR_MAPS="$work/maps" CMR_INTRA_THREADS=1 \
         "$bin" serve > "$work/logs/replica-$i.log" 2>&1 &
     pids+=($!)
     upstreams+="    server 127.0.0.1:$port max_fails=1 fail_timeout=10s;"$'\n'
@@ -50,10 +51,10 @@ http {
 }
 CONF
 for i in $(seq 0 $((replicas - 1))); do
-    until curl -sf "http://127.0.0.1:$((base_port + i))/ready" >/dev/null; do sleep 0.2; done
+    until curl -sf --max-time 1 "http://127.0.0.1:$((probe_base_port + i))/ready" >/dev/null; do sleep 0.2; done
 done
 nginx -c "$work/nginx.conf" -p "$work"
-echo "replicas ready on ports $base_port..$((base_port + replicas - 1)); nginx on $proxy_port"
+echo "replicas ready on ports $base_port..$((base_port + replicas - 1)) (probes on $probe_base_port..$((probe_base_port + replicas - 1))); nginx on $proxy_port"
 
 proxy="http://127.0.0.1:$proxy_port"
 # localize ID [curl options]: the demo request through the proxy.

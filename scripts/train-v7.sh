@@ -7,16 +7,16 @@
 #   scripts/train-v7.sh save     # copies the run's last.pt to training/checkpoints/v7.pt (commit it)
 #   scripts/train-v7.sh status   # the run's pid, its last log records
 #
-# Resuming: `start` resumes from $RUN/last.pt; when that is missing (a fresh machine) or older
-# than the committed training/checkpoints/v7.pt, the committed file is copied there first, byte
+# Resuming: `start` resumes from $RUN/last.pt; when that is missing (a fresh machine) or behind
+# the committed training/checkpoints/v7.pt (fewer steps), the committed file is copied there first, byte
 # for byte, so a run resumes from either place with the same state (sampling is seeded by step).
 # Environment: DATA (default ~/.cache/cmr-agent/data), RUN (default ~/.cache/cmr-agent/runs/v7),
-# NICE (default 10), CMR_AGENT_BIN (default target/release/cmr-agent).
+# NICE (default 5), CMR_AGENT_BIN (default target/release/cmr-agent).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 DATA=${DATA:-$HOME/.cache/cmr-agent/data}
 RUN=${RUN:-$HOME/.cache/cmr-agent/runs/v7}
-NICE=${NICE:-10}
+NICE=${NICE:-5}
 BIN=${CMR_AGENT_BIN:-$ROOT/target/release/cmr-agent}
 PY=$ROOT/.venv/bin/python
 REAL=${REAL:-$ROOT/../shared/real-train}
@@ -50,9 +50,14 @@ train_roots() {
   echo "$(ls -d "$DATA"/v7/train/b* | paste -sd, -),$r,$r,$r"
 }
 
+# steps done by a checkpoint (stage 1 steps + stage 2 iterations): which copy is further along
+progress() {
+  "$PY" -c "import torch,sys; c=torch.load(sys.argv[1], map_location='cpu', weights_only=False); print(c['embed_step'] + c['agent_iter'])" "$1"
+}
+
 start() {
   mkdir -p "$RUN"
-  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$SAVED" -nt "$RUN/last.pt" ]; }; then
+  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
     cp "$SAVED" "$RUN/last.pt"
     echo "resuming from the committed $SAVED"
   fi

@@ -13,6 +13,7 @@
 //! - `render`: pictures of a pose (map points projected onto the image), for the API and `eval`;
 //! - `eval`: the paper's metrics and tables over a KITTI-layout data set;
 //! - `track`: following a drive frame after frame (the loop, its errors, trajectory files, plot);
+//! - `logging`: the log output every subcommand shares (stderr, `RUST_LOG`, `NO_COLOR`);
 //! - `atomic_file`: the one crash-safe file writer everything uses.
 
 pub mod agent;
@@ -21,6 +22,7 @@ pub mod api;
 pub mod eval;
 pub mod geometry;
 pub mod kitti;
+pub mod logging;
 pub mod maps;
 pub mod model;
 pub mod render;

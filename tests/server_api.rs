@@ -33,6 +33,7 @@ async fn service_endpoints_and_a_localization() {
     assert!((1..=7).contains(&iterations));
     assert_eq!(body["trajectory"].as_array().unwrap().len() as u64, iterations);
     assert_close(&body["prior_camera_from_map"], rig_matrix(), "the prior defaults to the map's initial pose");
+    assert_eq!(body["prior_source"], "region");
     let last = &body["trajectory"][iterations as usize - 1];
     assert_eq!(last["camera_from_map"], body["pose"]["camera_from_map"]);
     assert_eq!(body["converged"], last["action"]["yaw_deg"] == 0.0 && last["action"]["tx_m"] == 0.0 && last["action"]["tz_m"] == 0.0);
@@ -64,6 +65,7 @@ async fn service_endpoints_and_a_localization() {
     let (status, body, _) = server.localize("street", &req).await;
     assert_eq!(status, 200, "{body}");
     assert_close(&body["prior_camera_from_map"], prior, "explicit prior");
+    assert_eq!(body["prior_source"], "request");
     assert_eq!((body["hypotheses"].as_array().unwrap().len(), body["chosen_hypothesis"].as_u64()), (1, Some(0)));
 
     // The raw-bytes variant: the image is the body, the intrinsics are in the query.
@@ -88,7 +90,121 @@ async fn service_endpoints_and_a_localization() {
 
     let missing = c.get(server.url("/no/such/thing")).send().await.unwrap();
     assert_eq!(missing.status(), 404);
+
+    // Every answer carries a request id: the client's own when it sends a sane one, else a new one.
+    let r = c.get(server.url("/health")).header("x-request-id", "fleet-7.a:1").send().await.unwrap();
+    assert_eq!(r.headers()["x-request-id"], "fleet-7.a:1");
+    let ids: Vec<String> = [c.get(server.url("/health")).header("x-request-id", "has space").send().await.unwrap(), missing]
+        .iter()
+        .map(|r| r.headers()["x-request-id"].to_str().unwrap().to_string())
+        .collect();
+    assert!(ids[0] != ids[1] && ids.iter().all(|id| id.len() > 8 && id.contains('-') && !id.contains(' ')), "{ids:?}");
     server.stop().await;
+}
+
+/// A region added the README's way (a bare scan, no metadata) answers a request without a prior
+/// from the documented default (a level camera at the map's origin looking along +x, which sees
+/// the scan), and says so; a region whose map-frame origin is not inside it has no default: 422
+/// naming prior_camera_from_map, until its metadata gives an initial pose.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_region_without_a_prior_starts_from_the_documented_default_or_says_what_is_missing() {
+    let maps = tempfile::tempdir().unwrap();
+    let server = TestServer::start(&tiny_model(), maps.path(), &[]).await;
+    let c = &server.client;
+    let cloud = street_cloud();
+    let r = c.put(server.url("/v1/maps/my-street?format=kitti_bin")).body(cmr_agent::maps::formats::write_kitti_bin(&cloud)).send().await.unwrap();
+    assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+    let (status, body, _) = server.localize("my-street", &kitti_request(2)).await;
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(body["prior_source"], "default");
+    let default = cmr_agent::geometry::Pose::level_camera_along_x(nalgebra::Vector3::zeros());
+    assert_close(&body["prior_camera_from_map"], default.to_rows(), "the default prior");
+    let k = cmr_agent::geometry::Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 };
+    let in_view = cloud.xyz.iter().filter(|p| {
+        let q = default.transform(&nalgebra::Point3::new(p[0] as f64, p[1] as f64, p[2] as f64));
+        k.in_frustum(&q, 1241, 376)
+    });
+    assert!(in_view.count() > 2000, "the default prior looks at the scan");
+
+    // The same street at UTM-size coordinates: the map frame's origin is 5,000 km away.
+    let ply = utm_ply(&cloud, [500_000.0, 5_049_000.0, 100.0]);
+    let r = c.put(server.url("/v1/maps/utm-street?format=ply")).body(ply).send().await.unwrap();
+    assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+    let (status, body, _) = server.localize("utm-street", &kitti_request(2)).await;
+    assert_eq!(status, 422, "{body}");
+    assert_eq!(body["error_type"], "invalid_input");
+    let error = body["error"].as_str().unwrap();
+    assert!(error.starts_with("prior_camera_from_map: map \"utm-street\" has no initial_camera_from_map") && error.contains("/v1/maps/utm-street/metadata"), "{error}");
+    let rig = cmr_agent::geometry::Pose::level_camera_along_x(nalgebra::Vector3::new(500_000.0, 5_049_000.0, 100.0));
+    let r = c.put(server.url("/v1/maps/utm-street/metadata")).json(&json!({"initial_camera_from_map": rig.to_rows()})).send().await.unwrap();
+    assert_eq!(r.status(), 200, "{}", r.text().await.unwrap());
+    let (status, body, _) = server.localize("utm-street", &kitti_request(2)).await;
+    assert_eq!((status, &body["prior_source"]), (200, &json!("region")), "{body}");
+    server.stop().await;
+}
+
+/// The binary's own log: one access line per request (method, path without the query, status,
+/// latency, request id), and no ANSI colour codes when stderr is not a terminal (a pipe here).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_server_logs_one_plain_access_line_per_request() {
+    use std::io::BufRead;
+    let maps = maps_dir_with_street();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_cmr-agent"))
+        .args(["serve", "--host", "127.0.0.1", "--port", "0", "--intra-threads", "1", "--models"])
+        .arg(tiny_model())
+        .arg("--maps")
+        .arg(maps.path())
+        .env_remove("NO_COLOR")
+        .env("RUST_LOG", "info")
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    let stderr = child.stderr.take().unwrap();
+    std::thread::spawn(move || {
+        for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    let mut seen = Vec::new();
+    let next_line = |what: &str, seen: &mut Vec<String>| -> String {
+        let line = rx.recv_timeout(Duration::from_secs(60)).unwrap_or_else(|_| panic!("no {what} in the log: {seen:#?}"));
+        seen.push(line.clone());
+        line
+    };
+    let base = loop {
+        let line = next_line("listening line", &mut seen);
+        if let Some(at) = line.find("listening on http://") {
+            break line[at + "listening on ".len()..].trim().to_string();
+        }
+    };
+    let client = reqwest::Client::new();
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    while client.get(format!("{base}/ready")).send().await.map(|r| r.status() != 200).unwrap_or(true) {
+        assert!(std::time::Instant::now() < deadline, "never ready: {seen:#?}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let r = client.get(format!("{base}/v1/maps/nothing-here?token=secret")).header("x-request-id", "log-test-1").send().await.unwrap();
+    assert_eq!(r.status(), 404);
+    let access = loop {
+        let line = next_line("access line", &mut seen);
+        if line.contains("request_id=log-test-1") {
+            break line;
+        }
+    };
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(access.contains("INFO access: method=GET path=/v1/maps/nothing-here status=404 latency_ms="), "{access}");
+    assert!(!access.contains("secret"), "the query is not logged: {access}");
+    assert!(seen.iter().all(|l| !l.contains('\u{1b}')), "colour codes in a piped log: {seen:#?}");
+}
+
+/// A float64 PLY of `cloud` moved by `offset` (UTM-size coordinates stay exact).
+fn utm_ply(cloud: &cmr_agent::maps::formats::PointCloud, offset: [f64; 3]) -> Vec<u8> {
+    let mut out = Vec::new();
+    let points = cloud.xyz.iter().map(|p| ([p[0] as f64 + offset[0], p[1] as f64 + offset[1], p[2] as f64 + offset[2]], 0.0f32));
+    cmr_agent::maps::formats::write_ply_f64(&mut out, cloud.xyz.len(), points).unwrap();
+    out
 }
 
 /// The compact points route gives the prepared sample's prefix as little-endian float32; the

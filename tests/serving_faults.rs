@@ -125,6 +125,44 @@ async fn slow_headers_and_idle_connections_are_cut() {
     server.stop().await;
 }
 
+/// The probe port (`--probe-port`) answers /health and /ready within a second while the main
+/// port's connection limit is held full by silent and trickling clients (more of them waiting in
+/// its backlog), which starve a probe on the main port; it serves nothing else.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn probes_answer_while_the_connection_limit_is_full() {
+    let maps = maps_dir_with_street();
+    let server = TestServer::start(&tiny_model(), maps.path(), &["--max-connections", "4", "--header-timeout-s", "30"]).await;
+    let mut held = Vec::new();
+    for i in 0..24 {
+        let mut stream = TcpStream::connect(server.addr()).await.unwrap();
+        if i % 2 == 1 {
+            stream.write_all(b"GET /health HTTP/1.1\r\nhost: t").await.unwrap(); // trickling: headers never finish
+        }
+        held.push(stream);
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    // A client without pooled connections: each request opens its own, as a kubelet probe does.
+    let fresh = reqwest::Client::builder().pool_max_idle_per_host(0).build().unwrap();
+    let starved = tokio::time::timeout(Duration::from_secs(1), fresh.get(server.url("/health")).send()).await;
+    assert!(starved.is_err(), "the main port's limit is full: its /health waits");
+    for path in ["/health", "/ready", "/health", "/ready"] {
+        let started = Instant::now();
+        let r = tokio::time::timeout(Duration::from_secs(1), fresh.get(format!("{}{path}", server.probe_base)).send()).await;
+        let r = r.unwrap_or_else(|_| panic!("the probe port's {path} answers within 1 s")).unwrap();
+        assert_eq!(r.status(), 200, "{path}");
+        println!("probe port {path} with the main port full: {:.1} ms", started.elapsed().as_secs_f64() * 1000.0);
+    }
+    let ready: serde_json::Value = fresh.get(format!("{}/ready", server.probe_base)).send().await.unwrap().json().await.unwrap();
+    assert_eq!(ready["ready"], true);
+    let metrics = fresh.get(format!("{}/metrics", server.probe_base)).send().await.unwrap();
+    assert_eq!(metrics.status(), 200);
+    let other = fresh.get(format!("{}/v1/maps", server.probe_base)).send().await.unwrap();
+    assert_eq!(other.status(), 404, "the probe port serves the probes only");
+    assert_eq!(other.json::<serde_json::Value>().await.unwrap()["error_type"], "not_found");
+    drop(held);
+    server.stop().await;
+}
+
 /// On shutdown the listener keeps answering (/ready 503, new localizations 503 `draining`, with
 /// `connection: close`) until the in-flight localization has finished; then the server stops.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -248,3 +248,109 @@ fn acceptance_drive_of_20_m() {
     let ate = summary["error"]["ate_rmse_m"].as_f64().unwrap();
     assert!(ate <= 0.3, "ATE {ate} m over 20 m");
 }
+
+/// The README's fleet block ("Follow a drive", marked `<!-- fleet-path: ...`): its three
+/// commands.
+fn readme_fleet_commands() -> Vec<String> {
+    let readme = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
+    let marked = readme.split_once("<!-- fleet-path:").expect("README marks its fleet block").1;
+    let block = marked.split_once("```bash\n").unwrap().1.split_once("```").unwrap().0;
+    block.lines().filter(|l| !l.trim().is_empty()).map(str::to_string).collect()
+}
+
+/// Runs `cmr-agent ARGS` in `dir` with the project's model (the README runs from the
+/// repository root, where `models/` is the default), returning the output whatever it is.
+fn cmr_agent_in(dir: &Path, args: &[&str]) -> std::process::Output {
+    let mut command = cmr_agent();
+    command.args(args).current_dir(dir).env("CMR_MODELS", default_model()).env("RUST_BACKTRACE", "0").env_remove("CMR_MAPS");
+    command.output().expect("the command starts")
+}
+
+/// The README's three commands from a raw drive to a trajectory and its ATE, run as written
+/// (but 4 frames instead of 20) from a fresh directory against the built binary, with no
+/// server started. Then around them: the region `map build --store` wrote is the one
+/// `PUT /v1/maps/{id}` stores from `map build --out`'s PLY (same bytes, same origin); `track
+/// --map FILE` follows the drive in that file; the mistakes a user makes get a clear error.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_readme_fleet_path_runs_from_a_fresh_directory() {
+    let dir = tempfile::tempdir().unwrap();
+    let commands = readme_fleet_commands();
+    assert_eq!(commands.len(), 3, "three commands: {commands:?}");
+    let mut printed = String::new();
+    for (i, line) in commands.iter().enumerate() {
+        assert!(!line.contains(['"', '\'', '\\', '$']), "a plain command line: {line}");
+        let line = if i == 0 {
+            assert!(line.contains(" synth ") && line.contains("--frames 20"), "{line}");
+            line.replace("--frames 20", "--frames 4")
+        } else {
+            line.clone()
+        };
+        let words: Vec<&str> = line.split_whitespace().collect();
+        assert_eq!(words[0], "./target/release/cmr-agent", "{line}");
+        let d = dir.path().to_path_buf();
+        let args: Vec<String> = words[1..].iter().map(|w| w.to_string()).collect();
+        let output = tokio::task::spawn_blocking(move || cmr_agent_in(&d, &args.iter().map(String::as_str).collect::<Vec<_>>())).await.unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(output.status.success(), "{line} failed ({}):\n{}", output.status, &stderr[stderr.len().saturating_sub(4000)..]);
+        printed = String::from_utf8(output.stdout).unwrap();
+    }
+    let summary: serde_json::Value = serde_json::from_str(&printed).expect("track prints its summary");
+    assert_eq!(summary, read_json(&dir.path().join("data/fleet-track/summary.json")));
+    assert_eq!((summary["map_id"].as_str(), summary["frames"].as_u64()), (Some("fleet-drive"), Some(4)));
+    let ate = summary["error"]["ate_rmse_m"].as_f64().expect("the summary has the ATE");
+    println!("README fleet path, 4 frames: ATE {ate:.3} m, recall {}", summary["error"]["registration_recall"]);
+    assert!(ate.is_finite() && ate >= 0.0);
+    let sequence = dir.path().join("data/fleet/00");
+    check_outputs(&sequence, &dir.path().join("data/fleet-track"), &summary, 4);
+    let sidecar = read_json(&dir.path().join("maps/fleet-drive.json"));
+    let first = Sequence::open(&sequence, None).unwrap().camera_from_map(0).unwrap().to_rows();
+    let stored: [[f64; 4]; 4] = serde_json::from_value(sidecar["initial_camera_from_map"].clone()).expect("the region has an initial pose");
+    let gap = (0..16).map(|k| (stored[k / 4][k % 4] - first[k / 4][k % 4]).abs()).fold(0.0, f64::max);
+    assert!(gap < 1e-12, "the first frame's camera is the region's default prior: {stored:?} vs {first:?}");
+
+    // `map build --out` refuses a name whose extension is not what it writes, writing nothing ...
+    let wrong = cmr_agent_in(dir.path(), &["map", "build", "--sequence", "data/fleet/00", "--out", "maps/drive.bin"]);
+    let stderr = String::from_utf8_lossy(&wrong.stderr);
+    assert!(!wrong.status.success() && stderr.contains("writes binary PLY") && stderr.contains("*.ply") && stderr.contains("--store"), "{stderr}");
+    assert!(!dir.path().join("maps/drive.bin").exists());
+    // ... and writes a .ply, which a PUT stores exactly as `--store` did.
+    let built = cmr_agent_in(dir.path(), &["map", "build", "--sequence", "data/fleet/00", "--out", "drive.ply"]);
+    assert!(built.status.success(), "{}", String::from_utf8_lossy(&built.stderr));
+    let served = tempfile::tempdir().unwrap();
+    let server = TestServer::start(&tiny_model(), served.path(), &[]).await;
+    let ply = std::fs::read(dir.path().join("drive.ply")).unwrap();
+    let put = server.client.put(server.url("/v1/maps/fleet-drive")).body(ply).send().await.unwrap();
+    assert_eq!(put.status(), 201);
+    let put: serde_json::Value = put.json().await.unwrap();
+    server.stop().await;
+    let (store, _) = cmr_agent::maps::MapStore::open(&dir.path().join("maps")).unwrap();
+    let stored = store.get("fleet-drive").unwrap();
+    assert_eq!(put["map"]["source_sha256"].as_str(), Some(stored.source_sha256.as_str()), "the same stored cloud");
+    assert_eq!(put["map"]["origin"], serde_json::json!(stored.origin));
+    assert_eq!(put["map"]["num_points"], stored.num_points);
+    assert_eq!(std::fs::read(served.path().join("fleet-drive.bin")).unwrap(), std::fs::read(dir.path().join("maps/fleet-drive.bin")).unwrap());
+
+    // `track --map FILE`, as `localize --map`.
+    let d = dir.path().to_path_buf();
+    let by_file = tokio::task::spawn_blocking(move || cmr_agent_in(&d, &["track", "--map", "drive.ply", "--sequence", "data/fleet/00", "--out", "by-file", "--frames", "2"])).await.unwrap();
+    assert!(by_file.status.success(), "{}", String::from_utf8_lossy(&by_file.stderr));
+    let by_file: serde_json::Value = serde_json::from_slice(&by_file.stdout).unwrap();
+    assert_eq!((by_file["map_id"].as_str(), by_file["frames"].as_u64()), (Some("drive"), Some(2)));
+
+    // A mistyped store is not created; a missing id names the ids there; --help lists only
+    // what track uses.
+    let typo = cmr_agent_in(dir.path(), &["track", "--maps", "mpas", "--id", "fleet-drive", "--sequence", "data/fleet/00", "--out", "typo"]);
+    let stderr = String::from_utf8_lossy(&typo.stderr);
+    assert!(!typo.status.success() && stderr.contains("--maps mpas: no such directory"), "{stderr}");
+    assert!(!dir.path().join("mpas").exists() && !dir.path().join("typo").exists());
+    let missing = cmr_agent_in(dir.path(), &["track", "--maps", "maps", "--id", "fleet-driv", "--sequence", "data/fleet/00", "--out", "typo"]);
+    let stderr = String::from_utf8_lossy(&missing.stderr);
+    assert!(!missing.status.success() && stderr.contains("no map named \"fleet-driv\"") && stderr.contains("its regions: fleet-drive"), "{stderr}");
+    let help = String::from_utf8(cmr_agent_in(dir.path(), &["track", "--help"]).stdout).unwrap();
+    for used in ["--id", "--maps", "--map", "--models", "--default-hypotheses"] {
+        assert!(help.contains(&format!("{used} ")), "track --help lists {used}");
+    }
+    for unused in ["--host", "--port", "--probe-port", "--admin-token", "--max-connections", "--workers", "--max-body-bytes"] {
+        assert!(!help.contains(&format!("{unused} ")), "track --help lists {unused}, which it does not use:\n{help}");
+    }
+}

@@ -2,7 +2,8 @@
 //! (WebDriver, the `fantoccini` crate) against a real server on loopback with the project's
 //! default model. It loads the page, picks an image through the file input and drops one on the
 //! page, runs the demo, checks that the pose the page shows is the API's answer to the same
-//! request, that both canvases are drawn and the iteration slider redraws, that an API error is
+//! request, that both canvases are drawn (the top view without narrowing UTM-size coordinates to
+//! float32) and the iteration slider redraws, that an API error is
 //! shown as the API's `{error, error_type}`, and that a region can be uploaded and deleted with
 //! the admin token.
 //! It saves a screenshot to `target/web-ui.png` (and to `docs/web-ui.png` with
@@ -158,6 +159,33 @@ for (let i = 0; i < a.length; i += 4) {
 return [drawn, orange];
 "#;
 
+/// Draws the top view of 41 rows of points 5 cm apart at a UTM-size northing (y ≈ 5,049,158 m,
+/// where float32 steps are 0.5 m: narrowed, they would fall on 5 rows) and counts the bands of
+/// drawn pixel rows above the scale bar; then puts the page's own points back.
+const TOP_VIEW_UTM_ROWS: &str = r#"
+const saved = [state.points, state.result];
+const pts = [];
+for (let i = 0; i <= 40; i++) for (let j = 0; j < 40; j++) pts.push(512345.0 + 0.1 * j, 5049158.0 + 0.05 * i, 0.0);
+state.points = Float64Array.from(pts);
+state.result = null;
+drawTopView();
+const c = document.getElementById('top-canvas');
+const a = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+let bands = 0, previous = false;
+for (let y = 0; y < c.height - 40; y++) {
+  let any = false;
+  for (let x = 0; x < c.width && !any; x++) {
+    const i = 4 * (y * c.width + x);
+    any = a[i] !== 0x14 || a[i + 1] !== 0x17 || a[i + 2] !== 0x1c;
+  }
+  if (any && !previous) bands++;
+  previous = any;
+}
+[state.points, state.result] = saved;
+draw();
+return bands;
+"#;
+
 /// Sets an input's value as a person would (an `input` event follows).
 async fn set_value(c: &Client, id: &str, value: &str) {
     c.execute(
@@ -305,6 +333,10 @@ async fn web_page_in_chromium() {
     assert!(drawn > 500 && changed_final > 2000, "points on the image: {drawn} drawn, {changed_final} pixels changed");
     let top: Vec<u64> = serde_json::from_value(js(&c, TOP_VIEW_PIXELS).await).unwrap();
     assert!(top[0] > 3000 && top[1] > 20, "top view pixels (drawn, selected camera): {top:?}");
+
+    // The top view keeps float64 map coordinates (no narrowing of UTM-size ones to float32).
+    let bands = js(&c, TOP_VIEW_UTM_ROWS).await.as_u64().unwrap();
+    assert_eq!(bands, 41, "rows of points 5 cm apart at y ≈ 5,049,158 m drawn as {bands} bands");
 
     // The slider: the start redraws the points elsewhere.
     let last = js(&c, "return document.getElementById('iteration').max").await;

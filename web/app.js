@@ -478,14 +478,15 @@ function drawTopView() {
     canvas.dataset.drawnPoints = '0';
     return;
   }
-  // Bounds: the 1st..99th percentile of the points, grown to hold every camera shown.
+  // Bounds: the 1st..99th percentile of the points, grown to hold every camera shown. Float64
+  // throughout: map-frame coordinates can be UTM-size (y ~ 5e6 m), where float32 steps are 0.5 m.
   const n = pts.length / 3;
-  const xs = new Float32Array(n), ys = new Float32Array(n);
+  const xs = new Float64Array(n), ys = new Float64Array(n);
   for (let i = 0; i < n; i++) {
     xs[i] = pts[3 * i];
     ys[i] = pts[3 * i + 1];
   }
-  const sx = Float32Array.from(xs).sort(), sy = Float32Array.from(ys).sort();
+  const sx = Float64Array.from(xs).sort(), sy = Float64Array.from(ys).sort();
   const q = (a, f) => a[Math.min(a.length - 1, Math.floor(f * a.length))];
   let x0 = q(sx, 0.01), x1 = q(sx, 0.99), y0 = q(sy, 0.01), y1 = q(sy, 0.99);
   const cams = state.result ? [state.result.prior_camera_from_map, ...state.poses].map(cameraInMap) : [];

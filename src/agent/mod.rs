@@ -20,7 +20,7 @@ use crate::model::{Backend, Signals, Verdict};
 pub use batch::{Batch, Start, StepError};
 pub use episode::{Confidence, Episode, ImageEvidence, Step};
 pub use input::prepare_image;
-pub use search::{DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, Search, SearchConfig, SearchTuning, best_of, start_yaw_offsets};
+pub use search::{DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, Search, SearchConfig, SearchTuning, best_of, prior_wins, start_yaw_offsets};
 pub use state::{Form2d, ImageGrid, ScatterScratch, Shifts, StateLayout};
 
 /// Milliseconds spent per phase of one localization.
@@ -40,9 +40,15 @@ pub struct Localization {
     pub prior: Pose,
     /// One per start, in the order of `start_yaw_offsets`; the first starts at the prior.
     pub hypotheses: Vec<Hypothesis>,
-    /// The hypothesis whose final pose has the best alignment score: the answer.
+    /// The hypothesis whose final pose has the best alignment score: the answer (0 when the
+    /// prior was kept).
     pub chosen: usize,
-    /// Of the chosen hypothesis.
+    /// The answer is the prior itself, unmoved: it outscored every final pose
+    /// (`SearchConfig::keep_prior`).
+    pub kept_prior: bool,
+    /// Whether the prior competed with the final poses (`SearchConfig::keep_prior`).
+    pub prior_competes: bool,
+    /// Of the answer (the chosen hypothesis's final pose, or the prior).
     pub confidence: Confidence,
     /// The request's policy steps per hypothesis.
     pub max_iterations: usize,
@@ -60,14 +66,22 @@ impl Localization {
 
     /// The final estimate of camera_from_map.
     pub fn camera_from_map(&self) -> Pose {
-        self.best().camera_from_map()
+        if self.kept_prior { self.prior } else { self.best().camera_from_map() }
+    }
+
+    /// The steps that led to the answer: the chosen hypothesis's, none when the prior was kept.
+    pub fn answer_steps(&self) -> &[Step] {
+        if self.kept_prior { &[] } else { &self.best().steps }
     }
 
     /// The answer had the search stopped after `iterations` steps: the best-scoring pose over
-    /// all hypotheses at that point (the evaluator's per-iteration figures).
+    /// all hypotheses at that point, or the prior when it competes and scores higher (the
+    /// evaluator's per-iteration figures; after the last step, `camera_from_map`).
     pub fn pose_after(&self, iterations: usize) -> Pose {
         let at: Vec<(Pose, f32)> = self.hypotheses.iter().map(|h| h.pose_after(iterations)).collect();
-        at[best_of(at.iter().map(|(_, score)| *score))].0
+        let best = &at[best_of(at.iter().map(|(_, score)| *score))];
+        let prior_alignment = self.hypotheses.first().map_or(f32::NAN, |h| h.start_alignment);
+        if self.prior_competes && search::prior_wins(prior_alignment, best.1) { self.prior } else { best.0 }
     }
 
     /// Applies `f` to every pose it holds (prior, starts, steps): how serving moves a result from

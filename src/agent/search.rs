@@ -51,12 +51,15 @@ pub struct SearchConfig {
     pub narrow_after: Option<usize>,
     /// Stop a hypothesis once it comes within the duplicate distance of an earlier one.
     pub merge_duplicates: bool,
+    /// The prior itself competes with the hypotheses' final poses: when its alignment score is
+    /// higher than every final pose's, the answer is the prior, unmoved.
+    pub keep_prior: bool,
 }
 
 impl SearchConfig {
-    /// The paper's procedure: one trajectory from the prior.
+    /// The paper's procedure: one trajectory from the prior, answered with its last pose.
     pub fn single(max_iterations: usize) -> Self {
-        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false }
+        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false }
     }
 }
 
@@ -72,6 +75,11 @@ pub struct SearchTuning {
     /// Stop a hypothesis once it comes within 4 m / 20° of an earlier one (`true`/`false`).
     #[arg(long, env = "CMR_MERGE_DUPLICATES", default_value_t = true, action = clap::ArgAction::Set)]
     pub merge_duplicates: bool,
+    /// Answer with the prior, unmoved, when its alignment score beats every hypothesis's final
+    /// pose (`true`/`false`): the search does no harm to a good prior that nothing explains
+    /// better (docs/evaluation.md, "Keeping the prior").
+    #[arg(long, env = "CMR_KEEP_PRIOR", default_value_t = true, action = clap::ArgAction::Set)]
+    pub keep_prior: bool,
 }
 
 impl SearchTuning {
@@ -81,6 +89,7 @@ impl SearchTuning {
             max_iterations,
             narrow_after: (self.narrow_after > 0).then_some(self.narrow_after as usize),
             merge_duplicates: self.merge_duplicates,
+            keep_prior: self.keep_prior,
         }
     }
 }
@@ -139,6 +148,12 @@ impl Hypothesis {
     }
 }
 
+/// Whether the prior, scoring `prior_alignment`, beats the best final pose's `best_alignment`
+/// (strictly: a draw keeps the search's answer; NaN never wins).
+pub fn prior_wins(prior_alignment: f32, best_alignment: f32) -> bool {
+    prior_alignment > best_alignment || (best_alignment.is_nan() && !prior_alignment.is_nan())
+}
+
 /// Index of the best-scoring candidate; the first one on ties (so the prior's own trajectory
 /// wins a draw). NaN scores never win.
 pub fn best_of(scores: impl IntoIterator<Item = f32>) -> usize {
@@ -159,6 +174,7 @@ pub struct Search {
     /// Steps after which only the best-scoring hypothesis goes on; `None` once done (or never).
     narrow_after: Option<usize>,
     merge_duplicates: bool,
+    keep_prior: bool,
 }
 
 impl Search {
@@ -175,7 +191,7 @@ impl Search {
             })
             .collect();
         let narrow_after = config.narrow_after.filter(|_| offsets.len() > 1);
-        Self { prior, episodes, offsets, narrow_after, merge_duplicates: config.merge_duplicates }
+        Self { prior, episodes, offsets, narrow_after, merge_duplicates: config.merge_duplicates, keep_prior: config.keep_prior }
     }
 
     /// Call after every batched step: stops duplicates and narrows, as configured.
@@ -228,13 +244,23 @@ impl Search {
         (0..self.episodes.len()).filter(|&h| !self.episodes[h].is_done())
     }
 
-    /// Scores every final pose, keeps the best hypothesis, and turns the search into its result.
+    /// Scores every final pose, keeps the best hypothesis (or the prior, with `keep_prior`, when
+    /// it scores higher still), and turns the search into its result.
     pub fn finish(mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch, timings: Timings) -> Localization {
         for episode in &mut self.episodes {
             episode.settle(map, layout, scratch);
         }
-        let chosen = best_of(self.episodes.iter().map(Episode::alignment));
-        let confidence = self.episodes[chosen].confidence(map, layout);
+        let mut chosen = best_of(self.episodes.iter().map(Episode::alignment));
+        // The first hypothesis starts at the prior, so its start's score is the prior's.
+        let kept_prior = self.keep_prior && prior_wins(self.episodes[0].start_alignment, self.episodes[chosen].alignment());
+        if kept_prior {
+            chosen = 0;
+        }
+        let confidence = if kept_prior {
+            self.episodes[0].confidence_at_start(map, layout)
+        } else {
+            self.episodes[chosen].confidence(map, layout)
+        };
         let max_iterations = self.episodes[chosen].max_iterations;
         let hypotheses = self
             .episodes
@@ -249,7 +275,7 @@ impl Search {
                 dropped: e.dropped,
             })
             .collect();
-        Localization { prior: self.prior, hypotheses, chosen, confidence, max_iterations, timings, verdict: Default::default() }
+        Localization { prior: self.prior, hypotheses, chosen, kept_prior, prior_competes: self.keep_prior, confidence, max_iterations, timings, verdict: Default::default() }
     }
 }
 
@@ -271,7 +297,7 @@ mod tests {
         use nalgebra::{Point3, Vector3};
         let map = PreparedMap { points: vec![[0.0, 0.0, 5.0]], features: vec![0.0; 64], pivot: Point3::new(0.0, 0.0, 5.0), source_points: 1 };
         let evidence = ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 } };
-        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true };
+        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false };
         let mut search = Search::new(evidence, &map, Pose::identity(), config, ActionFrame::CameraY);
         let shifted = |dx: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(dx * DUPLICATE_RTE_M, 0.0, 0.0));
         // 0 and 1 meet (half the radius apart); 2 is within the radius of 1 but 1.2 radii from 0;
@@ -293,6 +319,15 @@ mod tests {
         search.after_step(&map, &layout, &mut scratch);
         let dropped: Vec<bool> = search.episodes.iter().map(|e| e.dropped).collect();
         assert_eq!(dropped, vec![false, true, false, true]);
+    }
+
+    #[test]
+    fn the_prior_is_kept_only_when_it_scores_strictly_higher() {
+        assert!(prior_wins(0.5, 0.4));
+        assert!(!prior_wins(0.4, 0.4), "a draw keeps the search's answer");
+        assert!(!prior_wins(0.3, 0.4));
+        assert!(!prior_wins(f32::NAN, 0.4));
+        assert!(prior_wins(0.1, f32::NAN));
     }
 
     #[test]

@@ -6,35 +6,29 @@ use crate::agent::search::{DEFAULT_HYPOTHESES, SearchTuning};
 use crate::maps::{CropEmbeddings, RegionConfig};
 use crate::serving::{ImageLimits, LocalizerConfig, RequestDefaults, SchedulerConfig};
 
+/// `cmr-agent serve`'s settings: the HTTP server's own, plus the localize path's ([`EngineArgs`]).
 #[derive(Debug, Clone, clap::Args)]
 pub struct ServeArgs {
+
     /// Address to listen on.
     #[arg(long, env = "CMR_HOST", default_value = "0.0.0.0")]
     pub host: String,
     #[arg(long, env = "CMR_PORT", default_value_t = 8080)]
     pub port: u16,
-    /// Directory with manifest.json and the four ONNX graphs.
-    #[arg(long, env = "CMR_MODELS", default_value = "models")]
-    pub models: PathBuf,
+    /// A second port, on the same address, that answers only `/health`, `/ready` and `/metrics`
+    /// with connections of its own (at most 32; headers within 2 s, idle ones closed after 2 s):
+    /// an orchestrator's probes get their answer however many clients hold the main port's
+    /// `--max-connections`. For probes and scrapers, not clients: keep it off the public
+    /// network. Default: none (probes then wait with every other connection).
+    #[arg(long, env = "CMR_PROBE_PORT")]
+    pub probe_port: Option<u16>,
     /// Directory of map regions (<id>.bin + <id>.json [+ <id>.emb]); created if missing.
     #[arg(long, env = "CMR_MAPS", default_value = "maps")]
     pub maps: PathBuf,
-    /// libonnxruntime.so (default: ORT_DYLIB_PATH, then ./runtime/, then <exe>/../../runtime/).
-    #[arg(long)]
-    pub ort_lib: Option<PathBuf>,
     /// Agent workers, each with its own ONNX Runtime sessions (0 = one per CPU core: measured
     /// the faster default, docs/server.md "Workers x threads").
     #[arg(long, env = "CMR_WORKERS", default_value_t = 0)]
     pub workers: usize,
-    /// ONNX Runtime intra-op threads per worker session (0 = CPU cores / workers, at least 1).
-    /// With several workers and fewer threads than cores, one more set of sessions with every
-    /// core's threads serves whichever worker is alone with work (docs/server.md).
-    #[arg(long, env = "CMR_INTRA_THREADS", default_value_t = 0)]
-    pub intra_threads: usize,
-    /// Most hypotheses (rows of the batched policy call) one worker steps together: a request
-    /// brings one per start of its search. A search larger than this still runs, alone.
-    #[arg(long, env = "CMR_MAX_BATCH", default_value_t = 8)]
-    pub max_batch: usize,
     /// Requests waiting for a worker before new ones get 429.
     #[arg(long, env = "CMR_QUEUE_CAPACITY", default_value_t = 64)]
     pub queue_capacity: usize,
@@ -43,21 +37,59 @@ pub struct ServeArgs {
     /// from admitted work.
     #[arg(long, env = "CMR_SHED_DELAY_MS", default_value_t = 100)]
     pub shed_delay_ms: u64,
-    /// Per-request deadline for a localization, milliseconds.
-    #[arg(long, env = "CMR_REQUEST_TIMEOUT_MS", default_value_t = 10_000)]
-    pub request_timeout_ms: u64,
     /// How long a client may take to send a whole request body (a map upload included), ms.
     #[arg(long, env = "CMR_BODY_TIMEOUT_MS", default_value_t = 30_000)]
     pub body_timeout_ms: u64,
-    /// Memory budget of the prepared-map cache, MiB.
-    #[arg(long, env = "CMR_CACHE_MB", default_value_t = 1024)]
-    pub cache_mb: u64,
     /// Largest localize request body, bytes.
     #[arg(long, env = "CMR_MAX_BODY_BYTES", default_value_t = 16 * 1024 * 1024)]
     pub max_body_bytes: usize,
     /// Largest map upload, bytes.
     #[arg(long, env = "CMR_MAX_MAP_BYTES", default_value_t = 256 * 1024 * 1024)]
     pub max_map_bytes: usize,
+    /// When set, map uploads/edits/deletes need `Authorization: Bearer <token>`.
+    #[arg(long, env = "CMR_ADMIN_TOKEN", hide_env_values = true)]
+    pub admin_token: Option<String>,
+    /// Open connections at most; more wait in the listen backlog until one closes.
+    #[arg(long, env = "CMR_MAX_CONNECTIONS", default_value_t = 512)]
+    pub max_connections: usize,
+    /// How long a client may take to send a request's headers, and how long a kept-alive
+    /// connection may sit idle before its next request, seconds.
+    #[arg(long, env = "CMR_HEADER_TIMEOUT_S", default_value_t = 10)]
+    pub header_timeout_s: u64,
+    /// On SIGINT/SIGTERM, how long in-flight requests may take to finish, seconds.
+    #[arg(long, env = "CMR_SHUTDOWN_GRACE_S", default_value_t = 10)]
+    pub shutdown_grace_s: u64,
+    #[command(flatten)]
+    pub engine: EngineArgs,
+}
+
+/// The settings of the localize path that every command running it shares (`serve`, and
+/// `localize` and `track` without HTTP): models, ONNX Runtime, image and map limits, search
+/// defaults. Nothing here is about HTTP or connections.
+#[derive(Debug, Clone, clap::Args)]
+pub struct EngineArgs {
+    /// Directory with manifest.json and the four ONNX graphs.
+    #[arg(long, env = "CMR_MODELS", default_value = "models")]
+    pub models: PathBuf,
+    /// libonnxruntime.so (default: ORT_DYLIB_PATH, then ./runtime/, then <exe>/../../runtime/).
+    #[arg(long)]
+    pub ort_lib: Option<PathBuf>,
+    /// ONNX Runtime intra-op threads per worker session (0 = CPU cores / workers, at least 1;
+    /// the command-line tools run one worker). With several `serve` workers and fewer threads
+    /// than cores, one more set of sessions with every core's threads serves whichever worker is
+    /// alone with work (docs/server.md).
+    #[arg(long, env = "CMR_INTRA_THREADS", default_value_t = 0)]
+    pub intra_threads: usize,
+    /// Most hypotheses (rows of the batched policy call) one worker steps together: a request
+    /// brings one per start of its search. A search larger than this still runs, alone.
+    #[arg(long, env = "CMR_MAX_BATCH", default_value_t = 8)]
+    pub max_batch: usize,
+    /// Per-request deadline for a localization, milliseconds.
+    #[arg(long, env = "CMR_REQUEST_TIMEOUT_MS", default_value_t = 10_000)]
+    pub request_timeout_ms: u64,
+    /// Memory budget of the prepared-map cache, MiB.
+    #[arg(long, env = "CMR_CACHE_MB", default_value_t = 1024)]
+    pub cache_mb: u64,
     /// Most points an uploaded map file may hold (before any `voxel_m` downsampling); more is 413.
     #[arg(long, env = "CMR_MAX_MAP_POINTS", default_value_t = 10_000_000)]
     pub max_map_points: usize,
@@ -100,19 +132,6 @@ pub struct ServeArgs {
     /// right?"). Without a calibrator in the manifest no answer is localized, whatever this says.
     #[arg(long, env = "CMR_LOCALIZED_THRESHOLD", value_parser = threshold)]
     pub localized_threshold: Option<f64>,
-    /// When set, map uploads/edits/deletes need `Authorization: Bearer <token>`.
-    #[arg(long, env = "CMR_ADMIN_TOKEN", hide_env_values = true)]
-    pub admin_token: Option<String>,
-    /// Open connections at most; more wait in the listen backlog until one closes.
-    #[arg(long, env = "CMR_MAX_CONNECTIONS", default_value_t = 512)]
-    pub max_connections: usize,
-    /// How long a client may take to send a request's headers, and how long a kept-alive
-    /// connection may sit idle before its next request, seconds.
-    #[arg(long, env = "CMR_HEADER_TIMEOUT_S", default_value_t = 10)]
-    pub header_timeout_s: u64,
-    /// On SIGINT/SIGTERM, how long in-flight requests may take to finish, seconds.
-    #[arg(long, env = "CMR_SHUTDOWN_GRACE_S", default_value_t = 10)]
-    pub shutdown_grace_s: u64,
 }
 
 impl ServeArgs {
@@ -131,11 +150,23 @@ impl ServeArgs {
 
     /// Intra-op threads of each worker's sessions: `--intra-threads`, or the cores shared out.
     pub fn intra_threads(&self) -> usize {
-        if self.intra_threads > 0 { self.intra_threads } else { (cores() / self.workers()).max(1) }
+        self.engine.intra_threads_for(self.workers())
     }
 
     pub fn scheduler(&self) -> SchedulerConfig {
-        SchedulerConfig { workers: self.workers(), max_batch: self.max_batch, queue_capacity: self.queue_capacity }
+        self.engine.scheduler(self.workers(), self.queue_capacity)
+    }
+}
+
+impl EngineArgs {
+    /// Intra-op threads of each of `workers` workers' sessions: `--intra-threads`, or the cores
+    /// shared out (at least 1).
+    pub fn intra_threads_for(&self, workers: usize) -> usize {
+        if self.intra_threads > 0 { self.intra_threads } else { (cores() / workers.max(1)).max(1) }
+    }
+
+    pub fn scheduler(&self, workers: usize, queue_capacity: usize) -> SchedulerConfig {
+        SchedulerConfig { workers, max_batch: self.max_batch, queue_capacity }
     }
 
     pub fn localizer(&self) -> LocalizerConfig {
@@ -152,9 +183,7 @@ impl ServeArgs {
             localized_threshold: self.localized_threshold,
         }
     }
-}
 
-impl ServeArgs {
     /// How regions are stored and prepared.
     pub fn regions(&self) -> RegionConfig {
         RegionConfig { tile_above_points: self.tile_above_points, max_points: self.max_map_points, crop_embeddings: self.crop_embeddings, ..RegionConfig::default() }

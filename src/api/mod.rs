@@ -90,23 +90,24 @@ pub fn metrics_handle() -> PrometheusHandle {
 
 /// Loads models and maps and starts the workers. Model problems fail here, with one message.
 pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
-    let options = BackendOptions { intra_threads: config.intra_threads(), ort_lib: config.ort_lib.clone() };
-    crate::model::runtime::environment(config.ort_lib.as_deref())?;
-    let models = ModelSet::load(&config.models, options).with_context(|| format!("cannot load the models in {}", config.models.display()))?;
+    let engine = &config.engine;
+    let options = BackendOptions { intra_threads: config.intra_threads(), ort_lib: engine.ort_lib.clone() };
+    crate::model::runtime::environment(engine.ort_lib.as_deref())?;
+    let models = ModelSet::load(&engine.models, options).with_context(|| format!("cannot load the models in {}", engine.models.display()))?;
     let (store, warnings) = MapStore::open(&config.maps).map_err(|e| anyhow::anyhow!("{e}"))?;
     for w in warnings {
         tracing::warn!("map store: {w}");
     }
-    let cache = MapCache::new(config.cache_mb.saturating_mul(1024 * 1024));
+    let cache = MapCache::new(engine.cache_mb.saturating_mul(1024 * 1024));
     // Registering a map runs the point encoder once, rarely and one at a time: all cores for it.
     let encoder = ModelSet { options: BackendOptions { intra_threads: config::cores(), ..models.options.clone() }, ..models.clone() };
-    let maps = Arc::new(Maps::new(store, cache, Box::new(encoder.backend()?), config.regions()));
+    let maps = Arc::new(Maps::new(store, cache, Box::new(encoder.backend()?), engine.regions()));
     // With several workers, one more set of sessions with every core's threads, for whichever
     // worker is alone with work (a lone request then has the idle cores; about 25 MB).
     let lone = (config.workers() > 1 && config.intra_threads() < config::cores()).then(|| encoder.factory());
     let scheduler = Arc::new(Scheduler::start_with_lone(&models.factory(), lone.as_ref(), config.scheduler())?);
     let lifecycle = Arc::new(Lifecycle::default());
-    let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), config.localizer());
+    let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), engine.localizer());
     match localizer.calibration.threshold() {
         Some(t) => tracing::info!(threshold = t, "answers are localized when p_registered >= threshold"),
         None => tracing::warn!("the model set has no calibrator: every answer is p_registered null, localized false"),
@@ -139,25 +140,57 @@ pub fn router(state: Arc<AppState>) -> Router {
             body_deadline::limit_body_time,
         ))
         .layer(axum::middleware::from_fn_with_state(state.lifecycle.clone(), close_when_draining))
-        .layer(axum::middleware::from_fn(count_requests))
-        .layer(tower_http::trace::TraceLayer::new_for_http())
+        .layer(axum::middleware::from_fn(access_log))
         .with_state(state)
 }
 
-/// Counts every HTTP request by route template, method and status, with its latency.
-async fn count_requests(request: axum::extract::Request, next: axum::middleware::Next) -> axum::response::Response {
+/// The response header that carries a request's id (also read from the request, see [`request_id`]).
+pub const REQUEST_ID_HEADER: &str = "x-request-id";
+
+/// Every HTTP request, once it is answered: one `info` line on the `access` target (method,
+/// path without the query, status, latency in ms, request id), the Prometheus counters
+/// (`cmr_http_requests_total` by route template, method and status; `cmr_http_request_seconds`),
+/// and the `x-request-id` response header. Logs made while handling it (a localization's) are in
+/// a `request{id=...}` span, so they carry the same id.
+async fn access_log(request: axum::extract::Request, next: axum::middleware::Next) -> axum::response::Response {
+    use tracing::Instrument;
     let route = request
         .extensions()
         .get::<axum::extract::MatchedPath>()
         .map(|p| p.as_str().to_string())
         .unwrap_or_else(|| "unmatched".into());
-    let method = request.method().to_string();
+    let method = request.method().clone();
+    let path: String = request.uri().path().chars().take(256).collect();
+    let id = request_id(request.headers());
     let started = std::time::Instant::now();
-    let response = next.run(request).await;
-    let status = response.status().as_u16().to_string();
-    metrics::counter!("cmr_http_requests_total", "route" => route.clone(), "method" => method, "status" => status).increment(1);
-    metrics::histogram!("cmr_http_request_seconds", "route" => route).record(started.elapsed().as_secs_f64());
+    let mut response = next.run(request).instrument(tracing::info_span!("request", id = %id)).await;
+    let latency = started.elapsed();
+    let status = response.status().as_u16();
+    tracing::info!(target: "access", %method, path = %path, status = %status, latency_ms = format_args!("{:.1}", latency.as_secs_f64() * 1000.0), request_id = %id);
+    metrics::counter!("cmr_http_requests_total", "route" => route.clone(), "method" => method.to_string(), "status" => status.to_string()).increment(1);
+    metrics::histogram!("cmr_http_request_seconds", "route" => route).record(latency.as_secs_f64());
+    if let Ok(v) = axum::http::HeaderValue::from_str(&id) {
+        response.headers_mut().insert(REQUEST_ID_HEADER, v);
+    }
     response
+}
+
+/// The request's id: the client's `x-request-id` when it is 1 to 64 characters of
+/// `[A-Za-z0-9._:-]` (so a proxy's id follows the request through), else a new one: this
+/// process's random 8-hex-digit prefix, a dash and a counter (`3f9a0c12-17`).
+pub fn request_id(headers: &HeaderMap) -> String {
+    static PREFIX: OnceLock<u32> = OnceLock::new();
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let given = headers.get(REQUEST_ID_HEADER).and_then(|v| v.to_str().ok()).filter(|v| {
+        (1..=64).contains(&v.len()) && v.bytes().all(|b| b.is_ascii_alphanumeric() || b"._:-".contains(&b))
+    });
+    match given {
+        Some(v) => v.to_string(),
+        None => {
+            let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+            format!("{:08x}-{n}", PREFIX.get_or_init(rand::random::<u32>))
+        }
+    }
 }
 
 /// While draining, every response asks the client to close its connection, so kept-alive
@@ -190,16 +223,39 @@ pub fn warm_up(state: &AppState) -> Result<()> {
     Ok(())
 }
 
-/// Serves on `listener` until `shutdown` resolves, then drains in three phases:
-/// 1. draining: the listener still answers (`/ready` 503, new localizations 503 `draining`)
+/// The probe port's connection limit and header/idle timeout (stated in `--probe-port`'s help).
+pub const PROBE_MAX_CONNECTIONS: usize = 32;
+pub const PROBE_HEADER_TIMEOUT: Duration = Duration::from_secs(2);
+
+/// The probe port's routes: liveness, readiness and metrics, the same handlers as the main port's.
+pub fn probe_router(state: Arc<AppState>) -> Router {
+    Router::new()
+        .route("/health", get(routes::health))
+        .route("/ready", get(routes::ready))
+        .route("/metrics", get(routes::metrics))
+        .fallback(routes::not_found)
+        .layer(axum::middleware::from_fn_with_state(state.lifecycle.clone(), close_when_draining))
+        .with_state(state)
+}
+
+/// Serves on `listener` (and the probe routes on `probe`, when given: [`probe_router`], with
+/// its own [`PROBE_MAX_CONNECTIONS`] connections, so probes never wait behind the main port's
+/// `max_connections`) until `shutdown` resolves, then drains in three phases:
+/// 1. draining: both listeners still answer (`/ready` 503, new localizations 503 `draining`)
 ///    while in-flight localizations finish, at most `shutdown_grace_s`;
-/// 2. the listener closes; open connections finish their current request (kept-alive idle ones
+/// 2. the listeners close; open connections finish their current request (kept-alive idle ones
 ///    close) within what is left of the grace;
 /// 3. the agent workers stop, and the queued `<id>.emb` writes finish.
 ///
-/// Connections: at most `max_connections` at once (more wait in the backlog), headers must
-/// arrive within `header_timeout_s`, and a kept-alive connection idle for that long is closed.
-pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<()> {
+/// Connections: at most `max_connections` at once on the main port (more wait in the backlog),
+/// headers must arrive within `header_timeout_s`, and a kept-alive connection idle for that long
+/// is closed.
+pub async fn serve(
+    state: Arc<AppState>,
+    listener: tokio::net::TcpListener,
+    probe: Option<tokio::net::TcpListener>,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<()> {
     let addr: SocketAddr = listener.local_addr()?;
     tracing::info!("listening on http://{addr}");
     let warm_state = state.clone();
@@ -212,7 +268,8 @@ pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shut
     });
     let grace = Duration::from_secs(state.config.shutdown_grace_s);
     let lifecycle = state.lifecycle.clone();
-    let (drained_tx, drained_rx) = tokio::sync::oneshot::channel::<tokio::time::Instant>();
+    // Set to the end of the grace once draining is over: the listeners close then.
+    let (drained_tx, drained_rx) = tokio::sync::watch::channel::<Option<tokio::time::Instant>>(None);
     tokio::spawn(async move {
         shutdown.await;
         let grace_ends = tokio::time::Instant::now() + grace;
@@ -221,10 +278,26 @@ pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shut
         if tokio::time::timeout_at(grace_ends, lifecycle.idle()).await.is_err() {
             tracing::warn!(in_flight = lifecycle.in_flight(), "grace period over with localizations still in flight");
         }
-        let _ = drained_tx.send(grace_ends);
+        let _ = drained_tx.send(Some(grace_ends));
     });
 
-    accept(&state, listener, drained_rx).await;
+    let probes = match probe {
+        Some(probe) => {
+            tracing::info!("probes (/health, /ready, /metrics) on http://{}", probe.local_addr()?);
+            let port = Port { app: probe_router(state.clone()), max_connections: PROBE_MAX_CONNECTIONS, header_timeout: PROBE_HEADER_TIMEOUT };
+            Some(tokio::spawn(accept(port, probe, drained_rx.clone())))
+        }
+        None => None,
+    };
+    let main = Port {
+        app: router(state.clone()),
+        max_connections: state.config.max_connections,
+        header_timeout: Duration::from_secs(state.config.header_timeout_s.max(1)),
+    };
+    accept(main, listener, drained_rx).await;
+    if let Some(probes) = probes {
+        let _ = probes.await;
+    }
     let scheduler = state.scheduler.clone();
     let finished = tokio::task::spawn_blocking(move || scheduler.shutdown(Duration::from_secs(2))).await.unwrap_or(false);
     if !finished {
@@ -235,20 +308,34 @@ pub async fn serve(state: Arc<AppState>, listener: tokio::net::TcpListener, shut
     Ok(())
 }
 
-/// The accept loop: serves connections until `stop` fires, then closes the listener and lets
-/// open connections finish until the grace ends.
-async fn accept(state: &Arc<AppState>, listener: tokio::net::TcpListener, stop: tokio::sync::oneshot::Receiver<tokio::time::Instant>) {
+/// One listening port's service and connection rules.
+struct Port {
+    app: Router,
+    /// Open connections at most; more wait in the listen backlog.
+    max_connections: usize,
+    /// Headers must arrive within this, and a kept-alive connection idle this long is closed.
+    header_timeout: Duration,
+}
+
+/// The accept loop of one port: serves connections until `stop` holds the grace's end, then
+/// closes the listener and lets open connections finish until the grace ends.
+async fn accept(port: Port, listener: tokio::net::TcpListener, mut stop: tokio::sync::watch::Receiver<Option<tokio::time::Instant>>) {
     use hyper_util::rt::{TokioIo, TokioTimer};
-    let app = router(state.clone());
     let mut http = hyper::server::conn::http1::Builder::new();
-    http.timer(TokioTimer::new()).header_read_timeout(Duration::from_secs(state.config.header_timeout_s.max(1))).keep_alive(true);
+    http.timer(TokioTimer::new()).header_read_timeout(port.header_timeout).keep_alive(true);
     let graceful = hyper_util::server::graceful::GracefulShutdown::new();
-    let connections = Arc::new(tokio::sync::Semaphore::new(state.config.max_connections.max(1)));
-    tokio::pin!(stop);
+    let connections = Arc::new(tokio::sync::Semaphore::new(port.max_connections.max(1)));
+    let stopped = async move {
+        match stop.wait_for(Option::is_some).await {
+            Ok(ends) => (*ends).expect("waited for Some"),
+            Err(_) => tokio::time::Instant::now(), // the sender is gone: stop now
+        }
+    };
+    tokio::pin!(stopped);
     let grace_ends = loop {
         let permit = tokio::select! {
             permit = connections.clone().acquire_owned() => permit.expect("never closed"),
-            ends = &mut stop => break ends.unwrap_or_else(|_| tokio::time::Instant::now()),
+            ends = &mut stopped => break ends,
         };
         let stream = tokio::select! {
             accepted = listener.accept() => match accepted {
@@ -260,10 +347,10 @@ async fn accept(state: &Arc<AppState>, listener: tokio::net::TcpListener, stop: 
                     continue;
                 }
             },
-            ends = &mut stop => break ends.unwrap_or_else(|_| tokio::time::Instant::now()),
+            ends = &mut stopped => break ends,
         };
         let _ = stream.set_nodelay(true);
-        let service = hyper_util::service::TowerToHyperService::new(app.clone());
+        let service = hyper_util::service::TowerToHyperService::new(port.app.clone());
         let connection = graceful.watch(http.serve_connection(TokioIo::new(stream), service));
         tokio::spawn(async move {
             let _ = connection.await;
@@ -281,9 +368,14 @@ pub fn run_serve(config: ServeArgs) -> Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     runtime.block_on(async move {
         let addr = format!("{}:{}", config.host, config.port);
+        let probe_addr = config.probe_port.map(|p| format!("{}:{p}", config.host));
         let state = build_state(config)?;
         let listener = tokio::net::TcpListener::bind(&addr).await.with_context(|| format!("cannot listen on {addr}"))?;
-        serve(state, listener, shutdown_signal()).await
+        let probe = match probe_addr {
+            Some(a) => Some(tokio::net::TcpListener::bind(&a).await.with_context(|| format!("cannot listen on {a} (--probe-port)"))?),
+            None => None,
+        };
+        serve(state, listener, probe, shutdown_signal()).await
     })
 }
 

@@ -3,7 +3,7 @@
 //! printing the same response JSON. The map file is registered in a temporary map store first.
 //! [`OfflineLocalizer`] is that path for any command-line tool (`cmr-agent track` uses it too).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{Context, Result, anyhow};
@@ -13,7 +13,7 @@ use crate::maps::{MapCache, MapMetadata, MapStore, Maps, Upload};
 use crate::model::{BackendOptions, ModelSet};
 use crate::serving::{ImagePayload, Lifecycle, LocalizeError, LocalizeRequest, Localized, Localizer, Scheduler};
 
-use super::config::ServeArgs;
+use super::config::EngineArgs;
 use super::types::{LocalizeResponse, TimingsMs};
 
 #[derive(Debug, Clone, clap::Args)]
@@ -31,38 +31,34 @@ pub struct LocalizeArgs {
     /// Replaces the request's hypotheses (checked like the request's own value).
     #[arg(long)]
     pub hypotheses: Option<u32>,
-    /// Every `serve` setting (models, limits, search defaults) applies here too.
+    /// The localize path's settings (models, limits, search defaults), as `serve` takes them.
     #[command(flatten)]
-    pub serve: ServeArgs,
+    pub engine: EngineArgs,
 }
 
 pub fn run(args: LocalizeArgs) -> Result<()> {
     let started = std::time::Instant::now();
-    let bytes = std::fs::read(&args.map).with_context(|| format!("cannot read {}", args.map.display()))?;
-    let format = args.map.extension().and_then(|e| e.to_str()).and_then(CloudFormat::from_extension);
-    let sidecar = args.map.with_extension("json");
-    let metadata: Option<MapMetadata> = match std::fs::read(&sidecar) {
-        Ok(text) => Some(serde_json::from_slice(&text).with_context(|| format!("{}", sidecar.display()))?),
-        Err(_) => None,
-    };
-    let mut request: LocalizeRequest = serde_json::from_slice(&std::fs::read(&args.request)?)
+    let mut request: LocalizeRequest = serde_json::from_slice(&std::fs::read(&args.request).with_context(|| format!("cannot read {}", args.request.display()))?)
         .with_context(|| format!("{} is not a localize request", args.request.display()))?;
     request.max_iterations = args.max_iterations.or(request.max_iterations);
     request.hypotheses = args.hypotheses.or(request.hypotheses);
     let image = ImagePayload::Base64(std::mem::take(&mut request.image));
 
-    let dir = tempfile::tempdir()?;
-    let (store, _) = MapStore::open(dir.path()).map_err(|e| anyhow!("{e}"))?;
-    let offline = OfflineLocalizer::new(&args.serve, store)?;
-    let id = "map";
-    offline.localizer.maps.register(id, Upload { bytes: &bytes, format, gzip: false, max_bytes: usize::MAX }, Default::default(), metadata).map_err(|e| anyhow!("{}: {e}", args.map.display()))?;
-    let done = offline.localize(id, &request, image).map_err(|e| anyhow!("{e}"))?;
+    let offline = OfflineLocalizer::with_map_file(&args.engine, &args.map)?;
+    let done = offline.localize(FILE_REGION_ID, &request, image).map_err(|e| anyhow!("{e}"))?;
     drop(offline);
     let loc = &done.localization;
     let timings = TimingsMs::new(done.queue_ms, done.decode_ms, &loc.timings, started.elapsed().as_secs_f64() * 1000.0);
-    let name = args.map.file_stem().and_then(|s| s.to_str()).unwrap_or(id);
-    println!("{}", serde_json::to_string_pretty(&LocalizeResponse::new(name, loc, timings))?);
+    println!("{}", serde_json::to_string_pretty(&LocalizeResponse::new(&map_file_name(&args.map), loc, done.prior_source, timings))?);
     Ok(())
+}
+
+/// The id under which [`OfflineLocalizer::with_map_file`] registers its map file.
+pub const FILE_REGION_ID: &str = "map";
+
+/// What the command-line tools call a region given as a file: its file stem.
+pub fn map_file_name(map: &Path) -> String {
+    map.file_stem().and_then(|s| s.to_str()).unwrap_or(FILE_REGION_ID).to_string()
 }
 
 /// The server's localize path without HTTP, for the command-line tools (`localize`, `track`):
@@ -72,22 +68,49 @@ pub struct OfflineLocalizer {
     pub localizer: Localizer,
     scheduler: Arc<Scheduler>,
     runtime: tokio::runtime::Runtime,
+    /// The temporary store of [`OfflineLocalizer::with_map_file`], removed on drop.
+    _scratch: Option<tempfile::TempDir>,
 }
 
 impl OfflineLocalizer {
-    /// Loads `config.models` and serves from `store` with `config`'s limits and search defaults
+    /// Loads `engine.models` and serves from `store` with `engine`'s limits and search defaults
     /// (one worker). Errors: the models or ONNX Runtime cannot be loaded.
-    pub fn new(config: &ServeArgs, store: MapStore) -> Result<Self> {
-        // One request at a time: one worker, with the cores its threads (unless given).
-        let one = ServeArgs { workers: 1, ..config.clone() };
-        let models = ModelSet::load(&config.models, BackendOptions { intra_threads: one.intra_threads(), ort_lib: config.ort_lib.clone() })?;
-        let maps = Arc::new(Maps::new(store, MapCache::new(config.cache_mb.saturating_mul(1024 * 1024)), Box::new(models.backend()?), config.regions()));
-        let scheduler = Arc::new(Scheduler::start(&models.factory(), one.scheduler())?);
+    pub fn new(engine: &EngineArgs, store: MapStore) -> Result<Self> {
+        // One request at a time: one worker, with the cores its threads (unless given); a queue
+        // as roomy as serve's default, which one request at a time never fills (a finished
+        // job's slot is released by the worker a moment after its answer).
+        let models = ModelSet::load(&engine.models, BackendOptions { intra_threads: engine.intra_threads_for(1), ort_lib: engine.ort_lib.clone() })?;
+        let maps = Arc::new(Maps::new(store, MapCache::new(engine.cache_mb.saturating_mul(1024 * 1024)), Box::new(models.backend()?), engine.regions()));
+        let scheduler = Arc::new(Scheduler::start(&models.factory(), engine.scheduler(1, 64))?);
         let lifecycle = Arc::new(Lifecycle::default());
         lifecycle.set_ready();
-        let localizer = Localizer::new(maps, scheduler.clone(), lifecycle, models.manifest.clone(), config.localizer());
+        let localizer = Localizer::new(maps, scheduler.clone(), lifecycle, models.manifest.clone(), engine.localizer());
         let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
-        Ok(Self { localizer, scheduler, runtime })
+        Ok(Self { localizer, scheduler, runtime, _scratch: None })
+    }
+
+    /// [`OfflineLocalizer::new`] on a temporary store holding one region, id
+    /// [`FILE_REGION_ID`]: the point-cloud file `map` (KITTI .bin, PCD, PLY, LAS/LAZ; format
+    /// from the extension, else sniffed) registered as `PUT /v1/maps/{id}` registers it, with
+    /// `<stem>.json` beside it as its metadata when present.
+    /// Errors: the file cannot be read, its sidecar is not metadata, the cloud is refused as an
+    /// upload would be (the message names the file), or the models cannot be loaded.
+    pub fn with_map_file(engine: &EngineArgs, map: &Path) -> Result<Self> {
+        let bytes = std::fs::read(map).with_context(|| format!("cannot read {}", map.display()))?;
+        let format = map.extension().and_then(|e| e.to_str()).and_then(CloudFormat::from_extension);
+        let sidecar = map.with_extension("json");
+        let metadata = match std::fs::read(&sidecar) {
+            Ok(text) => Some(MapMetadata::from_json(serde_json::from_slice(&text).with_context(|| format!("{} is not JSON", sidecar.display()))?).with_context(|| sidecar.display().to_string())?),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => None,
+            Err(e) => return Err(anyhow!("cannot read {}: {e}", sidecar.display())),
+        };
+        let dir = tempfile::tempdir()?;
+        let (store, _) = MapStore::open(dir.path()).map_err(|e| anyhow!("{e}"))?;
+        let mut offline = OfflineLocalizer::new(engine, store)?;
+        offline._scratch = Some(dir);
+        let upload = Upload { bytes: &bytes, format, gzip: false, max_bytes: usize::MAX };
+        offline.localizer.maps.register(FILE_REGION_ID, upload, Default::default(), metadata).map_err(|e| anyhow!("{}: {e}", map.display()))?;
+        Ok(offline)
     }
 
     /// One localization of map `id`, exactly as `POST /v1/maps/{id}/localize` runs it

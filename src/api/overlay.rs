@@ -19,13 +19,13 @@ use crate::agent::Localization;
 use crate::geometry::Pose;
 use crate::geometry::pose::Matrix4x4;
 use crate::render::{Overlay, PosePanel};
-use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest, PictureInput};
+use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest, PictureInput, PriorSource};
 
 use super::AppState;
 use super::error::{ApiError, ErrorBody};
 use super::extract::{MapId, MapIdParam};
 use super::routes::{parse_json, read_body, serde_urlencoded_query};
-use super::types::RawLocalizeParams;
+use super::types::{BinaryBody, RawLocalizeParams};
 
 /// The overlay's JSON body: localize's request, or an image, its intrinsics and an explicit
 /// `camera_from_map` to draw without running the agent.
@@ -61,6 +61,7 @@ pub struct OverlayRequest {
 
 /// Query of the overlay: localize's raw-image parameters, and `iterations`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct OverlayParams {
     /// Focal length along x, pixels (> 0). Required with a raw image body.
@@ -101,8 +102,8 @@ enum Wanted {
 /// JSON body with `camera_from_map` draws that pose alone and does not run the agent. The
 /// `x-camera-from-map` header carries the drawn final pose as 16 row-major numbers.
 #[utoipa::path(post, path = "/v1/maps/{id}/overlay", params(MapIdParam, OverlayParams),
-    request_body(content((OverlayRequest = "application/json"), (Vec<u8> = "image/jpeg"), (Vec<u8> = "image/png"))),
-    responses((status = 200, content_type = "image/png", body = Vec<u8>, description = "the picture"),
+    request_body(content((OverlayRequest = "application/json"), (BinaryBody = "image/jpeg"), (BinaryBody = "image/png"))),
+    responses((status = 200, content_type = "image/png", body = BinaryBody, description = "the picture"),
         (status = 400, body = ErrorBody), (status = 404, body = ErrorBody),
         (status = 408, body = ErrorBody), (status = 413, body = ErrorBody), (status = 415, body = ErrorBody), (status = 422, body = ErrorBody),
         (status = 429, body = ErrorBody), (status = 500, body = ErrorBody), (status = 503, body = ErrorBody)))]
@@ -132,7 +133,7 @@ async fn overlay_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, header
             let (done, picture) = st.localizer.localize_for_picture(admission, id, &request, payload).await?;
             let loc = &done.localization;
             let strip_panels = if strip { iteration_panels(loc) } else { Vec::new() };
-            (localization_panels(loc), strip_panels, picture, loc.camera_from_map())
+            (localization_panels(loc, done.prior_source), strip_panels, picture, loc.camera_from_map())
         }
         Wanted::Pose(request, pose) => {
             if strip {
@@ -154,22 +155,30 @@ async fn overlay_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, header
 }
 
 /// The two panels of a localization: the prior and the answer.
-fn localization_panels(loc: &Localization) -> Vec<PosePanel> {
+fn localization_panels(loc: &Localization, prior_source: PriorSource) -> Vec<PosePanel> {
     let best = loc.best();
     let verdict = match loc.verdict.p_registered {
         Some(p) if loc.verdict.localized => format!("localized (p {p:.2})"),
         Some(p) => format!("NOT localized (p {p:.2})"),
         None => "not localized (no calibrator)".to_string(),
     };
-    let fin = format!(
-        "final: {verdict}, start {} of {}, {} steps{}, confidence {:.2}",
-        loc.chosen + 1,
-        loc.hypotheses.len(),
-        best.steps.len(),
-        if best.converged { ", converged" } else { "" },
-        loc.confidence.score
-    );
-    vec![PosePanel::new("prior", loc.prior), PosePanel::new(fin, loc.camera_from_map())]
+    let fin = if loc.kept_prior {
+        format!("final: {verdict}, the prior, kept (no start explained the image better), confidence {:.2}", loc.confidence.score)
+    } else {
+        format!(
+            "final: {verdict}, start {} of {}, {} steps{}, confidence {:.2}",
+            loc.chosen + 1,
+            loc.hypotheses.len(),
+            best.steps.len(),
+            if best.converged { ", converged" } else { "" },
+            loc.confidence.score
+        )
+    };
+    let prior = match prior_source {
+        PriorSource::Request | PriorSource::Region => "prior",
+        PriorSource::Default => "prior (default: level at the map's origin, along +x)",
+    };
+    vec![PosePanel::new(prior, loc.prior), PosePanel::new(fin, loc.camera_from_map())]
 }
 
 /// Every pose of the chosen start: its start and each step.

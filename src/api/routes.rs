@@ -60,14 +60,15 @@ pub async fn metrics(State(st): Shared) -> Response {
 /// Model manifest, limits and version.
 #[utoipa::path(get, path = "/v1/info", responses((status = 200, body = Info)))]
 pub async fn info(State(st): Shared) -> Json<Info> {
-    let c = &st.config;
+    let c = &st.config.engine;
+    let serve = &st.config;
     Json(Info {
         name: env!("CARGO_PKG_NAME").into(),
         version: env!("CARGO_PKG_VERSION").into(),
         manifest: serde_json::to_value(&*st.models.manifest).unwrap_or_default(),
         limits: Limits {
-            max_body_bytes: c.max_body_bytes,
-            max_map_bytes: c.max_map_bytes,
+            max_body_bytes: serve.max_body_bytes,
+            max_map_bytes: serve.max_map_bytes,
             max_image_side: c.max_image_side,
             max_iterations: MAX_ITERATIONS,
             default_max_iterations: c.default_max_iterations,
@@ -75,17 +76,17 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             default_hypotheses: c.default_hypotheses,
             narrow_after: c.search.narrow_after,
             merge_duplicates: c.search.merge_duplicates,
-            queue_capacity: c.queue_capacity,
+            queue_capacity: serve.queue_capacity,
             max_batch: c.max_batch,
             request_timeout_ms: c.request_timeout_ms,
-            body_timeout_ms: c.body_timeout_ms,
+            body_timeout_ms: serve.body_timeout_ms,
             cache_budget_bytes: st.maps.cache.budget_bytes(),
             max_map_points: c.max_map_points,
             tile_above_points: c.tile_above_points,
             default_radius_m: c.default_radius_m,
         },
         localized_threshold: st.localizer.calibration.threshold(),
-        workers: c.workers(),
+        workers: serve.workers(),
         onnxruntime_library: crate::model::runtime::loaded_library().map(|p| p.display().to_string()),
     })
 }
@@ -123,7 +124,7 @@ pub const DEFAULT_POINTS_QUERY: u32 = 20_000;
 /// 100,000 × 12 bytes = 1.2 MB. Preparing a region that is not prepared yet runs the point
 /// encoder once (as localize would).
 #[utoipa::path(get, path = "/v1/maps/{id}/points", params(MapIdParam, PointsParams),
-    responses((status = 200, content_type = "application/octet-stream", body = Vec<u8>,
+    responses((status = 200, content_type = "application/octet-stream", body = BinaryBody,
             description = "count × (x, y, z) little-endian float32, metres, relative to the region's origin (x-map-origin)",
             headers(("x-point-count" = u32, description = "points in the body"),
                 ("x-points-total" = u64, description = "finite points of the stored cloud"),
@@ -182,7 +183,7 @@ fn gzip_encoded(headers: &HeaderMap) -> Result<bool, ApiError> {
 /// checked before the body is read.
 #[utoipa::path(put, path = "/v1/maps/{id}", params(MapIdParam, UploadParams,
         ("Content-Encoding" = Option<String>, Header, description = "`gzip` when the body is gzip-compressed (also recognised without it); `identity` or absent otherwise")),
-    request_body(content = Vec<u8>, content_type = "application/octet-stream",
+    request_body(content = BinaryBody, content_type = "application/octet-stream",
         description = "The point-cloud file: KITTI .bin (float32 x, y, z, intensity), PCD (ascii, binary, binary_compressed), PLY (ascii, binary), LAS 1.0-1.4 and LAZ; optionally gzip-compressed"),
     responses((status = 201, body = RegisterResponse, description = "new region"), (status = 200, body = RegisterResponse, description = "region replaced"),
         (status = 400, body = ErrorBody, description = "invalid map id or unreadable body"),
@@ -274,7 +275,7 @@ pub async fn delete_map(_admin: Admin, State(st): Shared, MapId(id): MapId) -> R
 /// request, or the raw JPEG/PNG bytes (`content-type: image/jpeg|image/png`) with the intrinsics
 /// fx, fy, cx, cy in the query. Capacity is checked before the body is read: a 429 costs nothing.
 #[utoipa::path(post, path = "/v1/maps/{id}/localize", params(MapIdParam, RawLocalizeParams),
-    request_body(content((LocalizeRequest = "application/json"), (Vec<u8> = "image/jpeg"), (Vec<u8> = "image/png"))),
+    request_body(content((LocalizeRequest = "application/json"), (BinaryBody = "image/jpeg"), (BinaryBody = "image/png"))),
     responses((status = 200, body = LocalizeResponse), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody),
         (status = 408, body = ErrorBody), (status = 413, body = ErrorBody), (status = 415, body = ErrorBody), (status = 422, body = ErrorBody),
         (status = 429, body = ErrorBody), (status = 500, body = ErrorBody), (status = 503, body = ErrorBody)))]
@@ -330,7 +331,7 @@ async fn localize_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, heade
     let loc = &done.localization;
     let timings = TimingsMs::new(done.queue_ms, done.decode_ms, &loc.timings, done.total_ms);
     metrics::histogram!("cmr_iterations").record(loc.iterations() as f64);
-    let body = LocalizeResponse::new(id, loc, timings);
+    let body = LocalizeResponse::new(id, loc, done.prior_source, timings);
     let mut response = Json(body).into_response();
     if let Ok(v) = HeaderValue::from_str(&timings.header()) {
         response.headers_mut().insert("server-timing", v);

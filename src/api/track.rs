@@ -2,10 +2,12 @@
 //! through the server's own localize path ([`OfflineLocalizer`], the one `cmr-agent localize`
 //! uses), and writes the trajectory, its errors, latencies and a plot (`track::output`).
 //!
-//! The map frame is the sequence's (`kitti::Sequence::map_from_lidar`: the LiDAR at frame 0), so
-//! the region must be in that frame, e.g. built from the same drive's scans.
+//! The region is a stored one (`--id` in the `--maps` store, e.g. written by `cmr-agent map build
+//! --store`) or a point-cloud file (`--map`, as `cmr-agent localize --map`). The map frame is the
+//! sequence's (`kitti::Sequence::map_from_lidar`: the LiDAR at frame 0), so the region must be
+//! in that frame, e.g. built from the same drive's scans.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, anyhow, bail};
 use bytes::Bytes;
@@ -13,20 +15,31 @@ use bytes::Bytes;
 use crate::geometry::Pose;
 use crate::geometry::pose::Matrix4x4;
 use crate::kitti::{Frame, Sequence};
-use crate::maps::MapStore;
+use crate::maps::{MapError, MapStore};
 use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest};
 use crate::track::output::TrackRun;
 use crate::track::{FrameAnswer, FrameLocalizer, SearchSize, TrackConfig, coarse_prior, cold_reference, spread, track};
 
-use super::config::ServeArgs;
-use super::offline::OfflineLocalizer;
+use super::config::EngineArgs;
+use super::offline::{FILE_REGION_ID, OfflineLocalizer, map_file_name};
 
 #[derive(Debug, Clone, clap::Args)]
+#[command(group(clap::ArgGroup::new("region").required(true).args(["id", "map"])))]
 pub struct TrackArgs {
-    /// Map region id in the `--maps` directory (the server's store; the region must be in the
-    /// sequence's map frame: the LiDAR's frame at frame 0).
+    /// Map region id in the `--maps` store (written by `cmr-agent map build --store DIR --id ID`,
+    /// or uploaded to a server serving that directory). The region must be in the sequence's map
+    /// frame: the LiDAR's frame at frame 0.
     #[arg(long)]
-    pub id: String,
+    pub id: Option<String>,
+    /// The map store `--id` is read from: the directory `serve --maps` serves. It must exist
+    /// (it is not created).
+    #[arg(long, env = "CMR_MAPS", default_value = "maps")]
+    pub maps: PathBuf,
+    /// Instead of `--id`: a point-cloud file as the region (KITTI .bin, PCD, PLY, LAS/LAZ, e.g.
+    /// `map build --out`'s), registered as an upload would be, with `<stem>.json` beside it as
+    /// its metadata when present (as `cmr-agent localize --map`).
+    #[arg(long)]
+    pub map: Option<PathBuf>,
     /// A KITTI-layout sequence directory (calib.txt, poses.txt, image_2/, velodyne/).
     #[arg(long)]
     pub sequence: PathBuf,
@@ -62,9 +75,9 @@ pub struct TrackArgs {
     /// from a coarse prior, for the summary's latency and accuracy comparison.
     #[arg(long, default_value_t = 0)]
     pub cold_reference: usize,
-    /// Every `serve` setting (models, `--maps`, limits, search defaults) applies here too.
+    /// The localize path's settings (models, limits, search defaults), as `serve` takes them.
     #[command(flatten)]
-    pub serve: ServeArgs,
+    pub engine: EngineArgs,
 }
 
 /// Localizes frames of one sequence in one stored region through [`OfflineLocalizer`].
@@ -94,7 +107,7 @@ impl FrameLocalizer for StoredRegion<'_> {
             .map_err(|e| anyhow!("frame {} ({}): {e}", frame.index, frame.image_path.display()))?;
         let latency_ms = crate::agent::ms(started);
         let loc = &done.localization;
-        Ok(FrameAnswer { camera_from_map: loc.camera_from_map(), confidence: loc.confidence.score, verdict: loc.verdict, iterations: loc.best().steps.len(), latency_ms })
+        Ok(FrameAnswer { camera_from_map: loc.camera_from_map(), confidence: loc.confidence.score, verdict: loc.verdict, iterations: loc.answer_steps().len(), latency_ms })
     }
 }
 
@@ -117,20 +130,23 @@ pub fn run(args: TrackArgs) -> Result<()> {
     let truth = file_indices.iter().map(|&i| sequence.camera_from_map(i)).collect::<Result<Vec<_>>>()?;
     let config = TrackConfig {
         tracked: SearchSize { hypotheses: args.tracked_hypotheses, max_iterations: args.tracked_iterations },
-        full: SearchSize { hypotheses: args.serve.default_hypotheses, max_iterations: args.serve.default_max_iterations },
+        full: SearchSize { hypotheses: args.engine.default_hypotheses, max_iterations: args.engine.default_max_iterations },
         fallback_below: args.fallback_below,
     };
 
-    let (store, warnings) = MapStore::open(&args.serve.maps).map_err(|e| anyhow!("{e}"))?;
-    for w in warnings {
-        tracing::warn!("map store: {w}");
-    }
-    let entry = store.get(&args.id).map_err(|e| anyhow!("map {}: {e}", args.id))?;
-    let offline = OfflineLocalizer::new(&args.serve, store)?;
+    let (offline, id, name) = match (&args.map, &args.id) {
+        (Some(file), _) => (OfflineLocalizer::with_map_file(&args.engine, file)?, FILE_REGION_ID.to_string(), map_file_name(file)),
+        (None, Some(id)) => {
+            let store = open_store(&args.maps, id)?;
+            (OfflineLocalizer::new(&args.engine, store)?, id.clone(), id.clone())
+        }
+        (None, None) => bail!("give --id ID (a region in the --maps store) or --map FILE"),
+    };
+    let entry = offline.localizer.maps.store.get(&id).map_err(|e| anyhow!("map {name}: {e}"))?;
     // Prepare the region's embeddings before the clock of the first frame starts.
-    let map = offline.localizer.maps.prepared_for(&entry).map_err(|e| anyhow!("map {}: {e}", args.id))?;
+    let map = offline.localizer.maps.prepared_for(&entry).map_err(|e| anyhow!("map {name}: {e}"))?;
 
-    let mut region = StoredRegion { offline: &offline, id: &args.id, frames: &frames };
+    let mut region = StoredRegion { offline: &offline, id: &id, frames: &frames };
     let first_prior = coarse_prior(&truth[0], args.prior_noise_m, args.prior_noise_deg, args.seed);
     let tracked = track(&mut region, frames.len(), first_prior, &config, |f| {
         let c = f.estimate.camera_position_in_map();
@@ -150,7 +166,7 @@ pub fn run(args: TrackArgs) -> Result<()> {
 
     let run = TrackRun {
         sequence: &sequence,
-        map_id: &args.id,
+        map_id: &name,
         file_indices: &file_indices,
         frames: &tracked,
         truth: &truth,
@@ -167,4 +183,29 @@ pub fn run(args: TrackArgs) -> Result<()> {
     let summary = run.write(&args.out, &points)?;
     println!("{}", serde_json::to_string_pretty(&summary)?);
     Ok(())
+}
+
+/// The existing map store `dir` holding region `id`. Errors: the directory does not exist
+/// (a mistyped `--maps` is not created), or it has no region `id` (the message lists those it
+/// has).
+fn open_store(dir: &Path, id: &str) -> Result<MapStore> {
+    if !dir.is_dir() {
+        bail!(
+            "--maps {}: no such directory; give the map store that `serve --maps` serves, or write a region into one with `cmr-agent map build --sequence DIR --store DIR --id {id}`",
+            dir.display()
+        );
+    }
+    let (store, warnings) = MapStore::open(dir).map_err(|e| anyhow!("{e}"))?;
+    for w in warnings {
+        tracing::warn!("map store: {w}");
+    }
+    match store.get(id) {
+        Ok(_) => Ok(store),
+        Err(MapError::NotFound(_)) => {
+            let ids = store.ids();
+            let has = if ids.is_empty() { "it holds no regions".to_string() } else { format!("its regions: {}", ids.join(", ")) };
+            bail!("no map named {id:?} in {} ({has}); `cmr-agent map build --sequence DIR --store {} --id ID` writes one", dir.display(), dir.display())
+        }
+        Err(e) => Err(anyhow!("map {id}: {e}")),
+    }
 }

@@ -6,7 +6,7 @@ use utoipa::ToSchema;
 use crate::agent::{Localization, Step};
 use crate::geometry::Pose;
 use crate::maps::{Extent, MapEntry, MapMetadata, Maps};
-use crate::serving::Matrix4x4;
+use crate::serving::{Matrix4x4, PriorSource};
 
 use super::error::ApiError;
 
@@ -180,28 +180,37 @@ pub struct LocalizeResponse {
     /// The starting pose.
     #[schema(value_type = Matrix4x4)]
     pub prior_camera_from_map: Rows4x4,
-    /// The chosen hypothesis's steps.
+    /// Where the starting pose came from: `request` (its `prior_camera_from_map`), `region` (the
+    /// region's `initial_camera_from_map`) or `default` (neither: a level camera at the map
+    /// frame's origin looking along the map's +x axis; docs/server.md, "The prior").
+    pub prior_source: PriorSource,
+    /// The chosen hypothesis's steps (none when the prior was kept).
     pub trajectory: Vec<StepBody>,
     pub confidence: ConfidenceBody,
-    /// True when the chosen hypothesis's agent chose all-zero steps before running out of iterations.
+    /// True when the chosen hypothesis's agent chose all-zero steps before running out of
+    /// iterations (false when the prior was kept).
     pub converged: bool,
-    /// Steps of the chosen hypothesis.
+    /// Steps that led to the answer (0 when the prior was kept).
     pub iterations: usize,
     /// Every start of the search, in order; the first one starts at the prior.
     pub hypotheses: Vec<HypothesisBody>,
-    /// Index into `hypotheses` of the answer.
+    /// Index into `hypotheses` of the answer (0 when the prior was kept).
     pub chosen_hypothesis: usize,
+    /// The answer is the prior, unmoved: its alignment score beat every hypothesis's final pose
+    /// (the server's `--keep-prior`, on by default).
+    pub kept_prior: bool,
     pub timings_ms: TimingsMs,
 }
 
 impl LocalizeResponse {
-    pub fn new(map_id: &str, loc: &Localization, timings_ms: TimingsMs) -> Self {
+    pub fn new(map_id: &str, loc: &Localization, prior_source: PriorSource, timings_ms: TimingsMs) -> Self {
         let best = loc.best();
         LocalizeResponse {
             map_id: map_id.to_string(),
             pose: loc.camera_from_map().into(),
             prior_camera_from_map: loc.prior.to_rows(),
-            trajectory: best.steps.iter().map(StepBody::from).collect(),
+            prior_source,
+            trajectory: loc.answer_steps().iter().map(StepBody::from).collect(),
             confidence: ConfidenceBody {
                 p_registered: loc.verdict.p_registered,
                 localized: loc.verdict.localized,
@@ -211,8 +220,8 @@ impl LocalizeResponse {
                 policy_certainty: loc.confidence.policy_certainty,
                 alignment: loc.confidence.alignment,
             },
-            converged: best.converged,
-            iterations: best.steps.len(),
+            converged: best.converged && !loc.kept_prior,
+            iterations: loc.answer_steps().len(),
             hypotheses: loc
                 .hypotheses
                 .iter()
@@ -228,6 +237,7 @@ impl LocalizeResponse {
                 })
                 .collect(),
             chosen_hypothesis: loc.chosen,
+            kept_prior: loc.kept_prior,
             timings_ms,
         }
     }
@@ -319,17 +329,21 @@ pub struct RegisterTimingsMs {
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 pub struct UploadParams {
-    /// `kitti_bin`, `pcd`, `ply` or `las`; sniffed from the bytes when absent (a body whose own
-    /// header names another format is refused with 422).
+    /// `kitti_bin` (or `kitti`, `bin`), `pcd`, `ply` or `las` (or `laz`); sniffed from the bytes
+    /// when absent or empty (a body whose own header names another format is refused with 422).
+    #[param(pattern = r"^(kitti_bin|kitti|bin|pcd|ply|las|laz)?$")]
     pub format: Option<String>,
-    /// Optional description stored in the sidecar (metadata can also be set with PUT .../metadata).
+    /// Optional description stored in the sidecar (metadata can also be set with PUT .../metadata),
+    /// at most 4096 characters.
+    #[param(max_length = 4096)]
     pub description: Option<String>,
     /// The region's local-frame origin, map frame, metres: `x,y,z` (e.g. `500000,5400000,0`).
     /// Points are stored relative to it (float32); default: the cloud's box centre rounded to a
     /// multiple of 1 km (so a region near the map frame's origin keeps origin 0,0,0).
     pub origin: Option<String>,
     /// Voxel downsampling before storing: one point (the centroid) per cube of this side,
-    /// metres, 0.01..=100. Default: none.
+    /// metres, 0.01..=100 (`geometry::voxel::MIN_VOXEL_M`, `MAX_VOXEL_M`). Default: none.
+    #[param(minimum = 0.01, maximum = 100.0)]
     pub voxel_m: Option<f64>,
 }
 
@@ -347,8 +361,9 @@ impl UploadParams {
 
 /// Query of the raw-image variant of localize (body = the JPEG/PNG bytes, `content-type:
 /// image/jpeg` or `image/png`): fx, fy, cx and cy are required with it, and unused with a JSON
-/// body.
+/// body (a rule OpenAPI cannot state: a parameter cannot be required for one media type only).
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct RawLocalizeParams {
     /// Focal length along x, pixels (> 0). Required with a raw image body.
@@ -390,6 +405,7 @@ impl RawLocalizeParams {
 
 /// Query of `GET /v1/maps/{id}/points`.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct PointsParams {
     /// At most this many points, 1..=100000; default 20000. The answer holds
@@ -452,3 +468,16 @@ pub struct Info {
     pub workers: usize,
     pub onnxruntime_library: Option<String>,
 }
+
+/// A request or response body of raw bytes (a point-cloud file, a JPEG/PNG image, float32
+/// points): `{"type": "string", "format": "binary"}` in the OpenAPI document.
+pub struct BinaryBody;
+
+impl utoipa::PartialSchema for BinaryBody {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        use utoipa::openapi::schema::{KnownFormat, ObjectBuilder, SchemaFormat, Type};
+        ObjectBuilder::new().schema_type(Type::String).format(Some(SchemaFormat::KnownFormat(KnownFormat::Binary))).into()
+    }
+}
+
+impl utoipa::ToSchema for BinaryBody {}

@@ -5,7 +5,6 @@ use std::path::PathBuf;
 use anyhow::Result;
 
 use super::matching::MatchStrategy;
-use super::perturbations::{MAX_SHIFT_M, MAX_YAW_DEG, NearPrior};
 use super::pnp::RansacOptions;
 use super::run::{EvalConfig, run};
 
@@ -55,6 +54,10 @@ pub struct Args {
     /// frames: 8); the cases of one frame are consecutive.
     #[arg(long, default_value_t = 1)]
     pub cases_per_frame: usize,
+    /// How far the priors are drawn when creating the perturbation file: `protocol` (the paper's:
+    /// any heading, ±10 m) or `fleet` (heading within ±30°, position within 5 m).
+    #[arg(long, value_enum, default_value = "protocol")]
+    pub priors: super::perturbations::Priors,
     /// The greedy expert's action frame: `camera_y` (yaw about camera y, translation along
     /// camera x / z) or `map_z` (yaw about the map's up axis, translation in its ground plane).
     /// Default: the model's `actions.frame`, `camera_y` with --reference-only.
@@ -86,30 +89,12 @@ pub struct Args {
     /// such as the calibrator's fitting data.
     #[arg(long)]
     pub no_baseline: bool,
-    /// When creating the perturbation file: draw near the prior (the fleet regime) with yaw
-    /// uniform in ±this many degrees (needs --max-shift-m). Default: the paper's protocol
-    /// (±180°, ±10 m per axis).
-    #[arg(long, requires = "max_shift_m")]
-    pub max_yaw_deg: Option<f64>,
-    /// ... and the shift uniform over the disc of this radius, metres (needs --max-yaw-deg).
-    #[arg(long, requires = "max_yaw_deg")]
-    pub max_shift_m: Option<f64>,
 }
 
 pub fn main(args: Args) -> Result<()> {
     if args.iterations == 0 {
         anyhow::bail!("--iterations must be at least 1");
     }
-    let near = match (args.max_yaw_deg, args.max_shift_m) {
-        (Some(max_yaw_deg), Some(max_shift_m)) => {
-            let (yaw_ok, shift_ok) = ((0.0..=MAX_YAW_DEG).contains(&max_yaw_deg), (0.0..=MAX_SHIFT_M).contains(&max_shift_m));
-            if !(yaw_ok && shift_ok) {
-                anyhow::bail!("--max-yaw-deg must be in 0..={MAX_YAW_DEG} and --max-shift-m in 0..={MAX_SHIFT_M}");
-            }
-            Some(NearPrior { max_yaw_deg, max_shift_m })
-        }
-        _ => None,
-    };
     let config = EvalConfig {
         data: args.data,
         perturbations: args.perturbations,
@@ -124,6 +109,7 @@ pub fn main(args: Args) -> Result<()> {
         frame_stride: args.frame_stride,
         max_cases: args.max_cases,
         cases_per_frame: args.cases_per_frame.max(1),
+        priors: args.priors,
         action_frame: args.action_frame,
         num_points: 40_960,
         ransac: RansacOptions { iterations: args.ransac_iterations, inlier_px: args.inlier_px, ..RansacOptions::default() },
@@ -133,7 +119,6 @@ pub fn main(args: Args) -> Result<()> {
         worst: args.worst,
         record_hypotheses: args.record_hypotheses,
         baseline: !args.no_baseline,
-        near,
     };
     let report = run(&config)?;
     print!("{}", report.markdown());

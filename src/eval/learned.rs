@@ -83,6 +83,7 @@ impl Learned {
             "converged": best.converged,
             "confidence": loc.confidence.score,
             "chosen_start_yaw_offset_deg": best.start_yaw_offset_deg,
+            "kept_prior": loc.kept_prior,
             "alignment": loc.hypotheses.iter().map(|h| h.alignment()).collect::<Vec<_>>(),
             // Policy rows this case cost: steps over all hypotheses (the search's price).
             "policy_rows": loc.hypotheses.iter().map(|h| h.steps.len()).sum::<usize>(),

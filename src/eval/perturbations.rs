@@ -5,9 +5,9 @@
 //! axis by `yaw_deg` ∈ [−180°, 180°), then translation (`dx_m`, `dy_m`) ∈ [−10, 10] m each; the
 //! map is Q·scan and the ground truth camera_from_map is camera_from_lidar · Q⁻¹.
 //!
-//! A file drawn [`NearPrior`] instead (`cmr-agent eval --max-yaw-deg 30 --max-shift-m 5`) holds
-//! the priors a fleet has: yaw uniform in ±`max_yaw_deg`, the shift uniform in the disc of radius
-//! `max_shift_m` (so the no-op's error is at most that); the file records the bounds.
+//! A second regime, [`Priors::Fleet`], draws what a fleet backend sends: a prior from odometry or
+//! GNSS, `yaw_deg` ∈ [−30°, 30°) and the shift uniform in a disc of 5 m. The file records the
+//! regime (`"priors"`, absent in older files: the protocol).
 
 use std::path::Path;
 
@@ -25,6 +25,20 @@ pub const FORMAT: &str = "cmr-agent-perturbations/1";
 pub const SAMPLING_SEED: u64 = 0;
 pub const MAX_YAW_DEG: f64 = 180.0;
 pub const MAX_SHIFT_M: f64 = 10.0;
+/// The fleet regime's bounds: a prior within ±30° of heading and 5 m of position.
+pub const FLEET_MAX_YAW_DEG: f64 = 30.0;
+pub const FLEET_MAX_SHIFT_M: f64 = 5.0;
+
+/// How far from the truth the cases' priors are drawn.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Priors {
+    /// The paper's protocol: any heading, each ground shift in ±10 m.
+    #[default]
+    Protocol,
+    /// A fleet-grade prior: heading within ±30°, position within a 5 m disc.
+    Fleet,
+}
 
 /// One evaluated case.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -48,14 +62,6 @@ impl Perturbation {
     }
 }
 
-/// Bounds of a near-prior draw (the fleet regime): |yaw| ≤ `max_yaw_deg`, √(dx² + dy²) ≤
-/// `max_shift_m`.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct NearPrior {
-    pub max_yaw_deg: f64,
-    pub max_shift_m: f64,
-}
-
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PerturbationFile {
     pub format: String,
@@ -63,46 +69,47 @@ pub struct PerturbationFile {
     pub seed: u64,
     /// The seed of the N-point sampling (see [`SAMPLING_SEED`]).
     pub sampling_seed: u64,
-    /// Present when the motions were drawn near the prior (not the paper's protocol).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub near: Option<NearPrior>,
+    /// The regime the motions were drawn in.
+    #[serde(default, skip_serializing_if = "is_protocol")]
+    pub priors: Priors,
     pub cases: Vec<Perturbation>,
 }
 
-impl PerturbationFile {
-    /// Draws one motion per frame, in the order given, from `seed`.
-    pub fn generate(frames: &[(String, usize)], seed: u64) -> Self {
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let cases = frames
-            .iter()
-            .map(|(sequence, frame)| Perturbation {
-                sequence: sequence.clone(),
-                frame: *frame,
-                yaw_deg: micro(rng.random_range(-MAX_YAW_DEG..MAX_YAW_DEG)).clamp(-MAX_YAW_DEG, MAX_YAW_DEG - 1e-6),
-                dx_m: micro(rng.random_range(-MAX_SHIFT_M..=MAX_SHIFT_M)),
-                dy_m: micro(rng.random_range(-MAX_SHIFT_M..=MAX_SHIFT_M)),
-            })
-            .collect();
-        PerturbationFile { format: FORMAT.into(), seed, sampling_seed: SAMPLING_SEED, near: None, cases }
-    }
+fn is_protocol(p: &Priors) -> bool {
+    *p == Priors::Protocol
+}
 
-    /// Draws one motion per frame near the prior, in the order given, from `seed`: yaw uniform
-    /// in [−max_yaw_deg, max_yaw_deg], the shift at a uniform angle and radius max_shift_m·√u
-    /// (uniform over the disc; `training/cmr/data.py`'s `near_start_p` draws the same way).
-    pub fn generate_near(frames: &[(String, usize)], seed: u64, near: NearPrior) -> Self {
+impl PerturbationFile {
+    /// Draws one motion per frame, in the order given, from `seed`, in the regime `priors`
+    /// (the protocol's draws are those of every earlier file with the same seed).
+    pub fn generate(frames: &[(String, usize)], seed: u64, priors: Priors) -> Self {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let cases = frames
             .iter()
             .map(|(sequence, frame)| {
-                let yaw_deg = micro(rng.random_range(-near.max_yaw_deg..=near.max_yaw_deg));
-                let radius = near.max_shift_m * rng.random_range(0.0f64..1.0).sqrt();
-                let angle = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
-                // Rounding must not leave the disc.
-                let (dx_m, dy_m) = (micro(radius * angle.cos() * (1.0 - 1e-6)), micro(radius * angle.sin() * (1.0 - 1e-6)));
-                Perturbation { sequence: sequence.clone(), frame: *frame, yaw_deg, dx_m, dy_m }
+                let (yaw_deg, dx_m, dy_m) = match priors {
+                    Priors::Protocol => (
+                        rng.random_range(-MAX_YAW_DEG..MAX_YAW_DEG),
+                        rng.random_range(-MAX_SHIFT_M..=MAX_SHIFT_M),
+                        rng.random_range(-MAX_SHIFT_M..=MAX_SHIFT_M),
+                    ),
+                    Priors::Fleet => {
+                        let yaw = rng.random_range(-FLEET_MAX_YAW_DEG..FLEET_MAX_YAW_DEG);
+                        let radius = FLEET_MAX_SHIFT_M * rng.random_range(0.0..=1.0f64).sqrt();
+                        let heading = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+                        (yaw, radius * heading.cos(), radius * heading.sin())
+                    }
+                };
+                Perturbation {
+                    sequence: sequence.clone(),
+                    frame: *frame,
+                    yaw_deg: micro(yaw_deg).clamp(-MAX_YAW_DEG, MAX_YAW_DEG - 1e-6),
+                    dx_m: micro(dx_m),
+                    dy_m: micro(dy_m),
+                }
             })
             .collect();
-        PerturbationFile { format: FORMAT.into(), seed, sampling_seed: SAMPLING_SEED, near: Some(near), cases }
+        PerturbationFile { format: FORMAT.into(), seed, sampling_seed: SAMPLING_SEED, priors, cases }
     }
 
     pub fn read(path: &Path) -> Result<Self> {
@@ -124,12 +131,12 @@ impl PerturbationFile {
         }
         for (i, c) in self.cases.iter().enumerate() {
             let finite = c.yaw_deg.is_finite() && c.dx_m.is_finite() && c.dy_m.is_finite();
-            if !finite || c.yaw_deg.abs() > MAX_YAW_DEG || c.dx_m.abs() > MAX_SHIFT_M || c.dy_m.abs() > MAX_SHIFT_M {
-                bail!("case {i} ({} frame {}) is outside the protocol's range", c.sequence, c.frame);
-            }
-            let outside_near = self.near.is_some_and(|n| c.yaw_deg.abs() > n.max_yaw_deg || c.dx_m.hypot(c.dy_m) > n.max_shift_m);
-            if outside_near {
-                bail!("case {i} ({} frame {}) is outside the file's near-prior bounds", c.sequence, c.frame);
+            let inside = match self.priors {
+                Priors::Protocol => c.yaw_deg.abs() <= MAX_YAW_DEG && c.dx_m.abs() <= MAX_SHIFT_M && c.dy_m.abs() <= MAX_SHIFT_M,
+                Priors::Fleet => c.yaw_deg.abs() <= FLEET_MAX_YAW_DEG && c.dx_m.hypot(c.dy_m) <= FLEET_MAX_SHIFT_M + 1e-6,
+            };
+            if !finite || !inside {
+                bail!("case {i} ({} frame {}) is outside the {:?} regime's range", c.sequence, c.frame, self.priors);
             }
         }
         Ok(())
@@ -144,18 +151,15 @@ impl PerturbationFile {
         Ok(write_atomic(path, json.as_bytes())?)
     }
 
-    /// Reads `path` when it exists; otherwise draws the cases for `frames` from `seed` (the
-    /// paper's protocol, or `near` the prior) and writes them there. Returns the file and
-    /// whether it was created. Either way the cases are the ones parsed from the file, so every
-    /// run evaluates the file's text, bit for bit.
-    pub fn load_or_create(path: &Path, frames: &[(String, usize)], seed: u64, near: Option<NearPrior>) -> Result<(Self, bool)> {
+    /// Reads `path` when it exists; otherwise draws the cases for `frames` from `seed` and
+    /// writes them there. Returns the file and whether it was created. Either way the cases are
+    /// the ones parsed from the file, so every run evaluates the file's text, bit for bit.
+    /// `priors` only matters when the file is created.
+    pub fn load_or_create(path: &Path, frames: &[(String, usize)], seed: u64, priors: Priors) -> Result<(Self, bool)> {
         if path.exists() {
             return Ok((Self::read(path)?, false));
         }
-        let file = match near {
-            Some(near) => Self::generate_near(frames, seed, near),
-            None => Self::generate(frames, seed),
-        };
+        let file = Self::generate(frames, seed, priors);
         file.validate()?;
         file.write(path)?;
         Ok((Self::read(path)?, true))
@@ -178,50 +182,47 @@ mod tests {
 
     #[test]
     fn same_seed_same_cases_and_the_file_round_trips() {
-        let a = PerturbationFile::generate(&frames(), 7);
-        assert_eq!(a, PerturbationFile::generate(&frames(), 7));
-        assert_ne!(a, PerturbationFile::generate(&frames(), 8));
+        let a = PerturbationFile::generate(&frames(), 7, Priors::Protocol);
+        assert_eq!(a, PerturbationFile::generate(&frames(), 7, Priors::Protocol));
+        assert_ne!(a, PerturbationFile::generate(&frames(), 8, Priors::Protocol));
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("cases.json");
-        let (created, fresh) = PerturbationFile::load_or_create(&path, &frames(), 7, None).unwrap();
+        let (created, fresh) = PerturbationFile::load_or_create(&path, &frames(), 7, Priors::Protocol).unwrap();
         assert!(fresh);
         // A second run reads the file, whatever seed or frames it is given.
-        let (read, fresh) = PerturbationFile::load_or_create(&path, &frames()[..3], 99, None).unwrap();
+        let (read, fresh) = PerturbationFile::load_or_create(&path, &frames()[..3], 99, Priors::Protocol).unwrap();
         assert!(!fresh);
         assert_eq!(read, created);
         assert_eq!(read, a);
         assert!(a.cases.iter().all(|c| c.yaw_deg >= -180.0 && c.yaw_deg < 180.0 && c.dx_m.abs() <= 10.0));
     }
 
-    /// The fleet regime: every case within the bounds, filling them (some near each edge),
-    /// seeded, recorded in the file and checked when read back.
     #[test]
-    fn near_prior_draws_stay_within_their_bounds() {
-        let near = NearPrior { max_yaw_deg: 30.0, max_shift_m: 5.0 };
-        let frames: Vec<(String, usize)> = (0..400).map(|i| ("00".to_string(), i)).collect();
-        let a = PerturbationFile::generate_near(&frames, 3, near);
-        assert_eq!(a, PerturbationFile::generate_near(&frames, 3, near));
-        assert!(a.cases.iter().all(|c| c.yaw_deg.abs() <= 30.0 && c.dx_m.hypot(c.dy_m) <= 5.0));
-        assert!(a.cases.iter().any(|c| c.yaw_deg > 28.0) && a.cases.iter().any(|c| c.yaw_deg < -28.0));
-        assert!(a.cases.iter().any(|c| c.dx_m.hypot(c.dy_m) > 4.8));
-        // Uniform over the disc: about a quarter of the cases within half the radius.
-        let inner = a.cases.iter().filter(|c| c.dx_m.hypot(c.dy_m) < 2.5).count();
-        assert!((70..130).contains(&inner), "{inner}");
+    fn fleet_priors_stay_within_30_degrees_and_5_metres_and_round_trip() {
+        let a = PerturbationFile::generate(&frames(), 7, Priors::Fleet);
+        assert!(a.cases.iter().all(|c| c.yaw_deg.abs() <= FLEET_MAX_YAW_DEG && c.dx_m.hypot(c.dy_m) <= FLEET_MAX_SHIFT_M + 1e-6));
+        // drawn over the whole range, not a corner of it
+        assert!(a.cases.iter().any(|c| c.yaw_deg < -15.0) && a.cases.iter().any(|c| c.yaw_deg > 15.0));
+        assert!(a.cases.iter().any(|c| c.dx_m.hypot(c.dy_m) > 3.0));
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("fleet.json");
-        let (created, fresh) = PerturbationFile::load_or_create(&path, &frames, 3, Some(near)).unwrap();
-        assert!(fresh && created == a && created.near == Some(near));
-        let mut outside = a.clone();
-        outside.cases[0].yaw_deg = 31.0;
-        outside.write(&path).unwrap();
-        assert!(format!("{:#}", PerturbationFile::read(&path).unwrap_err()).contains("near-prior bounds"));
+        a.write(&path).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(text.contains("\"priors\": \"fleet\""), "{text}");
+        assert_eq!(PerturbationFile::read(&path).unwrap(), a);
+        // a protocol file does not name its regime (older files read the same), and a case
+        // outside the fleet bounds is refused
+        assert!(!serde_json::to_string(&PerturbationFile::generate(&frames(), 7, Priors::Protocol)).unwrap().contains("priors"));
+        let mut wide = a.clone();
+        wide.cases[0].dx_m = 6.0;
+        assert!(wide.validate().is_err());
     }
 
     #[test]
     fn foreign_or_broken_files_are_refused() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("cases.json");
-        let mut file = PerturbationFile::generate(&frames(), 1);
+        let mut file = PerturbationFile::generate(&frames(), 1, Priors::Protocol);
         file.sampling_seed = 5;
         std::fs::write(&path, serde_json::to_string(&file).unwrap()).unwrap();
         assert!(PerturbationFile::read(&path).unwrap_err().to_string().contains("checking"));

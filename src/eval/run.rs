@@ -16,7 +16,7 @@ use super::calibration::CalibrationReport;
 use super::learned::{AGENT, AGENT_SINGLE_START, Learned};
 use super::matching::MatchStrategy;
 use super::methods::{EvalCase, Expert, Method, NoOp};
-use super::perturbations::{NearPrior, PerturbationFile};
+use super::perturbations::{PerturbationFile, Priors};
 use crate::atomic_file::write_atomic;
 use super::pnp::RansacOptions;
 use super::plots::{RELIABILITY_PNG, write_figure5, write_reliability};
@@ -45,6 +45,8 @@ pub struct EvalConfig {
     /// Motions drawn per selected frame when the perturbation file is created (consecutive
     /// cases of one frame; 1 = the file format's original one-per-frame layout).
     pub cases_per_frame: usize,
+    /// The regime of the priors when the perturbation file is created.
+    pub priors: Priors,
     /// The expert's action frame; `None`: the model's (`camera_y` without a model).
     pub action_frame: Option<ActionFrame>,
     /// N when no model is given (the model's manifest decides otherwise).
@@ -61,9 +63,6 @@ pub struct EvalConfig {
     pub record_hypotheses: bool,
     /// Run the one-shot baseline (with a model).
     pub baseline: bool,
-    /// Draw a new perturbation file near the prior (the fleet regime) instead of the paper's
-    /// protocol.
-    pub near: Option<NearPrior>,
 }
 
 impl EvalConfig {
@@ -137,7 +136,7 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
         .into_iter()
         .flat_map(|f| std::iter::repeat_n(f, config.cases_per_frame.max(1)))
         .collect();
-    let (file, created) = PerturbationFile::load_or_create(&config.perturbations, &frames, config.seed, config.near)?;
+    let (file, created) = PerturbationFile::load_or_create(&config.perturbations, &frames, config.seed, config.priors)?;
     if created {
         tracing::info!(cases = file.cases.len(), path = %config.perturbations.display(), seed = config.seed, "wrote new perturbation file");
     } else {
@@ -353,11 +352,12 @@ pub(crate) mod tests {
             threads: 1,
             iterations: 10,
             hypotheses: 1,
-            tuning: SearchTuning { narrow_after: 0, merge_duplicates: false },
+            tuning: SearchTuning { narrow_after: 0, merge_duplicates: false, keep_prior: false },
             seed: 3,
             frame_stride: 1,
             max_cases: None,
             cases_per_frame: 1,
+            priors: Priors::Protocol,
             action_frame: None,
             num_points: 2048,
             ransac: RansacOptions::default(),
@@ -367,7 +367,6 @@ pub(crate) mod tests {
             worst: 2,
             record_hypotheses: false,
             baseline: true,
-            near: None,
         }
     }
 
@@ -434,7 +433,7 @@ pub(crate) mod tests {
         let cases = PerturbationFile::read(&config.perturbations).unwrap().cases;
         let frames: Vec<usize> = cases.iter().map(|c| c.frame).collect();
         assert_eq!(frames, vec![0, 0, 0, 1, 1, 1]);
-        assert_eq!(cases[0], PerturbationFile::generate(&[("00".into(), 0)], config.seed).cases[0]);
+        assert_eq!(cases[0], PerturbationFile::generate(&[("00".into(), 0)], config.seed, Priors::Protocol).cases[0]);
         assert!(cases[0] != cases[1]);
         let expert = &report.methods[0];
         assert_eq!(expert.summary.registration_recall, 1.0);
@@ -447,7 +446,7 @@ pub(crate) mod tests {
         let (data, out) = (dir.path().join("data"), dir.path().join("out"));
         write_tiny_sequence(&data, 1);
         let config = config(&data, &out);
-        let mut file = PerturbationFile::generate(&[("00".into(), 0), ("00".into(), 7)], 1);
+        let mut file = PerturbationFile::generate(&[("00".into(), 0), ("00".into(), 7)], 1, Priors::Protocol);
         file.cases[1].frame = 7;
         file.write(&config.perturbations).unwrap();
         let err = run(&config).unwrap_err();

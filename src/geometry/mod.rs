@@ -22,4 +22,4 @@ pub use actions::{ActionFrame, ActionSet, AgentAction, Dof};
 pub use camera::{Intrinsics, MIN_DEPTH_M, PreprocessPlan};
 pub use frame::LocalFrame;
 pub use metrics::{PoseError, p2p_distance, step_reward};
-pub use pose::{MAX_COORDINATE_M, Pose};
+pub use pose::{MAX_COORDINATE_M, Pose, ROTATION_TOLERANCE, check_rotation};

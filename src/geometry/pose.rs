@@ -18,12 +18,14 @@ impl Pose {
     }
 
     /// From a row-major 3x4 `[R | t]`, the layout KITTI's calib.txt and poses.txt use.
-    pub fn from_row_major_3x4(values: &[f64; 12]) -> Self {
+    /// Errors: R is not a rotation ([`check_rotation`]; the message starts "is not a rotation").
+    pub fn from_row_major_3x4(values: &[f64; 12]) -> Result<Self, String> {
         let r = Matrix3::new(
             values[0], values[1], values[2], values[4], values[5], values[6], values[8], values[9],
             values[10],
         );
-        Self::from_rt(r, Vector3::new(values[3], values[7], values[11]))
+        check_rotation(&r)?;
+        Ok(Self::from_rt(r, Vector3::new(values[3], values[7], values[11])))
     }
 
     pub fn to_row_major_3x4(&self) -> [f64; 12] {
@@ -37,26 +39,31 @@ impl Pose {
         out
     }
 
-    /// From a row-major 4x4 matrix (a map-frame camera_from_map); the last row must be
-    /// (0, 0, 0, 1), R orthonormal and the camera's position −Rᵀt within ±[`MAX_COORDINATE_M`]
-    /// on each axis, the bound of every map-frame coordinate.
+    /// From a row-major 4x4 matrix (a map-frame camera_from_map). Each entry must lie within its
+    /// [`entry_bounds`] (what the API's `Matrix4x4` schema states: rotation entries within
+    /// ±[`MAX_ROTATION_ENTRY`], translation within ±[`MAX_TRANSLATION_M`] m, the last row
+    /// (0, 0, 0, 1) within [`LAST_ROW_TOLERANCE`]); then R must be a rotation
+    /// ([`check_rotation`]), and the camera's position −Rᵀt within
+    /// ±[`MAX_COORDINATE_M`] on each axis, the bound of every map-frame coordinate (these two
+    /// relate entries to each other, which a JSON Schema cannot state).
     pub fn from_matrix(m: &[[f64; 4]; 4]) -> Result<Self, String> {
         if m.iter().flatten().any(|v| !v.is_finite()) {
             return Err("pose contains a non-finite value".into());
         }
-        // Checked before the rotation so a huge translation is named as such.
-        if (0..3).any(|r| m[r][3].abs() > MAX_COORDINATE_M * 3f64.sqrt()) {
-            return Err(format!("pose's translation is beyond ±{:e} m", MAX_COORDINATE_M * 3f64.sqrt()));
-        }
-        let last = m[3];
-        if (last[0].abs() + last[1].abs() + last[2].abs() + (last[3] - 1.0).abs()) > 1e-6 {
-            return Err("pose's last row must be [0, 0, 0, 1]".into());
+        // Translation first, so a huge translation is named as such.
+        for (row, col) in (0..3).map(|r| (r, 3)).chain((0..4).flat_map(|r| (0..4).map(move |c| (r, c)))) {
+            let (low, high) = entry_bounds(row, col);
+            let v = m[row][col];
+            if !(low..=high).contains(&v) {
+                return Err(match (row, col) {
+                    (3, _) => format!("pose's last row must be [0, 0, 0, 1] (each within {LAST_ROW_TOLERANCE:e}), has {v} at column {col}"),
+                    (_, 3) => format!("pose's translation is beyond ±{MAX_TRANSLATION_M:e} m ({v} in row {row})"),
+                    _ => format!("pose's rotation block is not a rotation matrix: entry ({row}, {col}) = {v} is beyond ±{MAX_ROTATION_ENTRY}"),
+                });
+            }
         }
         let r = Matrix3::new(m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2]);
-        let orthonormality = (r.transpose() * r - Matrix3::identity()).abs().max();
-        if orthonormality > 1e-3 || r.determinant() < 0.0 {
-            return Err("pose's rotation block is not a rotation matrix".into());
-        }
+        check_rotation(&r).map_err(|e| format!("pose's rotation block {e}"))?;
         let pose = Self::from_rt(r, Vector3::new(m[0][3], m[1][3], m[2][3]));
         let c = pose.camera_position_in_map();
         if c.iter().any(|v| v.abs() > MAX_COORDINATE_M) {
@@ -116,6 +123,14 @@ impl Pose {
         forward_in_map.y.atan2(forward_in_map.x).to_degrees()
     }
 
+    /// camera_from_map of a level camera (camera y = map −z) at `position` (map frame, metres)
+    /// whose optical axis points along the map's +x axis: a KITTI-like rig at its LiDAR, the
+    /// localize default for a region with no prior (`serving::PriorSource::Default`).
+    pub fn level_camera_along_x(position: Vector3<f64>) -> Self {
+        let r = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
+        Self::from_rt(r, -(r * position))
+    }
+
     /// A rotation by `angle_rad` about the map's z axis followed by a translation: the
     /// ground-plane perturbation of the paper's protocol.
     pub fn ground_motion(yaw_rad: f64, dx: f64, dy: f64) -> Self {
@@ -126,11 +141,76 @@ impl Pose {
     }
 }
 
+/// How far a 3x3 block may be from a rotation and still be read as one: every entry of RᵀR − I
+/// within ±this (dimensionless). Text files keep 6 to 13 significant digits (KITTI's poses.txt
+/// about 7, so ~1e-6 off), well inside; a scaled (R00 = 2), sheared, zeroed (a lost track) or
+/// half-written block is far outside. Python's twin is `geometry.ROTATION_TOLERANCE`; both are
+/// pinned by fixtures/conventions.json.
+pub const ROTATION_TOLERANCE: f64 = 1e-3;
+
+/// Whether `r` is a rotation: finite, orthonormal (every entry of RᵀR − I within
+/// ±[`ROTATION_TOLERANCE`]) and det R = +1. The determinant is checked by its sign: with RᵀR
+/// within the tolerance of I, det R is ±1 to within 1.5 × the tolerance, so a negative one is a
+/// reflection. This is the one check of every rotation the project reads: the API's priors and
+/// regions' `initial_camera_from_map`, KITTI's calib `Tr` / `R0_rect` and poses.txt (map build,
+/// track, eval, synth); `geometry.check_rotation` in training/cmr/geometry.py is its twin, with
+/// the same messages.
+///
+/// Errors: a message that starts "is not a rotation: " and says what is wrong (a non-finite
+/// entry; every entry 0; the rows' lengths and how far RᵀR is from I; a negative determinant),
+/// to be prefixed by the caller with what was read (file and line, or field).
+pub fn check_rotation(r: &Matrix3<f64>) -> Result<(), String> {
+    if r.iter().any(|v| !v.is_finite()) {
+        return Err("is not a rotation: it has a non-finite entry".into());
+    }
+    if r.iter().all(|&v| v == 0.0) {
+        return Err("is not a rotation: every entry is 0 (an unset pose, such as a lost track)".into());
+    }
+    let deviation = (r.transpose() * r - Matrix3::identity()).abs().max();
+    if deviation > ROTATION_TOLERANCE {
+        let len = |i: usize| r.row(i).norm();
+        return Err(format!(
+            "is not a rotation: its rows have lengths {:.4}, {:.4}, {:.4} and RᵀR differs from the identity by up to {deviation:.4} (tolerance {ROTATION_TOLERANCE})",
+            len(0),
+            len(1),
+            len(2)
+        ));
+    }
+    let det = r.determinant();
+    if det < 0.0 {
+        return Err(format!("is not a rotation: its determinant is {det:.4}, a reflection (a rotation's is +1)"));
+    }
+    Ok(())
+}
+
 /// The largest map-frame coordinate (metres, any axis) of a map point, a region's origin or a
 /// camera position: UTM-size eastings and northings (< 1e7 m) pass; anything larger is an error
 /// in the input, not a place. A camera_from_map's translation (−R·position) may then reach
 /// √3 times this.
 pub const MAX_COORDINATE_M: f64 = 1e7;
+
+/// The largest translation entry of a camera_from_map, metres: √3 · [`MAX_COORDINATE_M`], since
+/// t = −R·position.
+pub const MAX_TRANSLATION_M: f64 = MAX_COORDINATE_M * 1.732_050_807_568_877_2;
+
+/// The largest rotation entry that tolerance lets through: a column holding a larger entry has
+/// a squared norm above 1 + [`ROTATION_TOLERANCE`]. Checked entry by entry, so the bound the
+/// API's schema states is exactly the one applied.
+pub const MAX_ROTATION_ENTRY: f64 = 1.0005;
+
+/// How far each entry of a pose's last row may be from (0, 0, 0, 1).
+pub const LAST_ROW_TOLERANCE: f64 = 1e-6;
+
+/// The closed range of entry (row, col) of a row-major camera_from_map that
+/// [`Pose::from_matrix`] accepts; the API's `Matrix4x4` schema states these very numbers.
+pub fn entry_bounds(row: usize, col: usize) -> (f64, f64) {
+    match (row, col) {
+        (3, 3) => (1.0 - LAST_ROW_TOLERANCE, 1.0 + LAST_ROW_TOLERANCE),
+        (3, _) => (-LAST_ROW_TOLERANCE, LAST_ROW_TOLERANCE),
+        (_, 3) => (-MAX_TRANSLATION_M, MAX_TRANSLATION_M),
+        _ => (-MAX_ROTATION_ENTRY, MAX_ROTATION_ENTRY),
+    }
+}
 
 /// The JSON shape of a pose in the API and in manifests: a row-major 4x4 matrix.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
@@ -181,14 +261,27 @@ impl Matrix4x4 {
 }
 
 impl utoipa::PartialSchema for Matrix4x4 {
+    /// 4 rows of 4 numbers, each entry within its [`entry_bounds`] (row by row with
+    /// `prefixItems`); what a JSON Schema cannot state (R orthonormal, the camera position's
+    /// bound) is in the description.
     fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
-        use utoipa::openapi::schema::{ArrayBuilder, ObjectBuilder, Type};
-        let row = ArrayBuilder::new().items(ObjectBuilder::new().schema_type(Type::Number)).min_items(Some(4)).max_items(Some(4));
+        use utoipa::openapi::schema::{ArrayBuilder, ArrayItems, ObjectBuilder, Type};
+        let entry = |row: usize, col: usize| {
+            let (low, high) = entry_bounds(row, col);
+            ObjectBuilder::new().schema_type(Type::Number).minimum(Some(low)).maximum(Some(high)).build()
+        };
+        let row = |r: usize| ArrayBuilder::new().prefix_items((0..4).map(|c| entry(r, c))).items(ArrayItems::False).min_items(Some(4)).max_items(Some(4)).build();
         ArrayBuilder::new()
-            .items(row)
+            .prefix_items((0..4).map(row))
+            .items(ArrayItems::False)
             .min_items(Some(4))
             .max_items(Some(4))
-            .description(Some("Row-major 4x4 rigid transform: 4 rows of 4 numbers, last row [0, 0, 0, 1]."))
+            .description(Some(format!(
+                "Row-major 4x4 rigid transform [R t; 0 0 0 1]: 4 rows of 4 numbers, each within the bounds stated per entry \
+                 (rotation ±{MAX_ROTATION_ENTRY}, translation ±{MAX_TRANSLATION_M} m, last row 0 0 0 1 within ±{LAST_ROW_TOLERANCE:e}). \
+                 Also refused with 422, as a JSON Schema cannot state them: R not orthonormal within {ROTATION_TOLERANCE:e} \
+                 (largest entry of RᵀR − I) or with determinant < 0, and a camera position −Rᵀt beyond ±{MAX_COORDINATE_M:e} m on an axis."
+            )))
             .into()
     }
 }
@@ -205,7 +298,7 @@ mod tests {
             Rotation3::from_euler_angles(0.1, -0.2, 0.05).into_inner(),
             Vector3::new(0.5, 0.25, -1.0),
         ));
-        let back = Pose::from_row_major_3x4(&p.to_row_major_3x4());
+        let back = Pose::from_row_major_3x4(&p.to_row_major_3x4()).unwrap();
         assert!((back.matrix() - p.matrix()).abs().max() < 1e-12);
         let back = Pose::from_matrix(&p.to_rows()).unwrap();
         assert!((back.matrix() - p.matrix()).abs().max() < 1e-12);
@@ -225,11 +318,40 @@ mod tests {
     }
 
     #[test]
+    fn rotation_check_names_what_is_wrong() {
+        let rig = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
+        assert_eq!(check_rotation(&rig), Ok(()));
+        // KITTI's poses.txt keeps about 7 significant digits: still a rotation.
+        let rounded = Rotation3::from_euler_angles(0.1, -0.2, 0.05).into_inner().map(|v: f64| (v * 1e6).round() / 1e6);
+        assert_eq!(check_rotation(&rounded), Ok(()));
+        let cases = [
+            (Matrix3::zeros(), "every entry is 0"),
+            (Matrix3::new(2.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), "lengths 2.0000, 1.0000, 1.0000 and RᵀR differs from the identity by up to 3.0000"),
+            (Matrix3::identity() * 1.001, "tolerance 0.001"),
+            (Matrix3::new(1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1.0), "determinant is -1.0000, a reflection"),
+            (Matrix3::new(f64::NAN, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), "non-finite"),
+        ];
+        for (m, want) in cases {
+            let err = check_rotation(&m).unwrap_err();
+            assert!(err.starts_with("is not a rotation: ") && err.contains(want), "{err}");
+        }
+        // The API's reader and the files' reader give the same verdict (one check).
+        let mut rows = Pose::identity().to_rows();
+        rows[0][0] = 2.0;
+        let api = Pose::from_matrix(&rows).unwrap_err();
+        let file = Pose::from_row_major_3x4(&[2.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]).unwrap_err();
+        assert_eq!(api, format!("pose's rotation block {file}"));
+    }
+
+    #[test]
     fn heading_of_a_kitti_like_rig() {
         // Camera looking along the map's +x axis: camera z = map x, camera x = -map y, camera y = -map z.
         let r = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
         let rig = Pose::from_rt(r, Vector3::new(0.0, -0.08, -0.27));
         assert!(rig.camera_heading_in_map_deg().abs() < 1e-9);
+        let default = Pose::level_camera_along_x(Vector3::new(1.0, 2.0, 3.0));
+        assert!((default.rotation() - r).abs().max() < 1e-12 && default.camera_heading_in_map_deg().abs() < 1e-9);
+        assert!((default.camera_position_in_map() - Vector3::new(1.0, 2.0, 3.0)).norm() < 1e-12);
         let turned = rig.compose(&Pose::ground_motion(-std::f64::consts::FRAC_PI_2, 0.0, 0.0));
         assert!((turned.camera_heading_in_map_deg() - 90.0).abs() < 1e-9);
     }

@@ -9,7 +9,7 @@ use nalgebra::{Matrix3, Vector3};
 
 use super::{format_kitti_number, poses::parse_floats};
 use crate::atomic_file::write_atomic;
-use crate::geometry::{Intrinsics, Pose};
+use crate::geometry::{Intrinsics, Pose, check_rotation};
 
 /// The camera whose images the project uses: KITTI's left colour camera, `image_2`.
 pub const COLOR_CAMERA: usize = 2;
@@ -45,16 +45,15 @@ impl Calib {
                 }
                 k @ ("Tr" | "Tr_velo_to_cam") => {
                     let v = parse_floats(values, 12).with_context(|| format!("{} ({k})", at()))?;
-                    let pose = Pose::from_row_major_3x4(&v.clone().try_into().unwrap());
-                    let r = Matrix3::from_row_slice(&[v[0], v[1], v[2], v[4], v[5], v[6], v[8], v[9], v[10]]);
-                    if (r.transpose() * r - Matrix3::identity()).abs().max() > 1e-3 {
-                        bail!("{}: {k}'s rotation block is not a rotation", at());
-                    }
+                    let pose = Pose::from_row_major_3x4(&v.try_into().unwrap())
+                        .map_err(|e| anyhow::anyhow!("{}: {k}'s rotation block {e}", at()))?;
                     velo_to_cam0 = Some(pose);
                 }
-                "R0_rect" | "R_rect" => {
-                    let v = parse_floats(values, 9).with_context(|| format!("{} (R0_rect)", at()))?;
-                    r0_rect = Some(Matrix3::from_row_slice(&v));
+                k @ ("R0_rect" | "R_rect") => {
+                    let v = parse_floats(values, 9).with_context(|| format!("{} ({k})", at()))?;
+                    let r = Matrix3::from_row_slice(&v);
+                    check_rotation(&r).map_err(|e| anyhow::anyhow!("{}: {k} {e}", at()))?;
+                    r0_rect = Some(r);
                 }
                 // Other keys (Tr_imu_to_velo, ...) are not needed here.
                 _ => {}
@@ -185,6 +184,11 @@ Tr: 4.276802385584e-04 -9.999672484946e-01 -8.084491683471e-03 -1.198459927713e-
         assert!(err.contains("no `Tr:`"), "{err}");
         let err = format!("{:#}", Calib::parse("Tr: 2 0 0 0 0 1 0 0 0 0 1 0\n", "c.txt").unwrap_err());
         assert!(err.contains("c.txt:1") && err.contains("not a rotation"), "{err}");
+        // A reflection passes orthonormality but not the determinant; R0_rect is checked too.
+        let err = format!("{:#}", Calib::parse("P2: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 1 0 0 0 0 1 0 0 0 0 -1 0\n", "c.txt").unwrap_err());
+        assert!(err.starts_with("c.txt:2: Tr's rotation block is not a rotation") && err.contains("reflection"), "{err}");
+        let err = format!("{:#}", Calib::parse("R0_rect: 0 0 0 0 0 0 0 0 0\n", "c.txt").unwrap_err());
+        assert!(err.starts_with("c.txt:1: R0_rect is not a rotation: every entry is 0"), "{err}");
         let bad = "P2: 1 0 0 0 0 1 0 0 0 0 1 x\nTr: 1 0 0 0 0 1 0 0 0 0 1 0\n";
         let err = format!("{:#}", Calib::parse(bad, "c.txt").unwrap_err());
         assert!(err.contains("`x` is not a number"), "{err}");

@@ -10,14 +10,20 @@ use crate::atomic_file::write_atomic;
 use crate::geometry::Pose;
 
 /// Parses poses text; `origin` names the file in errors, which also give the line number.
+/// Errors: a line without exactly 12 finite numbers, or whose 3x3 block (numbers 1-3, 5-7,
+/// 9-11) is not a rotation within `geometry::ROTATION_TOLERANCE` (`geometry::check_rotation`:
+/// an all-zero block from a lost track, a scaled or reflected one); nothing is repaired.
 pub fn parse_poses(text: &str, origin: &str) -> Result<Vec<Pose>> {
     let mut poses = Vec::new();
     for (line_no, line) in text.lines().enumerate() {
         if line.trim().is_empty() {
             continue;
         }
-        let values = parse_floats(line, 12).with_context(|| format!("{origin}:{}", line_no + 1))?;
-        poses.push(Pose::from_row_major_3x4(&values.try_into().unwrap()));
+        let at = || format!("{origin}:{}", line_no + 1);
+        let values = parse_floats(line, 12).with_context(at)?;
+        let pose = Pose::from_row_major_3x4(&values.try_into().unwrap())
+            .map_err(|e| anyhow::anyhow!("{}: the pose's rotation block (numbers 1-3, 5-7, 9-11) {e}", at()))?;
+        poses.push(pose);
     }
     Ok(poses)
 }
@@ -71,5 +77,11 @@ mod tests {
         }
         let err = format!("{:#}", parse_poses("1 0 0 0 0 1 0 0 0 0 1 0\n1 2 3\n", "poses.txt").unwrap_err());
         assert!(err.contains("poses.txt:2") && err.contains("expected 12"), "{err}");
+        // A lost track (all-zero rotation) and R00 = 2 are refused, naming the line.
+        let ok = "1 0 0 0 0 1 0 0 0 0 1 0\n";
+        let err = format!("{:#}", parse_poses(&format!("{ok}\n{ok}0 0 0 5 0 0 0 6 0 0 0 7\n"), "poses.txt").unwrap_err());
+        assert!(err.starts_with("poses.txt:4: the pose's rotation block") && err.contains("every entry is 0"), "{err}");
+        let err = format!("{:#}", parse_poses(&format!("{ok}2 0 0 0 0 1 0 0 0 0 1 0\n"), "poses.txt").unwrap_err());
+        assert!(err.starts_with("poses.txt:2:") && err.contains("lengths 2.0000, 1.0000, 1.0000"), "{err}");
     }
 }

@@ -285,24 +285,8 @@ impl Maps {
         if let Some(m) = &metadata {
             m.validate()?;
         }
-        let given_frame = options.origin.map(LocalFrame::new).transpose().map_err(|e| MapError::BadOption(format!("origin: {e}")))?;
-        if let Some(v) = options.voxel_m {
-            validate_voxel(v).map_err(MapError::BadOption)?;
-        }
         let t = Instant::now();
-        let limits = formats::Limits { max_points: self.config.max_points, frame: given_frame, ..formats::Limits::default() };
-        let mut parsed = upload::read_upload(upload, limits)?;
-        if parsed.dropped_non_finite > 0 {
-            tracing::info!(map = id, dropped = parsed.dropped_non_finite, kept = parsed.cloud.len(), "dropped points with non-finite coordinates");
-        }
-        let frame = given_frame.unwrap_or_else(|| LocalFrame::centred_on(parsed.min, parsed.max));
-        parsed.rebase(frame);
-        let mut cloud = parsed.cloud;
-        if let Some(v) = options.voxel_m {
-            let (xyz, intensity) = voxel_downsample(&cloud.xyz, cloud.intensity.as_deref(), v);
-            tracing::info!(map = id, voxel_m = v, before = cloud.xyz.len(), after = xyz.len(), "voxel downsampling");
-            cloud = formats::PointCloud { xyz, intensity };
-        }
+        let (mut cloud, frame) = ingest(id, upload, options, self.config.max_points)?;
         let staged = self.store.stage(id, &cloud, frame)?;
         let parse_ms = ms(t);
         let t = Instant::now();
@@ -340,6 +324,33 @@ impl Maps {
         self.cache.invalidate(id);
         Ok(())
     }
+}
+
+/// An upload's cloud as region `id` stores it, and its local frame: parsed within `max_points`
+/// ([`upload::read_upload`]; points with a non-finite coordinate dropped), moved into
+/// `options.origin`'s local frame (default: the box centre rounded to 1 km,
+/// [`LocalFrame::centred_on`]), voxel-downsampled when `options.voxel_m` is set. What
+/// `PUT /v1/maps/{id}` and `cmr-agent map build --store` both store ([`MapStore::stage`] next).
+/// Errors: `BadOption` for an origin or voxel size out of range, and [`upload::read_upload`]'s.
+pub fn ingest(id: &str, upload: Upload, options: UploadOptions, max_points: usize) -> Result<(formats::PointCloud, LocalFrame), MapError> {
+    let given_frame = options.origin.map(LocalFrame::new).transpose().map_err(|e| MapError::BadOption(format!("origin: {e}")))?;
+    if let Some(v) = options.voxel_m {
+        validate_voxel(v).map_err(MapError::BadOption)?;
+    }
+    let limits = formats::Limits { max_points, frame: given_frame, ..formats::Limits::default() };
+    let mut parsed = upload::read_upload(upload, limits)?;
+    if parsed.dropped_non_finite > 0 {
+        tracing::info!(map = id, dropped = parsed.dropped_non_finite, kept = parsed.cloud.len(), "dropped points with non-finite coordinates");
+    }
+    let frame = given_frame.unwrap_or_else(|| LocalFrame::centred_on(parsed.min, parsed.max));
+    parsed.rebase(frame);
+    let mut cloud = parsed.cloud;
+    if let Some(v) = options.voxel_m {
+        let (xyz, intensity) = voxel_downsample(&cloud.xyz, cloud.intensity.as_deref(), v);
+        tracing::info!(map = id, voxel_m = v, before = cloud.xyz.len(), after = xyz.len(), "voxel downsampling");
+        cloud = formats::PointCloud { xyz, intensity };
+    }
+    Ok((cloud, frame))
 }
 
 fn ms(since: Instant) -> f64 {

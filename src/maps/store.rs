@@ -40,7 +40,7 @@ pub fn validate_id(id: &str) -> Result<(), MapError> {
 #[derive(Debug, Clone, Default, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MapMetadata {
-    /// Free text, at most 4096 bytes.
+    /// Free text, at most 4096 characters.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     #[schema(max_length = 4096)]
     pub description: Option<String>,
@@ -54,6 +54,9 @@ pub struct MapMetadata {
     #[schema(value_type = Option<Object>)]
     pub source: Option<serde_json::Value>,
 }
+
+/// The longest description, in characters (as JSON Schema's `maxLength` counts them).
+pub const MAX_DESCRIPTION_CHARS: usize = 4096;
 
 /// The fields a metadata object may have.
 const METADATA_FIELDS: [&str; 3] = ["description", "initial_camera_from_map", "source"];
@@ -103,8 +106,8 @@ impl MapMetadata {
         if let Some(m) = self.initial_camera_from_map {
             Pose::try_from(PoseMatrix(m)).map_err(|e| MapError::BadMetadata(format!("initial_camera_from_map: {e}")))?;
         }
-        if self.description.as_ref().is_some_and(|d| d.len() > 4096) {
-            return Err(MapError::BadMetadata("description is longer than 4096 bytes".into()));
+        if self.description.as_ref().is_some_and(|d| d.chars().count() > MAX_DESCRIPTION_CHARS) {
+            return Err(MapError::BadMetadata(format!("description is longer than {MAX_DESCRIPTION_CHARS} characters")));
         }
         Ok(())
     }
@@ -311,7 +314,15 @@ impl MapStore {
 
     /// Every region in the directory (including those other replicas added), by id.
     pub fn list(&self) -> Vec<MapEntry> {
-        let on_disk: Vec<String> = std::fs::read_dir(&self.dir)
+        let mut ids: std::collections::BTreeSet<String> = self.ids().into_iter().collect();
+        ids.extend(self.registry.read().expect("registry").keys().cloned());
+        ids.iter().filter_map(|id| self.get(id).ok()).collect()
+    }
+
+    /// The ids of the `<id>.bin` files in the directory now, sorted, without reading them (a
+    /// file that would not load is named too; [`MapStore::list`] reads and checks each).
+    pub fn ids(&self) -> Vec<String> {
+        let mut ids: Vec<String> = std::fs::read_dir(&self.dir)
             .map(|rd| {
                 rd.filter_map(|e| e.ok())
                     .filter_map(|e| e.file_name().to_str().and_then(|n| n.strip_suffix(".bin")).map(str::to_string))
@@ -319,9 +330,13 @@ impl MapStore {
                     .collect()
             })
             .unwrap_or_default();
-        let mut ids: std::collections::BTreeSet<String> = on_disk.into_iter().collect();
-        ids.extend(self.registry.read().expect("registry").keys().cloned());
-        ids.iter().filter_map(|id| self.get(id).ok()).collect()
+        ids.sort();
+        ids
+    }
+
+    /// The directory the store reads and writes.
+    pub fn dir(&self) -> &Path {
+        &self.dir
     }
 
     fn register(&self, id: &str, entry: &MapEntry) {

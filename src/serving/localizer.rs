@@ -27,7 +27,7 @@ use crate::maps::PreparedMap;
 use super::decode::{ImageLimits, ImagePayload, decode_payload, prepare_request_image};
 use super::error::LocalizeError;
 use super::lifecycle::{InFlight, Lifecycle};
-use super::request::{LocalizeRequest, RequestDefaults, ValidLocalizeRequest};
+use super::request::{LocalizeRequest, PriorSource, RequestDefaults, ValidLocalizeRequest};
 use super::scheduler::{Job, Scheduler, Slot};
 
 /// The localize path's settings (from `serve`'s flags).
@@ -53,6 +53,8 @@ pub struct Admission {
 /// A localization and the time it spent in each serving phase.
 pub struct Localized {
     pub localization: Localization,
+    /// Where `localization.prior` came from.
+    pub prior_source: PriorSource,
     pub queue_ms: f64,
     pub decode_ms: f64,
     pub total_ms: f64,
@@ -184,7 +186,7 @@ impl Localizer {
         if !valid.frame.is_identity() {
             localization.map_poses(|p| valid.frame.camera_from_map(p));
         }
-        let done = Localized { localization, queue_ms: finished.queue_ms, decode_ms, total_ms: ms(admission.started) };
+        let done = Localized { localization, prior_source: valid.prior_source, queue_ms: finished.queue_ms, decode_ms, total_ms: ms(admission.started) };
         Ok((done, picture))
     }
 }

@@ -19,5 +19,5 @@ pub use error::LocalizeError;
 pub use lifecycle::Lifecycle;
 pub use localizer::{Admission, Localized, Localizer, LocalizerConfig, PictureInput};
 pub use crate::geometry::pose::Matrix4x4;
-pub use request::{IntrinsicsBody, LocalizeRequest, RequestDefaults, ValidLocalizeRequest};
+pub use request::{IntrinsicsBody, LocalizeRequest, PriorSource, RequestDefaults, ValidLocalizeRequest};
 pub use scheduler::{Scheduler, SchedulerConfig};

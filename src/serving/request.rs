@@ -35,8 +35,11 @@ pub struct LocalizeRequest {
     pub image: String,
     /// Pinhole intrinsics of `image` in pixels.
     pub intrinsics: IntrinsicsBody,
-    /// Starting pose (camera_from_map); defaults to the map's `initial_camera_from_map`, then to
-    /// identity.
+    /// Starting pose (camera_from_map). Default: the region's `initial_camera_from_map`; for a
+    /// whole region without one, a level camera at the map frame's origin looking along the
+    /// map's +x axis, when that origin lies within the region's x-y extent (a scan in its
+    /// sensor's frame); otherwise (and in a tiled region without one) the request is a 422 naming
+    /// this field. The response's `prior_source` says which.
     #[serde(default)]
     pub prior_camera_from_map: Option<Matrix4x4>,
     /// Policy steps per start, 1..=50; default: the server's `default_max_iterations` (10).
@@ -79,6 +82,19 @@ pub struct Crop {
     pub radius_m: f64,
 }
 
+/// Where a localization's starting pose came from (the response's `prior_source`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum PriorSource {
+    /// The request's `prior_camera_from_map`.
+    Request,
+    /// The region's `initial_camera_from_map`.
+    Region,
+    /// Neither was given: [`Pose::level_camera_along_x`] at the map frame's origin, which lies
+    /// within the region's x-y extent (a whole region only).
+    Default,
+}
+
 /// A localize request every later stage can trust.
 #[derive(Debug, Clone)]
 pub struct ValidLocalizeRequest {
@@ -88,6 +104,8 @@ pub struct ValidLocalizeRequest {
     pub frame: LocalFrame,
     /// camera_from_local of the starting pose.
     pub prior: Pose,
+    /// Where `prior` came from (the response's `prior_source`).
+    pub prior_source: PriorSource,
     pub search: SearchConfig,
     /// Set for a tiled region.
     pub crop: Option<Crop>,
@@ -97,7 +115,9 @@ impl ValidLocalizeRequest {
     /// Checks the request's numbers against the limits (422 `invalid_input` naming the field).
     /// `tiled`: the region is larger than one scan (`Maps::is_tiled`), so the request needs a
     /// prior (its own or the region's `initial_camera_from_map`) whose camera position lies within
-    /// the region's x-y extent.
+    /// the region's x-y extent. A whole region without either starts from the default prior
+    /// ([`PriorSource::Default`]) when the map frame's origin lies within its x-y extent, and is
+    /// a 422 naming `prior_camera_from_map` otherwise: never a start that looks at nothing.
     pub fn new(request: &LocalizeRequest, defaults: &RequestDefaults, map: MapEntry, tiled: bool) -> Result<Self, LocalizeError> {
         let invalid = |field: &str, e: String| LocalizeError::Invalid(format!("{field}: {e}"));
         let k = request.intrinsics;
@@ -115,9 +135,9 @@ impl ValidLocalizeRequest {
         if !(radius_m.is_finite() && RADIUS_RANGE_M.contains(&radius_m)) {
             return Err(invalid("radius_m", format!("must be within {}..={} m, got {radius_m}", RADIUS_RANGE_M.start(), RADIUS_RANGE_M.end())));
         }
-        let prior = match (&request.prior_camera_from_map, map.metadata.initial_pose()) {
-            (Some(m), _) => m.pose().map_err(|e| invalid("prior_camera_from_map", e))?,
-            (None, Some(initial)) => initial,
+        let (prior, prior_source) = match (&request.prior_camera_from_map, map.metadata.initial_pose()) {
+            (Some(m), _) => (m.pose().map_err(|e| invalid("prior_camera_from_map", e))?, PriorSource::Request),
+            (None, Some(initial)) => (initial, PriorSource::Region),
             (None, None) if tiled => {
                 return Err(invalid(
                     "prior_camera_from_map",
@@ -127,7 +147,16 @@ impl ValidLocalizeRequest {
                     ),
                 ));
             }
-            (None, None) => Pose::identity(),
+            (None, None) if map.extent.contains_xy(0.0, 0.0) => (Pose::level_camera_along_x(nalgebra::Vector3::zeros()), PriorSource::Default),
+            (None, None) => {
+                return Err(invalid(
+                    "prior_camera_from_map",
+                    format!(
+                        "map {:?} has no initial_camera_from_map and the map frame's origin lies outside its extent ({}), so there is no default start: send prior_camera_from_map, or set the region's initial_camera_from_map (PUT /v1/maps/{}/metadata)",
+                        map.id, map.extent, map.id
+                    ),
+                ));
+            }
         };
         let frame = map.frame();
         let crop = if tiled {
@@ -143,7 +172,7 @@ impl ValidLocalizeRequest {
             None
         };
         let search = defaults.search.search(hypotheses, max_iterations as usize);
-        Ok(Self { map, intrinsics, frame, prior: frame.camera_from_local(&prior), search, crop })
+        Ok(Self { map, intrinsics, frame, prior: frame.camera_from_local(&prior), prior_source, search, crop })
     }
 }
 
@@ -161,14 +190,25 @@ mod tests {
     }
 
     const DEFAULTS: RequestDefaults =
-        RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true }, radius_m: 40.0 };
+        RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true }, radius_m: 40.0 };
 
     #[test]
     fn every_field_is_checked_with_its_name() {
         let k = serde_json::json!({"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0});
         let ok = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &DEFAULTS, entry(), false).unwrap();
         assert_eq!((ok.search.hypotheses, ok.search.max_iterations), (4, 10));
-        assert_eq!(ok.prior, Pose::identity());
+        // No prior anywhere: the level camera at the map's origin, looking along +x.
+        assert_eq!((ok.prior, ok.prior_source), (Pose::level_camera_along_x(nalgebra::Vector3::zeros()), PriorSource::Default));
+        let mut far = entry();
+        far.extent = crate::maps::Extent { min: [400_000.0, 5_000_000.0, 0.0], max: [400_100.0, 5_000_100.0, 10.0] };
+        let e = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &DEFAULTS, far.clone(), false).unwrap_err();
+        assert!(matches!(&e, LocalizeError::Invalid(m) if m.starts_with("prior_camera_from_map: map \"m\" has no initial_camera_from_map")), "{e}");
+        let rig = Pose::level_camera_along_x(nalgebra::Vector3::new(400_050.0, 5_000_050.0, 2.0));
+        far.metadata.initial_camera_from_map = Some(rig.to_rows());
+        let ok = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &DEFAULTS, far, false).unwrap();
+        assert_eq!(ok.prior_source, PriorSource::Region);
+        let json = serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": rig.to_rows()});
+        assert_eq!(ValidLocalizeRequest::new(&request(json), &DEFAULTS, entry(), false).unwrap().prior_source, PriorSource::Request);
         let cases = [
             (serde_json::json!({"image": "", "intrinsics": {"fx": -1.0, "fy": 700.0, "cx": 600.0, "cy": 180.0}}), "intrinsics"),
             (serde_json::json!({"image": "", "intrinsics": k, "max_iterations": 0}), "max_iterations"),
@@ -198,7 +238,7 @@ mod tiled_tests {
         let origin = [500_000.0, 5_400_000.0, 0.0];
         let extent = Extent { min: [499_900.0, 5_399_950.0, 90.0], max: [500_200.0, 5_400_050.0, 120.0] };
         let entry = MapEntry { id: "big".into(), num_points: 5_000_000, file_bytes: 0, source_sha256: String::new(), metadata: Default::default(), origin, extent };
-        let defaults = RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true }, radius_m: 40.0 };
+        let defaults = RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true }, radius_m: 40.0 };
         let k = serde_json::json!({"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0});
         let e = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &defaults, entry.clone(), true).unwrap_err();
         assert!(e.to_string().contains("needs a prior"), "{e}");

@@ -25,6 +25,8 @@ pub fn default_model() -> PathBuf {
 
 pub struct TestServer {
     pub base: String,
+    /// The probe port's base URL (`serve --probe-port`: /health, /ready, /metrics only).
+    pub probe_base: String,
     pub state: Arc<AppState>,
     pub client: reqwest::Client,
     shutdown: Option<oneshot::Sender<()>>,
@@ -32,7 +34,8 @@ pub struct TestServer {
 }
 
 impl TestServer {
-    /// Starts a server on an ephemeral port and waits until /ready says so.
+    /// Starts a server on an ephemeral port, with its probe port on another, and waits until
+    /// /ready says so.
     pub async fn start(models: &Path, maps: &Path, extra: &[&str]) -> TestServer {
         let mut flags: Vec<String> = vec![
             "--models".into(),
@@ -47,11 +50,13 @@ impl TestServer {
         let state = tokio::task::spawn_blocking(move || api::build_state(config)).await.unwrap().expect("server state builds");
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let base = format!("http://{}", listener.local_addr().unwrap());
+        let probe = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let probe_base = format!("http://{}", probe.local_addr().unwrap());
         let (tx, rx) = oneshot::channel::<()>();
-        let task = tokio::spawn(api::serve(state.clone(), listener, async move {
+        let task = tokio::spawn(api::serve(state.clone(), listener, Some(probe), async move {
             let _ = rx.await;
         }));
-        let server = TestServer { base, state, client: reqwest::Client::new(), shutdown: Some(tx), task: Some(task) };
+        let server = TestServer { base, probe_base, state, client: reqwest::Client::new(), shutdown: Some(tx), task: Some(task) };
         server.wait_ready().await;
         server
     }

@@ -54,21 +54,30 @@ class Calibration:
 
 
 def parse_calib(path: Path) -> Calibration:
+    """`calib.txt`'s P2 (image_2's projection) and Tr (velodyne -> cam0, 3x4 row-major).
+    Raises DataError naming the file (and line): a key missing, a bad number, or a Tr whose 3x3
+    block is not a rotation (`geometry.check_rotation`, as the Rust reader)."""
     rows: dict[str, np.ndarray] = {}
-    for line in Path(path).read_text().splitlines():
+    line_of: dict[str, int] = {}
+    for line_no, line in enumerate(Path(path).read_text().splitlines(), 1):
         if ":" not in line:
             continue
         key, values = line.split(":", 1)
         try:
             rows[key.strip()] = np.array([float(v) for v in values.split()])
         except ValueError as e:
-            raise DataError(f"{path}: bad number in line {key!r}") from e
+            raise DataError(f"{path}:{line_no}: bad number in line {key!r}") from e
+        line_of[key.strip()] = line_no
     for key in ("P2", "Tr"):
         if key not in rows or rows[key].size != 12:
             raise DataError(f"{path}: missing or malformed {key} (need 12 floats)")
     p2 = rows["P2"].reshape(3, 4)
     tr = np.eye(4)
     tr[:3, :] = rows["Tr"].reshape(3, 4)
+    try:
+        g.check_rotation(tr[:3, :3])
+    except ValueError as e:
+        raise DataError(f"{path}:{line_of['Tr']}: Tr's rotation block {e}") from None
     shift = np.eye(4)
     shift[:3, 3] = (p2[0, 3] / p2[0, 0], p2[1, 3] / p2[1, 1], p2[2, 3])
     return Calibration(shift @ tr, np.array([p2[0, 0], p2[1, 1], p2[0, 2], p2[1, 2]]), tr)
@@ -100,17 +109,35 @@ class Frame:
 @lru_cache(maxsize=64)
 def read_poses(sequence: Path) -> np.ndarray:
     """`poses.txt` of a KITTI-odometry sequence: [F, 4, 4] world_from_cam0 per frame (12 numbers a
-    line, the 3x4 row-major top of each matrix)."""
+    line, the 3x4 row-major top of each matrix; blank lines skipped). Raises DataError naming the
+    file and line: not 12 finite numbers, or a 3x3 block that is not a rotation
+    (`geometry.check_rotation`: a lost track's zeros, a scaled or reflected block), as the Rust
+    reader (`kitti::poses::parse_poses`) does; nothing is repaired."""
     path = Path(sequence) / "poses.txt"
     try:
-        rows = np.loadtxt(path, ndmin=2)
-    except (OSError, ValueError) as e:
+        text = path.read_text()
+    except OSError as e:
         raise DataError(f"{path}: cannot read poses ({e})") from e
-    if rows.shape[1] != 12:
-        raise DataError(f"{path}: need 12 numbers per line, got {rows.shape[1]}")
-    poses = np.tile(np.eye(4), (len(rows), 1, 1))
-    poses[:, :3, :] = rows.reshape(-1, 3, 4)
-    return poses
+    poses = []
+    for line_no, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            values = np.array([float(v) for v in line.split()])
+        except ValueError as e:
+            raise DataError(f"{path}:{line_no}: {e}") from None
+        if values.size != 12:
+            raise DataError(f"{path}:{line_no}: expected 12 numbers, found {values.size}")
+        if not np.isfinite(values).all():
+            raise DataError(f"{path}:{line_no}: a number is not finite")
+        pose = np.eye(4)
+        pose[:3, :] = values.reshape(3, 4)
+        try:
+            g.check_rotation(pose[:3, :3])
+        except ValueError as e:
+            raise DataError(f"{path}:{line_no}: the pose's rotation block (numbers 1-3, 5-7, 9-11) {e}") from None
+        poses.append(pose)
+    return np.array(poses).reshape(-1, 4, 4)
 
 
 def lidar_from_lidar(frame: "Frame", other: int) -> np.ndarray:

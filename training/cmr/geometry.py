@@ -51,6 +51,35 @@ def step_values(indices) -> tuple[float, float, float]:
 # ---------------------------------------------------------------------------------------------
 # Poses
 
+# Every entry of R^T R - I within +-this (dimensionless) for a 3x3 to be read as a rotation;
+# Rust: geometry::ROTATION_TOLERANCE. Pinned by fixtures/conventions.json.
+ROTATION_TOLERANCE = 1e-3
+
+
+def check_rotation(r) -> None:
+    """Raises ValueError unless the 3x3 `r` is a rotation: finite, orthonormal (every entry of
+    R^T R - I within +-ROTATION_TOLERANCE) and det R = +1, checked by its sign (with R^T R that
+    close to I, det R is +-1 to within 1.5 x the tolerance, so a negative one is a reflection).
+
+    The twin of Rust's `geometry::check_rotation`, with the same messages (pinned by
+    fixtures/conventions.json): each starts "is not a rotation: " and says what is wrong, for the
+    caller to prefix with what was read (file and line). Nothing is repaired.
+    """
+    r = np.asarray(r, dtype=np.float64).reshape(3, 3)
+    if not np.isfinite(r).all():
+        raise ValueError("is not a rotation: it has a non-finite entry")
+    if not r.any():
+        raise ValueError("is not a rotation: every entry is 0 (an unset pose, such as a lost track)")
+    deviation = float(np.abs(r.T @ r - np.eye(3)).max())
+    if deviation > ROTATION_TOLERANCE:
+        lengths = ", ".join(f"{float(np.linalg.norm(row)):.4f}" for row in r)
+        raise ValueError(f"is not a rotation: its rows have lengths {lengths} and RᵀR differs from the "
+                         f"identity by up to {deviation:.4f} (tolerance {ROTATION_TOLERANCE})")
+    det = float(np.linalg.det(r))
+    if det < 0.0:
+        raise ValueError(f"is not a rotation: its determinant is {det:.4f}, a reflection (a rotation's is +1)")
+
+
 def rot_y(deg: float) -> np.ndarray:
     a = math.radians(deg)
     c, s = math.cos(a), math.sin(a)

@@ -138,3 +138,22 @@ def test_virtual_scan_matches_the_server():
     assert kept.tolist() == case["indices"]
     pairs = np.arange(600, len(points)).reshape(-1, 2)  # (farther, nearer) on one ray
     assert not np.isin(pairs[:, 0], kept).any() and 0.5 * len(pairs) < np.isin(pairs[:, 1], kept).sum()
+
+
+# ---------------------------------------------------------------------------------------------
+# The rotation check every reader of poses and calibration applies (Rust: geometry::check_rotation).
+
+def test_rotation_tolerance_is_the_same():
+    assert FIXTURE["rotation_check"]["tolerance"] == g.ROTATION_TOLERANCE
+
+
+@pytest.mark.parametrize("case", FIXTURE["rotation_check"]["cases"], ids=lambda c: c["name"])
+def test_rotation_check(case):
+    """Same verdict and the same message as Rust, for every fixture case."""
+    matrix = np.array([[float(v) for v in row] for row in case["matrix"]])
+    if case["error"] is None:
+        g.check_rotation(matrix)
+    else:
+        with pytest.raises(ValueError) as e:
+            g.check_rotation(matrix)
+        assert str(e.value) == case["error"]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from cmr import geometry as g
-from cmr.data import DataError, find_sequences, list_frames, make_sample, parse_calib
+from cmr.data import DataError, find_sequences, list_frames, make_sample, parse_calib, read_poses
 
 
 def assert_labels_follow_truth(s) -> None:
@@ -54,6 +54,23 @@ def test_bad_calib_is_a_clear_error(tmp_path):
         parse_calib(tmp_path / "calib.txt")
     with pytest.raises(DataError):
         find_sequences(tmp_path / "nothing")
+
+
+def test_a_pose_or_calibration_that_is_not_a_rotation_names_file_and_line(tmp_path):
+    """A lost track's all-zero rotation block and R00 = 2 are refused, not repaired (as in Rust)."""
+    ok = "1 0 0 0 0 1 0 0 0 0 1 0"
+    (tmp_path / "poses.txt").write_text(f"{ok}\n\n{ok}\n0 0 0 1 0 0 0 2 0 0 0 3\n")
+    with pytest.raises(DataError, match=r"poses.txt:4: the pose's rotation block .* every entry is 0"):
+        read_poses(tmp_path)
+    (tmp_path / "poses.txt").write_text(f"{ok}\n2 0 0 0 0 1 0 0 0 0 1 0\n")
+    with pytest.raises(DataError, match=r"poses.txt:2: .*lengths 2.0000, 1.0000, 1.0000"):
+        read_poses(tmp_path)
+    (tmp_path / "poses.txt").write_text(f"{ok}\n\n1 0 0 5 0 0.9999999 0 0 0 0 1 0\n")
+    poses = read_poses(tmp_path)
+    assert poses.shape == (2, 4, 4) and poses[1, 0, 3] == 5.0
+    (tmp_path / "calib.txt").write_text("P2: 1 0 0 0 0 1 0 0 0 0 1 0\nTr: 1 0 0 0 0 1 0 0 0 0 -1 0\n")
+    with pytest.raises(DataError, match=r"calib.txt:2: Tr's rotation block is not a rotation: .*reflection"):
+        parse_calib(tmp_path / "calib.txt")
 
 
 def test_the_servers_resize_port_stays_within_one_level_of_pil():
