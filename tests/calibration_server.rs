@@ -11,6 +11,7 @@ use std::path::{Path, PathBuf};
 use cmr_agent::agent::SearchTuning;
 use cmr_agent::eval::learned::AGENT;
 use cmr_agent::eval::matching::MatchStrategy;
+use cmr_agent::eval::perturbations::Priors;
 use cmr_agent::eval::pnp::RansacOptions;
 use cmr_agent::eval::report::CaseRecord;
 use cmr_agent::eval::run::{EvalConfig, run};
@@ -69,7 +70,8 @@ fn eval_config(data: &Path, perturbations: &Path, out: &Path, models: &Path) -> 
         threads: 1,
         iterations: 10,
         hypotheses: 4,
-        tuning: SearchTuning { narrow_after: 0, merge_duplicates: true },
+        // The server's defaults, so both run the same search.
+        tuning: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true },
         seed: 0,
         frame_stride: 1,
         max_cases: None,
@@ -83,7 +85,7 @@ fn eval_config(data: &Path, perturbations: &Path, out: &Path, models: &Path) -> 
         worst: 0,
         record_hypotheses: false,
         baseline: false,
-        near: None,
+        priors: Priors::Protocol,
     }
 }
 
