@@ -96,14 +96,15 @@ impl Localization {
         }
     }
 
-    /// What the calibrator reads (`model::calibrator::Signals`; its fields say what each is).
+    /// What the calibrator reads (`model::calibrator::Signals`; its fields say what each is), of
+    /// the answer: the chosen hypothesis's final pose, or the prior when it was kept (then every
+    /// hypothesis is an "other" one, and the answer took no steps and did not converge).
     /// "Agreeing" starts end within the search's duplicate radius of the answer.
     pub fn signals(&self) -> Signals {
-        let best = self.best();
         let answer = self.camera_from_map();
-        // The answer's own score: the chosen final pose's, or the prior's when it was kept.
-        let answer_alignment = if self.kept_prior { best.start_alignment } else { best.alignment() };
-        let others: Vec<&Hypothesis> = self.hypotheses.iter().enumerate().filter(|(h, _)| self.kept_prior || *h != self.chosen).map(|(_, h)| h).collect();
+        let alignment = self.confidence.alignment;
+        let others: Vec<&Hypothesis> =
+            self.hypotheses.iter().enumerate().filter(|(h, _)| self.kept_prior || *h != self.chosen).map(|(_, h)| h).collect();
         let (margin, agreement) = if others.is_empty() {
             (0.0, 0.0)
         } else {
@@ -115,19 +116,19 @@ impl Localization {
                     e.rte_m < search::DUPLICATE_RTE_M && e.rre_geodesic_deg < search::DUPLICATE_RRE_DEG
                 })
                 .count();
-            ((answer_alignment - runner_up) as f64, agreeing as f64 / others.len() as f64)
+            ((alignment - runner_up) as f64, agreeing as f64 / others.len() as f64)
         };
         let start_mean = self.hypotheses.iter().map(|h| h.start_alignment as f64).sum::<f64>() / self.hypotheses.len().max(1) as f64;
-        let steps = self.answer_steps().len();
+        let converged = !self.kept_prior && self.best().converged;
         Signals {
-            alignment: answer_alignment as f64,
-            alignment_gain: answer_alignment as f64 - start_mean,
+            alignment: alignment as f64,
+            alignment_gain: alignment as f64 - start_mean,
             alignment_margin: margin,
             agreement,
             frustum_iou: self.confidence.frustum_iou as f64,
             policy_certainty: self.confidence.policy_certainty as f64,
-            converged: if best.converged && !self.kept_prior { 1.0 } else { 0.0 },
-            steps_fraction: steps as f64 / self.max_iterations.max(1) as f64,
+            converged: if converged { 1.0 } else { 0.0 },
+            steps_fraction: self.answer_steps().len() as f64 / self.max_iterations.max(1) as f64,
             in_view: self.confidence.in_view as f64,
             log2_starts: (self.hypotheses.len().max(1) as f64).log2(),
         }
@@ -183,7 +184,17 @@ mod tests {
 
     fn localization(hypotheses: Vec<Hypothesis>, chosen: usize) -> Localization {
         let confidence = Confidence { frustum_iou: 0.25, policy_certainty: 0.5, score: 0.3, alignment: hypotheses[chosen].alignment(), in_view: 0.125 };
-        Localization { prior: Pose::identity(), hypotheses, chosen, kept_prior: false, prior_competes: false, confidence, max_iterations: 10, timings: Timings::default(), verdict: Verdict::default() }
+        Localization {
+            prior: Pose::identity(),
+            hypotheses,
+            chosen,
+            kept_prior: false,
+            prior_competes: false,
+            confidence,
+            max_iterations: 10,
+            timings: Timings::default(),
+            verdict: Verdict::default(),
+        }
     }
 
     /// The margin is over the best other start; agreement counts the others within the
@@ -202,5 +213,33 @@ mod tests {
         assert_eq!((s.converged, s.steps_fraction, s.log2_starts), (1.0, 0.0, 2.0));
         let single = localization(vec![hypothesis(0.0, 0.5)], 0).signals();
         assert_eq!((single.alignment_margin, single.agreement, single.log2_starts), (0.0, 0.0, 0.0));
+    }
+
+    /// A kept prior is the answer: its own score, every start counts as another, no steps.
+    #[test]
+    fn signals_of_a_kept_prior_are_the_priors() {
+        let near = search::DUPLICATE_RTE_M / 2.0;
+        let far = search::DUPLICATE_RTE_M * 3.0;
+        let mut first = hypothesis(far, 0.25);
+        first.start = Pose::identity(); // the first start is the prior, scoring 0.875 there
+        first.start_alignment = 0.875;
+        first.steps.push(Step {
+            iteration: 1,
+            camera_from_map: Pose::from_rt(Matrix3::identity(), Vector3::new(far, 0.0, 0.0)),
+            action: crate::geometry::ActionSet::default().action([5, 5, 5]),
+            probabilities: [vec![1.0], vec![1.0], vec![1.0]],
+            confidence: 0.5,
+            value: 0.0,
+            alignment: 0.25,
+        });
+        let mut loc = localization(vec![first, hypothesis(near, 0.75), hypothesis(-far, 0.5)], 0);
+        (loc.kept_prior, loc.prior_competes, loc.confidence.alignment) = (true, true, 0.875);
+        assert_eq!(loc.camera_from_map(), Pose::identity());
+        let s = loc.signals();
+        assert_eq!((s.alignment, s.alignment_margin), (0.875, 0.125));
+        // Of the three final poses only the second is near the prior.
+        assert!((s.agreement - 1.0 / 3.0).abs() < 1e-12, "{}", s.agreement);
+        assert_eq!((s.converged, s.steps_fraction), (0.0, 0.0));
+        assert!((s.alignment_gain - (0.875 - (0.875 + 0.75 + 0.5) / 3.0)).abs() < 1e-12);
     }
 }

@@ -124,8 +124,11 @@ pub fn write_reliability(reports: &[CalibrationReport], path: &Path) -> Result<(
             let points: Vec<(f64, f64, usize)> = r.bins.iter().filter(|b| b.cases > 0).map(|b| (b.mean_p, b.registered_share, b.cases)).collect();
             chart.draw_series(LineSeries::new(points.iter().map(|(x, y, _)| (*x, *y)), color.stroke_width(3))).map_err(err)?;
             chart.draw_series(points.iter().map(|(x, y, _)| Circle::new((*x, *y), 5, color.filled()))).map_err(err)?;
+            // Each bin's case count, just up and right of its point.
             chart
-                .draw_series(points.iter().map(|(x, y, n)| Text::new(format!("{n}"), (*x, *y), ("sans-serif", 13).into_font().color(&color))))
+                .draw_series(points.iter().map(|(x, y, n)| {
+                    EmptyElement::at((*x, *y)) + Text::new(format!("{n}"), (6, -18), ("sans-serif", 13).into_font().color(&color))
+                }))
                 .map_err(err)?;
         }
         if let Some(t) = reports.first().map(|r| r.threshold).filter(|t| *t <= 1.0) {

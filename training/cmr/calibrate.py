@@ -235,6 +235,15 @@ def fit(rows: dict, features: tuple[str, ...] = SIGNALS, l2: float = 1.0, k: int
     return calibrator, report
 
 
+def eval_run(cases: Path) -> dict:
+    """What made a cases.json: its eval.json's data, perturbations, models and command ({} without one)."""
+    report = Path(cases).with_name("eval.json")
+    if not report.is_file():
+        return {}
+    doc = json.loads(report.read_text())
+    return {key: doc.get(key) for key in ("data", "perturbations", "models", "command")}
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", required=True, help="comma-separated cases.json files of cmr-agent eval")
@@ -259,7 +268,7 @@ def main(argv=None) -> None:
     rows = load_cases(paths, drives)
     calibrator, report = fit(rows, features, args.l2, args.folds, args.seed, args.target_precision, args.clip or None)
     calibrator["provenance"] = dict(
-        data=[dict(cases=str(p), records=int((rows["file"] == i).sum()),
+        data=[dict(cases=str(p), **eval_run(p), records=int((rows["file"] == i).sum()),
                    registered=int(rows["y"][rows["file"] == i].sum())) for i, p in enumerate(paths)],
         methods=list(METHODS),
         command="python -m cmr.calibrate " + " ".join(argv if argv is not None else sys.argv[1:]),
