@@ -21,6 +21,7 @@ each judge, its mean within-case AUC (registered vs not), and what answering wit
 """
 
 import argparse
+import importlib.util
 import json
 import sys
 from collections import defaultdict
@@ -33,11 +34,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "training"))
 from cmr import geometry as g  # noqa: E402
 from cmr.data import find_sequences, parse_calib  # noqa: E402
 
-RR_M, RR_DEG = 5.0, 10.0
-
-
-def registered(rec) -> bool:
-    return rec["rte_m"] < RR_M and rec["rre_euler_deg"] < RR_DEG
+# protocol A's test, from scripts/pose-judges.py (the one copy among the scripts)
+_spec = importlib.util.spec_from_file_location("pose_judges", Path(__file__).resolve().parent / "pose-judges.py")
+_pj = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(_pj)
+registered = _pj.registered
 
 
 class Frame:

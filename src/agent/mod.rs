@@ -13,7 +13,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 
-use crate::geometry::{Intrinsics, Pose, PoseError};
+use crate::geometry::{Intrinsics, Pose};
 use crate::maps::PreparedMap;
 use crate::model::{Backend, Signals, Verdict};
 
@@ -111,10 +111,7 @@ impl Localization {
             let runner_up = others.iter().map(|h| h.alignment()).fold(f32::NEG_INFINITY, f32::max);
             let agreeing = others
                 .iter()
-                .filter(|h| {
-                    let e = PoseError::between(&h.camera_from_map(), &answer);
-                    e.rte_m < search::DUPLICATE_RTE_M && e.rre_geodesic_deg < search::DUPLICATE_RRE_DEG
-                })
+                .filter(|h| search::within_duplicate_radius(&h.camera_from_map(), &answer))
                 .count();
             ((alignment - runner_up) as f64, agreeing as f64 / others.len() as f64)
         };

@@ -106,6 +106,13 @@ impl SearchTuning {
 pub const DUPLICATE_RTE_M: f64 = 4.0;
 pub const DUPLICATE_RRE_DEG: f64 = 20.0;
 
+/// Whether `b` is within the duplicate distance of `a` (`PoseError::between(b, a)` below
+/// [`DUPLICATE_RTE_M`] and [`DUPLICATE_RRE_DEG`]).
+pub fn within_duplicate_radius(b: &Pose, a: &Pose) -> bool {
+    let e = PoseError::between(b, a);
+    e.rte_m < DUPLICATE_RTE_M && e.rre_geodesic_deg < DUPLICATE_RRE_DEG
+}
+
 /// The yaw offsets of H starts: k·360°/H for k = 0..H, wrapped into (−180°, 180°]; the prior
 /// itself comes first. `training/cmr/geometry.py::start_yaw_offsets` is its twin, and
 /// `fixtures/conventions.json` pins both.
@@ -213,8 +220,7 @@ impl Search {
             }
             let duplicate = (0..j).any(|i| {
                 let (a, b) = (&self.episodes[i], &self.episodes[j]);
-                let e = PoseError::between(&b.pose, &a.pose);
-                !a.dropped && e.rte_m < DUPLICATE_RTE_M && e.rre_geodesic_deg < DUPLICATE_RRE_DEG
+                !a.dropped && within_duplicate_radius(&b.pose, &a.pose)
             });
             self.episodes[j].dropped |= duplicate;
         }
