@@ -50,15 +50,17 @@ impl Pose {
         if m.iter().flatten().any(|v| !v.is_finite()) {
             return Err("pose contains a non-finite value".into());
         }
-        // Translation first, so a huge translation is named as such.
-        for (row, col) in (0..3).map(|r| (r, 3)).chain((0..4).flat_map(|r| (0..4).map(move |c| (r, c)))) {
+        // Translation first, so a huge translation is named as such; then the last row. The
+        // rotation entries' bound (±MAX_ROTATION_ENTRY) needs no pass of its own: an entry beyond
+        // it puts a diagonal entry of RᵀR above 1 + ROTATION_TOLERANCE, which `check_rotation`
+        // refuses, naming what is wrong the way every other reader of rotations does.
+        for (row, col) in (0..3).map(|r| (r, 3)).chain((0..4).map(|c| (3, c))) {
             let (low, high) = entry_bounds(row, col);
             let v = m[row][col];
             if !(low..=high).contains(&v) {
                 return Err(match (row, col) {
                     (3, _) => format!("pose's last row must be [0, 0, 0, 1] (each within {LAST_ROW_TOLERANCE:e}), has {v} at column {col}"),
-                    (_, 3) => format!("pose's translation is beyond ±{MAX_TRANSLATION_M:e} m ({v} in row {row})"),
-                    _ => format!("pose's rotation block is not a rotation matrix: entry ({row}, {col}) = {v} is beyond ±{MAX_ROTATION_ENTRY}"),
+                    _ => format!("pose's translation is beyond ±{MAX_TRANSLATION_M:e} m ({v} in row {row})"),
                 });
             }
         }
@@ -335,12 +337,24 @@ mod tests {
             let err = check_rotation(&m).unwrap_err();
             assert!(err.starts_with("is not a rotation: ") && err.contains(want), "{err}");
         }
-        // The API's reader and the files' reader give the same verdict (one check).
-        let mut rows = Pose::identity().to_rows();
-        rows[0][0] = 2.0;
-        let api = Pose::from_matrix(&rows).unwrap_err();
-        let file = Pose::from_row_major_3x4(&[2.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]).unwrap_err();
-        assert_eq!(api, format!("pose's rotation block {file}"));
+        // The API's reader (which also bounds each entry, as its schema states) and the files'
+        // reader accept exactly the same rotation blocks, and say "not a rotation" of the others.
+        let scaled = |k: f64| rig * k;
+        for r in [rig, rounded, Matrix3::identity() * 2.0, scaled(1.0004), scaled(1.0006), scaled(1.00049), Matrix3::zeros(), -rig] {
+            let mut rows = Pose::identity().to_rows();
+            let mut values = [0.0; 12];
+            for i in 0..3 {
+                for j in 0..3 {
+                    rows[i][j] = r[(i, j)];
+                    values[i * 4 + j] = r[(i, j)];
+                }
+            }
+            let (api, file) = (Pose::from_matrix(&rows), Pose::from_row_major_3x4(&values));
+            assert_eq!(api.is_ok(), file.is_ok(), "{r}: API {api:?}, file {file:?}");
+            if let (Err(api), Err(file)) = (api, file) {
+                assert!(api.starts_with("pose's rotation block is not a rotation") && file.starts_with("is not a rotation"), "{api} / {file}");
+            }
+        }
     }
 
     #[test]
