@@ -168,7 +168,10 @@ async fn track_a_drive_offline_and_over_http() {
     })
     .await
     .unwrap();
-    assert_eq!(summary["modes"], serde_json::json!({"cold": 1, "tracked": 0, "fallback": 3, "dead_reckoning": 0}));
+    // Each full search's answer is kept or, not localized, dead-reckoned: which, the model says.
+    let modes = &summary["modes"];
+    assert_eq!((&modes["cold"], &modes["tracked"]), (&1.into(), &0.into()), "{modes}");
+    assert_eq!(modes["fallback"].as_u64().unwrap() + modes["dead_reckoning"].as_u64().unwrap(), 3, "{modes}");
     assert_eq!(summary["first_frame"], 45);
     assert!(summary["error"]["ate_rmse_m"].as_f64().unwrap() <= 0.3);
     // A threshold no answer reaches: nothing is localized, so every later frame is dead-reckoned
@@ -209,7 +212,7 @@ async fn track_a_drive_offline_and_over_http() {
     forced.arg("--sequence").arg(&sequence).arg("--out").arg(root.path().join("track-http-fallback"));
     let printed = tokio::task::spawn_blocking(move || run_ok(forced)).await.unwrap();
     let forced: serde_json::Value = serde_json::from_str(&printed).unwrap();
-    assert_eq!((&forced["fallbacks"], &forced["dead_reckoned"]), (&2.into(), &0.into()), "{forced}");
+    assert_eq!(forced["fallbacks"].as_u64().unwrap() + forced["dead_reckoned"].as_u64().unwrap(), 2, "{forced}");
     // A server whose threshold no answer reaches: the script dead-reckons every later frame.
     let unsure = TestServer::start(&default_model(), served.path(), &["--localized-threshold", "2"]).await;
     let mut dead = Command::new("python3");
