@@ -435,6 +435,14 @@ fn scatter(
     // same as in one pass). The feature rows are scattered through a map-sized array, so the
     // rows a few points ahead are fetched while this one is added.
     let ScatterScratch { sums, counts, touched, visible, .. } = scratch;
+    accumulate(d, point_features, visible, sums, counts, touched);
+}
+
+/// `scatter`'s pass 2: adds each visible point's feature row to its cell's sum, in point order,
+/// and lists the cells touched. Compiled for AVX2 and AVX-512 too and chosen at run time: the
+/// additions are element by element, so every build gives the same sums.
+#[multiversion::multiversion(targets("x86_64+avx512f+avx512vl+avx512dq", "x86_64+avx2"))]
+fn accumulate(d: usize, point_features: &[f32], visible: &[(u32, u32)], sums: &mut [f32], counts: &mut [u32], touched: &mut Vec<u32>) {
     for (n, &(i, cell)) in visible.iter().enumerate() {
         if let Some(&(ahead, _)) = visible.get(n + PREFETCH_POINTS_AHEAD) {
             prefetch(&point_features[ahead as usize * d..(ahead as usize + 1) * d]);
@@ -452,6 +460,7 @@ fn scatter(
 
 /// `cells_of`'s mark for a point outside the view.
 const OUT_OF_VIEW: u32 = u32::MAX;
+const _: () = assert!(OUT_OF_VIEW == -1i32 as u32, "cells_with casts −1 to OUT_OF_VIEW");
 
 /// [R | t] of a pose as three rows (`Pose::to_rows` without the last): a plain matrix is
 /// cheaper to apply than the quaternion.
@@ -489,16 +498,21 @@ fn cells_with<const POW2: bool>(layout: &StateLayout, k: &Intrinsics, rows: &[[f
     let (stride, per_stride) = (layout.stride as f64, 1.0 / layout.stride as f64);
     let cell = |x: f64| if POW2 { x * per_stride } else { x / stride };
     let (last_row, last_col) = ((layout.grid_height - 1) as f64, (layout.grid_width - 1) as f64);
-    let width = layout.grid_width as u32;
+    let width = layout.grid_width as f64;
     for (p, out) in points.iter().zip(cells.iter_mut()) {
         let c = transform(rows, p);
         let (u, v) = (k.fx * c.x / c.z + k.cx, k.fy * c.y / c.z + k.cy);
         let inside = c.z >= MIN_DEPTH_M && u >= -0.5 && v >= -0.5 && u < right && v < bottom;
         // In view, (u + 0.5) / stride is in [0, grid width]: clamping before the cast is the
-        // same as `cell_of`'s cast then min.
-        let row = cell(v + 0.5).floor().clamp(0.0, last_row) as u32;
-        let col = cell(u + 0.5).floor().clamp(0.0, last_col) as u32;
-        *out = if inside { row * width + col } else { OUT_OF_VIEW };
+        // same as `cell_of`'s cast then min. The cell index is formed in f64 (exact: below 2^31)
+        // and chosen before one cast, so the loop keeps its vector lanes (a saturating `as`
+        // cast per lane does not vectorise).
+        let row = cell(v + 0.5).floor().clamp(0.0, last_row);
+        let col = cell(u + 0.5).floor().clamp(0.0, last_col);
+        let index = if inside { row * width + col } else { -1.0 };
+        // SAFETY: `index` is −1 or a cell index below 2^31 (never NaN: a NaN coordinate fails
+        // `inside`), so it fits an i32; −1 as u32 is OUT_OF_VIEW.
+        *out = unsafe { index.to_int_unchecked::<i32>() } as u32;
     }
 }
 
