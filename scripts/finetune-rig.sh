@@ -49,23 +49,28 @@ train() {
 }
 
 # Exported and quantised as the shipped set is (int8 Conv layers, calibrated on the rig's training
-# frames), then both sets on the same frozen cases: the held-out drive (committed cases file) and,
-# for contrast, the training drive.
+# frames), then both sets on the same frozen cases, 8 per frame, in both regimes (the paper's
+# protocol and a fleet-grade prior): the held-out drive (committed cases files) and, for contrast,
+# the training drive. The fine-tuned set is the run's last checkpoint: picking the best validation
+# iteration would choose on the held-out drive it is measured on.
 evaluate() {
   cd "$ROOT/training"
   "$PY" -m cmr.export --checkpoint "$WORK/run/last.pt" --out "$WORK/models-float" >/dev/null
   "$PY" -m cmr.quantize --models "$WORK/models-float" --calibration "$WORK/train" --out "$WORK/models" >/dev/null
   cd "$ROOT"
-  for m in shipped:models tuned:"$WORK/models"; do
+  for regime in protocol fleet; do
     for part in held train; do
-      nice -n "$NICE" "$BIN" eval --data "$WORK/$part" --models "${m#*:}" --out "$WORK/eval-${m%%:*}-$part" \
-        --perturbations "$([ $part = held ] && echo "$CASES" || echo "$WORK/train-perturbations.json")" \
-        --seed 33 --quiet >/dev/null
-    done
-  done
-  for part in held train; do
-    for m in shipped tuned; do
-      echo "== $m model, $part frames"; grep -A5 '^## Table 1:' "$WORK/eval-$m-$part/tables.md" | tail -4
+      case $part-$regime in
+        held-protocol) cases=$CASES ;;
+        held-fleet) cases=${CASES%-perturbations.json}-fleet-perturbations.json ;;
+        *) cases=$WORK/$part-$regime-perturbations.json ;;
+      esac
+      for m in shipped:models tuned:"$WORK/models"; do
+        nice -n "$NICE" "$BIN" eval --data "$WORK/$part" --models "${m#*:}" --out "$WORK/eval-${m%%:*}-$part-$regime" \
+          --perturbations "$cases" --cases-per-frame 8 --priors $regime --seed 33 --quiet >/dev/null
+        echo "== ${m%%:*} model, $part frames, $regime priors ($(basename "$cases"))"
+        grep -A5 '^## Table 1:' "$WORK/eval-${m%%:*}-$part-$regime/tables.md" | tail -4
+      done
     done
   done
 }
