@@ -2,13 +2,19 @@
 """Benchmark of the localization server on loopback (`make bench`); prints figures, writes a JSON
 record; not a test (no assertions on speed).
 
-Starts `BINARY serve` on a free port with a copy of the demo map and measures, with the demo
-request (`examples/localize-demo.json`, the default search):
+Starts `BINARY serve` on a free port with a copy of the demo map and measures, for each of two
+requests (the default search):
+  - demo: `examples/localize-demo.json` on the demo map;
+  - real-size: a full-size KITTI frame (the PNG of `../shared/real-dev/sequences/01`, 1242x375,
+    ~0.9 MB of base64) in its own scan uploaded as a region (`PUT ?format=kitti_bin`), the prior the
+    truth turned 20 deg about the vertical and moved 1.9 m along the ground; where real-dev is
+    absent, a full-size synthetic KITTI-rig frame and its scan (`cmr-agent synth --rig kitti`);
+the phases:
   1. sequential: p50 / p99 client latency of one localize at a time (oha -c 1), the server's
      per-phase medians (response `timings_ms`), and the server's CPU time per request;
   2. concurrency 16 for `--seconds` (oha -c 16): requests/s, p50 / p99, statuses, CPU per request,
      policy rows per request (from /metrics) and mean batch;
-  3. registration of a 40,960-point map (PUT, x3);
+  3. registration of a 40,960-point map (PUT, x3; once per run);
   4. FLOPs per request from the manifest (`graphs.*.flops`: image encoder + frustum head on the M
      state points + rows x (agent + the server-side correlation, `correlation_flops`)) and the
      share of the FLOP floor reached at c16 (`--peak-gflops`, the machine's fp32 matmul rate on
@@ -25,8 +31,10 @@ oha (a Rust HTTP load generator) comes from scripts/install-oha.sh (into .tools/
 """
 
 import argparse
+import base64
 import http.client
 import json
+import math
 import os
 import random
 import shutil
@@ -102,8 +110,8 @@ def oha(url, request, *args):
             "statuses": d["statusCodeDistribution"], "errors": d["errorDistribution"], "seconds": d["summary"]["total"]}
 
 
-def load_phase(server, request, connections, seconds):
-    path = server.url + "/v1/maps/demo/localize"
+def load_phase(server, request, connections, seconds, map_id="demo"):
+    path = server.url + f"/v1/maps/{map_id}/localize"
     cpu0, rows0, calls0 = server.cpu_s(), server.metric("cmr_batch_size_sum"), server.metric("cmr_batch_size_count")
     r = oha(path, request, "-c", str(connections), "-z", f"{seconds}s")
     ok = r["statuses"].get("200", 0)
@@ -127,6 +135,100 @@ def correlation_flops(manifest: dict) -> int:
     return 2 * shifts * f["dim"] * f["grid_height"] * f["grid_width"]
 
 
+def perturbed(camera_from_map, shift_m, direction, yaw):
+    """`camera_from_map` (4x4 nested lists) with its camera moved `shift_m` metres along the map's
+    ground plane in `direction` and turned by `yaw` (radians) about map z through its own centre."""
+    r = [row[:3] for row in camera_from_map[:3]]
+    t = [row[3] for row in camera_from_map[:3]]
+    centre = [-sum(r[k][i] * t[k] for k in range(3)) for i in range(3)]  # -R^T t
+    c, s = math.cos(yaw), math.sin(yaw)
+    new_centre = [centre[0] + shift_m * math.cos(direction), centre[1] + shift_m * math.sin(direction), centre[2]]
+    # new R = R Rz(yaw)^T: the camera turned about the map's vertical
+    rz_t = [[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]
+    r2 = [[sum(r[i][k] * rz_t[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
+    t2 = [-sum(r2[i][k] * new_centre[k] for k in range(3)) for i in range(3)]
+    return [r2[i] + [t2[i]] for i in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
+
+
+def real_size_workload(binary, sequence, workdir):
+    """The real-size request: frame 0 of the KITTI-layout `sequence` (its image_2 PNG, its scan as
+    the region, the truth from calib.txt's P2 and Tr) or, when `sequence` is missing, a full-size
+    synthetic KITTI-rig frame written into `workdir`. Returns (description, scan bytes, body file)."""
+    if not os.path.isdir(sequence):
+        subprocess.run([binary, "synth", "--out", os.path.join(workdir, "synth"), "--rig", "kitti", "--sequences", "1",
+                        "--frames", "1", "--seed", "4242", "--quiet"], check=True)
+        sequence = os.path.join(workdir, "synth", "00")
+    calib = {}
+    for line in open(os.path.join(sequence, "calib.txt")):
+        if ":" in line:
+            key, values = line.split(":", 1)
+            calib[key.strip()] = [float(v) for v in values.split()]
+    p2, tr = calib["P2"], calib.get("Tr", calib.get("Tr_velo_to_cam"))
+    rows = [tr[0:4], tr[4:8], tr[8:12]]
+    if "R0_rect" in calib:
+        r0 = calib["R0_rect"]
+        rows = [[sum(r0[3 * i + k] * rows[k][j] for k in range(3)) for j in range(4)] for i in range(3)]  # R0_rect Tr
+    # image_2's optical centre sits P2[:,3] / f from camera 0's (rectified), the scan is the map
+    offset = [p2[3] / p2[0], p2[7] / p2[5], p2[11]]
+    truth = [[*rows[i][:3], rows[i][3] + offset[i]] for i in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
+    image = sorted(n for n in os.listdir(os.path.join(sequence, "image_2")) if n.endswith(".png"))[0]
+    scan = sorted(n for n in os.listdir(os.path.join(sequence, "velodyne")) if n.endswith(".bin"))[0]
+    body = {
+        "image": base64.b64encode(open(os.path.join(sequence, "image_2", image), "rb").read()).decode(),
+        "intrinsics": {"fx": p2[0], "fy": p2[5], "cx": p2[2], "cy": p2[6]},
+        "prior_camera_from_map": perturbed(truth, 1.9, 0.7, math.radians(20.0)),
+    }
+    path = os.path.join(workdir, "real-size.json")
+    with open(path, "w") as f:
+        json.dump(body, f)
+    scan_bytes = open(os.path.join(sequence, "velodyne", scan), "rb").read()
+    return f"{sequence} ({len(scan_bytes) // 16:,} points, {len(body['image']) / 1e6:.2f} MB of base64)", scan_bytes, path
+
+
+def measure_request(server, name, map_id, request, flops, manifest, args):
+    """Sequential and c16 phases of one request against `server`: prints, returns the record."""
+    path = f"/v1/maps/{map_id}/localize"
+    body = open(request, "rb").read()
+    for _ in range(3):
+        status, data = server.request("POST", path, body)
+        assert status == 200, data[:300]
+    stages = {s: [] for s in STAGES}
+    cpu0 = server.cpu_s()
+    for _ in range(args.sequential):
+        status, data = server.request("POST", path, body)
+        assert status == 200, data[:200]
+        t = json.loads(data)["timings_ms"]
+        for s in STAGES:
+            stages[s].append(t[s])
+    seq_cpu = (server.cpu_s() - cpu0) * 1000 / args.sequential
+    seq = oha(server.url + path, request, "-c", "1", "-n", str(args.sequential))
+    seq["server_phase_median_ms"] = {s: statistics.median(v) for s, v in stages.items()}
+    seq["cpu_ms_per_request"] = seq_cpu
+    print(f"[{name}] sequential x{args.sequential}: p50 {seq['p50_ms']:.1f} ms, p99 {seq['p99_ms']:.1f} ms; "
+          f"server CPU {seq_cpu:.1f} ms per request")
+    print(f"[{name}]   server phases, median ms: " + "  ".join(f"{s} {v:.1f}" for s, v in seq["server_phase_median_ms"].items()))
+
+    c16 = load_phase(server, request, 16, args.seconds, map_id)
+    print(f"[{name}] c16, {args.seconds} s: {c16['ok_per_s']:.2f} localizations/s, p50 {c16['p50_ms']:.0f} ms, "
+          f"p99 {c16['p99_ms']:.0f} ms, statuses {c16['statuses']}; CPU {c16['cpu_ms_per_request']:.1f} ms "
+          f"per request; {c16['policy_rows_per_request']:.1f} policy rows per request, mean batch "
+          f"{c16['mean_batch_rows']:.1f}")
+    record = {"sequential": seq, "c16": c16}
+    if all(flops.values()):
+        # The manifest counts the frustum head at N points; the server runs it on the M state
+        # points, and its cost is per point (the image context MLP is ~0.3 MFLOP).
+        points = manifest["points"]
+        frustum = flops["frustum_head"] * points["num_state_points"] / points["num_points"]
+        per_request = flops["image_encoder"] + frustum + c16["policy_rows_per_request"] * (flops["agent"] + correlation_flops(manifest))
+        ceiling = args.peak_gflops * 1e9 / per_request
+        record["flops"] = {"per_request_gflop": per_request / 1e9, "ceiling_requests_per_s": ceiling,
+                           "share_of_floor": c16["ok_per_s"] / ceiling, "peak_gflops": args.peak_gflops}
+        print(f"[{name}] FLOPs: {per_request / 1e9:.2f} GFLOP per request ({c16['policy_rows_per_request']:.1f} rows); "
+              f"at {args.peak_gflops:.0f} GFLOP/s the ceiling is {ceiling:.1f} requests/s; c16 reaches "
+              f"{100 * c16['ok_per_s'] / ceiling:.0f} % of it")
+    return record
+
+
 def measure(binary, models, args):
     """One run of every phase against `binary` serving `models`: prints the figures, returns the record."""
     record = {"binary": binary, "serve_args": args.serve_args, "request": args.request,
@@ -136,33 +238,19 @@ def measure(binary, models, args):
     flops = {k: v.get("flops") for k, v in manifest["graphs"].items()}
 
     server = Server(binary, args.serve_args.split() + ["--models", models])
+    workdir = tempfile.mkdtemp(prefix="cmr-bench-real-size-")
     try:
-        body = open(args.request, "rb").read()
-        for _ in range(3):
-            server.request("POST", "/v1/maps/demo/localize", body)
-        stages = {s: [] for s in STAGES}
-        cpu0 = server.cpu_s()
-        for _ in range(args.sequential):
-            status, data = server.request("POST", "/v1/maps/demo/localize", body)
-            assert status == 200, data[:200]
-            t = json.loads(data)["timings_ms"]
-            for s in STAGES:
-                stages[s].append(t[s])
-        seq_cpu = (server.cpu_s() - cpu0) * 1000 / args.sequential
-        seq = oha(server.url + "/v1/maps/demo/localize", args.request, "-c", "1", "-n", str(args.sequential))
-        seq["server_phase_median_ms"] = {s: statistics.median(v) for s, v in stages.items()}
-        seq["cpu_ms_per_request"] = seq_cpu
-        record["sequential"] = seq
-        print(f"sequential x{args.sequential}: p50 {seq['p50_ms']:.1f} ms, p99 {seq['p99_ms']:.1f} ms; "
-              f"server CPU {seq_cpu:.1f} ms per request")
-        print("  server phases, median ms: " + "  ".join(f"{s} {v:.1f}" for s, v in seq["server_phase_median_ms"].items()))
+        record["demo"] = measure_request(server, "demo", "demo", args.request, flops, manifest, args)
+        # kept at the top level too, as earlier records had them
+        record["sequential"], record["c16"] = record["demo"]["sequential"], record["demo"]["c16"]
 
-        c16 = load_phase(server, args.request, 16, args.seconds)
-        record["c16"] = c16
-        print(f"c16, {args.seconds} s: {c16['ok_per_s']:.2f} localizations/s, p50 {c16['p50_ms']:.0f} ms, "
-              f"p99 {c16['p99_ms']:.0f} ms, statuses {c16['statuses']}; CPU {c16['cpu_ms_per_request']:.1f} ms "
-              f"per request; {c16['policy_rows_per_request']:.1f} policy rows per request, mean batch "
-              f"{c16['mean_batch_rows']:.1f}")
+        if not args.no_real_size:
+            described, scan, request = real_size_workload(binary, args.real_size_sequence, workdir)
+            status, data = server.request("PUT", "/v1/maps/bench-real-size?format=kitti_bin", scan, "application/octet-stream")
+            assert status in (200, 201), data[:300]
+            print(f"[real-size] {described}")
+            record["real_size"] = measure_request(server, "real-size", "bench-real-size", request, flops, manifest, args)
+            record["real_size"]["source"] = described
 
         rng = random.Random(0)
         cloud = b"".join(struct.pack("<4f", rng.uniform(-40, 40), rng.uniform(-40, 40), rng.uniform(-2, 4), 0.0)
@@ -175,21 +263,9 @@ def measure(binary, models, args):
             assert status in (200, 201), status
         record["register_40960_points_ms"] = statistics.median(walls)
         print(f"register a 40,960-point map: median {record['register_40960_points_ms']:.1f} ms (x3)")
-
-        if all(flops.values()):
-            # The manifest counts the frustum head at N points; the server runs it on the M state
-            # points, and its cost is per point (the image context MLP is ~0.3 MFLOP).
-            points = manifest["points"]
-            frustum = flops["frustum_head"] * points["num_state_points"] / points["num_points"]
-            per_request = flops["image_encoder"] + frustum + c16["policy_rows_per_request"] * (flops["agent"] + correlation_flops(manifest))
-            ceiling = args.peak_gflops * 1e9 / per_request
-            record["flops"] = {"per_request_gflop": per_request / 1e9, "ceiling_requests_per_s": ceiling,
-                               "share_of_floor": c16["ok_per_s"] / ceiling, "peak_gflops": args.peak_gflops}
-            print(f"FLOPs: {per_request / 1e9:.2f} GFLOP per request ({c16['policy_rows_per_request']:.1f} rows); "
-                  f"at {args.peak_gflops:.0f} GFLOP/s the ceiling is {ceiling:.1f} requests/s; c16 reaches "
-                  f"{100 * c16['ok_per_s'] / ceiling:.0f} % of it")
     finally:
         server.stop()
+        shutil.rmtree(workdir, ignore_errors=True)
 
     if args.storm:
         storm_server = Server(binary, args.serve_args.split() + ["--models", models, "--queue-capacity", "4"])
@@ -222,6 +298,9 @@ def main():
     ap.add_argument("--baseline", metavar="BINARY", help="also run this binary, alternating with --binary, and print ratios")
     ap.add_argument("--baseline-models", metavar="DIR", help="the baseline's model directory (default: --models)")
     ap.add_argument("--rounds", type=int, default=2, help="alternating rounds with --baseline")
+    ap.add_argument("--real-size-sequence", default=os.path.join("..", "shared", "real-dev", "sequences", "01"),
+                    help="KITTI-layout sequence whose frame 0 makes the real-size request (synthetic when missing)")
+    ap.add_argument("--no-real-size", action="store_true", help="measure the demo request only")
     ap.add_argument("--out", default="bench.json")
     args = ap.parse_args()
     if not os.path.exists(OHA):
@@ -242,6 +321,11 @@ def main():
             "c16 CPU ms per request": lambda x: x["c16"]["cpu_ms_per_request"],
             "sequential p50 ms": lambda x: x["sequential"]["p50_ms"],
             "sequential CPU ms per request": lambda x: x["sequential"]["cpu_ms_per_request"],
+            **({} if args.no_real_size else {
+                "real-size c16 requests/s": lambda x: x["real_size"]["c16"]["ok_per_s"],
+                "real-size sequential p50 ms": lambda x: x["real_size"]["sequential"]["p50_ms"],
+                "real-size sequential CPU ms per request": lambda x: x["real_size"]["sequential"]["cpu_ms_per_request"],
+            }),
             "register 40,960 points ms": lambda x: x["register_40960_points_ms"],
         }
         ratios = {k: statistics.median(f(c) / f(b) for b, c in zip(runs["baseline"], runs["candidate"])) for k, f in figures.items()}
