@@ -33,6 +33,7 @@ oha (a Rust HTTP load generator) comes from scripts/install-oha.sh (into .tools/
 import argparse
 import base64
 import http.client
+import importlib.util
 import json
 import math
 import os
@@ -47,6 +48,10 @@ import tempfile
 import time
 
 OHA = os.path.join(os.path.dirname(__file__), "..", ".tools", "bin", "oha")
+# The KITTI sequence helpers (calibration, truth, a prior moved on the ground) of track-http.py.
+_spec = importlib.util.spec_from_file_location("track_http", os.path.join(os.path.dirname(__file__), "track-http.py"))
+TRACK = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(TRACK)
 STAGES = ["queue", "decode", "image_encoder", "frustum_head", "agent_steps", "agent_state_build", "total"]
 TICK = os.sysconf("SC_CLK_TCK")
 
@@ -135,53 +140,26 @@ def correlation_flops(manifest: dict) -> int:
     return 2 * shifts * f["dim"] * f["grid_height"] * f["grid_width"]
 
 
-def perturbed(camera_from_map, shift_m, direction, yaw):
-    """`camera_from_map` (4x4 nested lists) with its camera moved `shift_m` metres along the map's
-    ground plane in `direction` and turned by `yaw` (radians) about map z through its own centre."""
-    r = [row[:3] for row in camera_from_map[:3]]
-    t = [row[3] for row in camera_from_map[:3]]
-    centre = [-sum(r[k][i] * t[k] for k in range(3)) for i in range(3)]  # -R^T t
-    c, s = math.cos(yaw), math.sin(yaw)
-    new_centre = [centre[0] + shift_m * math.cos(direction), centre[1] + shift_m * math.sin(direction), centre[2]]
-    # new R = R Rz(yaw)^T: the camera turned about the map's vertical
-    rz_t = [[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]]
-    r2 = [[sum(r[i][k] * rz_t[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
-    t2 = [-sum(r2[i][k] * new_centre[k] for k in range(3)) for i in range(3)]
-    return [r2[i] + [t2[i]] for i in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
-
-
 def real_size_workload(binary, sequence, workdir):
     """The real-size request: frame 0 of the KITTI-layout `sequence` (its image_2 PNG, its scan as
-    the region, the truth from calib.txt's P2 and Tr) or, when `sequence` is missing, a full-size
-    synthetic KITTI-rig frame written into `workdir`. Returns (description, scan bytes, body file)."""
+    the region, the truth and the prior from scripts/track-http.py's sequence helpers) or, when
+    `sequence` is missing, a full-size synthetic KITTI-rig frame written into `workdir`. Returns
+    (description, scan bytes, body file)."""
     if not os.path.isdir(sequence):
         subprocess.run([binary, "synth", "--out", os.path.join(workdir, "synth"), "--rig", "kitti", "--sequences", "1",
                         "--frames", "1", "--seed", "4242", "--quiet"], check=True)
         sequence = os.path.join(workdir, "synth", "00")
-    calib = {}
-    for line in open(os.path.join(sequence, "calib.txt")):
-        if ":" in line:
-            key, values = line.split(":", 1)
-            calib[key.strip()] = [float(v) for v in values.split()]
-    p2, tr = calib["P2"], calib.get("Tr", calib.get("Tr_velo_to_cam"))
-    rows = [tr[0:4], tr[4:8], tr[8:12]]
-    if "R0_rect" in calib:
-        r0 = calib["R0_rect"]
-        rows = [[sum(r0[3 * i + k] * rows[k][j] for k in range(3)) for j in range(4)] for i in range(3)]  # R0_rect Tr
-    # image_2's optical centre sits P2[:,3] / f from camera 0's (rectified), the scan is the map
-    offset = [p2[3] / p2[0], p2[7] / p2[5], p2[11]]
-    truth = [[*rows[i][:3], rows[i][3] + offset[i]] for i in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
-    image = sorted(n for n in os.listdir(os.path.join(sequence, "image_2")) if n.endswith(".png"))[0]
-    scan = sorted(n for n in os.listdir(os.path.join(sequence, "velodyne")) if n.endswith(".bin"))[0]
+    seq = TRACK.read_sequence(sequence)
+    index, image = seq["images"][0]
     body = {
-        "image": base64.b64encode(open(os.path.join(sequence, "image_2", image), "rb").read()).decode(),
-        "intrinsics": {"fx": p2[0], "fy": p2[5], "cx": p2[2], "cy": p2[6]},
-        "prior_camera_from_map": perturbed(truth, 1.9, 0.7, math.radians(20.0)),
+        "image": base64.b64encode(open(image, "rb").read()).decode(),
+        "intrinsics": seq["intrinsics"],
+        "prior_camera_from_map": TRACK.perturbed(TRACK.truth_camera_from_map(seq, index), 1.9, 0.7, math.radians(20.0)),
     }
     path = os.path.join(workdir, "real-size.json")
     with open(path, "w") as f:
         json.dump(body, f)
-    scan_bytes = open(os.path.join(sequence, "velodyne", scan), "rb").read()
+    scan_bytes = open(os.path.join(sequence, "velodyne", f"{index:06d}.bin"), "rb").read()
     return f"{sequence} ({len(scan_bytes) // 16:,} points, {len(body['image']) / 1e6:.2f} MB of base64)", scan_bytes, path
 
 
