@@ -6,6 +6,12 @@
 #   scripts/train-v7.sh start    # starts or resumes the run, niced, in the background
 #   scripts/train-v7.sh save     # copies the run's last.pt to training/checkpoints/v7.pt (commit it)
 #   scripts/train-v7.sh status   # the run's pid, its last log records
+#   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
+#                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
+#                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
+#                                # rtv-fleet, dev-protocol, dev-fleet, synth-test, v2-val, own-synth
+#                                # (default: the shipping rule's rtv-protocol synth-test); EVAL_FLAGS
+#                                # adds eval flags (e.g. "--keep-prior true") and TAG a suffix
 #
 # Resuming: `start` resumes from $RUN/last.pt; when that is missing (a fresh machine) or behind
 # the committed training/checkpoints/v7.pt (fewer steps), the committed file is copied there first, byte
@@ -38,6 +44,14 @@ data() {
       --sequences 1 --frames 8 --seed 95000 --style test --image-scale 0.5 --quiet && touch "$DATA/v7/val/$rig/.done"; }
     ln -sfn "$DATA/v7/val/$rig/00" "$DATA/v7/val-mix/synth-$rig"
   done
+  # the judge's synthetic sets: classic synth-test (docs/evaluation.md), world-v2 validation as one
+  # folder, and frames of the generator's default worlds and rig (own-synth)
+  [ -f "$DATA/synth-test/.done" ] || { nice -n "$NICE" "$BIN" synth --out "$DATA/synth-test" --sequences 4 --frames 50 \
+    --seed 5000 --style test --world classic --look classic --quiet && touch "$DATA/synth-test/.done"; }
+  [ -f "$DATA/own-synth/.done" ] || { nice -n "$NICE" "$BIN" synth --out "$DATA/own-synth" --sequences 4 --frames 10 \
+    --seed 8800 --quiet && touch "$DATA/own-synth/.done"; }
+  mkdir -p "$DATA/v2-val-flat"
+  for rig in kitti nuscenes random; do ln -sfn "$DATA/v7/val/$rig/00" "$DATA/v2-val-flat/$rig-00"; done
   (cd "$ROOT/training" && "$PY" -m cmr.real_split --src "$REAL" --out "$DATA/real-split")
   [ -f "$HOME/.cache/cmr-agent/runs/v3-import.pt" ] || (cd "$ROOT/training" && mkdir -p "$HOME/.cache/cmr-agent/runs" &&
     "$PY" -m cmr.import_onnx ../models --out "$HOME/.cache/cmr-agent/runs/v3-import.pt")
@@ -82,6 +96,38 @@ save() {
   "$PY" -c "import torch,sys; c=torch.load(sys.argv[1], map_location='cpu', weights_only=False); print('embed_step', c['embed_step'], 'agent_iter', c['agent_iter'])" "$SAVED"
 }
 
+# export + quantise a checkpoint like the shipped set, then `cmr-agent eval` on the named sets
+judge() {
+  local ckpt=$(readlink -f "$1") name=$2; shift 2
+  local out=$RUN/judge/$name sets=("$@") tag=${TAG:-}
+  [ ${#sets[@]} -gt 0 ] || sets=(rtv-protocol synth-test)
+  mkdir -p "$out"
+  if [ ! -f "$out/models/manifest.json" ]; then
+    (cd "$ROOT/training" && nice -n "$NICE" "$PY" -m cmr.export --checkpoint "$ckpt" --out "$out/float" &&
+      nice -n "$NICE" "$PY" -m cmr.quantize --models "$out/float" --calibration "$DATA/v7/train/b0" "$DATA/real-split/train" \
+        --out "$out/models") > "$out/export.log" 2>&1
+  fi
+  local set data cases
+  for set in "${sets[@]}"; do
+    case $set in
+      rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-perturbations.json ;;
+      rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-perturbations.json ;;
+      dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-perturbations.json ;;
+      dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-perturbations.json ;;
+      synth-test) data=$DATA/synth-test; cases=docs/eval/perturbations.json ;;
+      v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-perturbations.json ;;
+      own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-perturbations.json ;;
+      *) echo "unknown set $set" >&2; return 2 ;;
+    esac
+    # shellcheck disable=SC2086
+    (cd "$ROOT" && nice -n "$NICE" "$BIN" eval --data "$data" --perturbations "$cases" --models "$out/models" \
+      --out "$out/$set$tag" --no-baseline --worst 0 --quiet ${EVAL_FLAGS:-}) > "$out/$set$tag.log" 2>&1
+    printf '%-22s' "$set$tag"
+    awk -F'|' '/^## Table 1:/{t=1; next} /^## /{t=0} t && $2 ~ /cmr-agent|no-op/ {printf " %s%s%%;", $2, $6}' "$out/$set$tag/tables.md"
+    echo
+  done
+}
+
 status() {
   [ -f "$RUN/pid" ] && ps -o pid,stat,etime,time,cmd -p "$(cat "$RUN/pid")" | cut -c1-120 || true
   tail -n 3 "$RUN/stdout.log" 2>/dev/null | cut -c1-400
@@ -89,5 +135,6 @@ status() {
 
 case "${1:-}" in
   data|start|save|status) "$1" ;;
-  *) sed -n 2,16p "$0"; exit 2 ;;
+  judge) shift; judge "$@" ;;
+  *) sed -n 2,22p "$0"; exit 2 ;;
 esac
