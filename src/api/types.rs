@@ -197,7 +197,7 @@ pub struct LocalizeResponse {
     /// Index into `hypotheses` of the answer (0 when the prior was kept).
     pub chosen_hypothesis: usize,
     /// The answer is the prior, unmoved: its alignment score beat every hypothesis's final pose
-    /// (the server's `--keep-prior`, off by default).
+    /// (the server's `--keep-prior`, on by default).
     pub kept_prior: bool,
     pub timings_ms: TimingsMs,
 }

@@ -609,6 +609,17 @@ class Run:
         return result
 
 
+def adopt_init_architecture(cfg: Config, given: set[str]) -> Config:
+    """With `init_from`, the architecture (`norm`, `image_edges`) is the checkpoint's unless given
+    explicitly: a fine-tune of `models/` (v3: BatchNorm, v7: GroupNorm) needs no flag for it. A
+    value given that contradicts the checkpoint stops the run in `Run._init_from`."""
+    if not cfg.init_from or not Path(cfg.init_from).exists():
+        return cfg
+    state = torch.load(cfg.init_from, map_location="cpu", weights_only=False)
+    arch = {k: v for k, v in arch_of(state.get("meta", {}).get("config", {})).items() if k not in given}
+    return dataclasses.replace(cfg, **arch)
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", help="comma-separated KITTI-layout roots or sequence directories")
@@ -623,6 +634,7 @@ def main(argv=None) -> None:
         if value is not None:
             overrides.append(f"{key}={value}")
     cfg = Config.from_overrides(cfg, overrides)
+    cfg = adopt_init_architecture(cfg, {o.split("=", 1)[0] for o in overrides})
     if not cfg.data:
         raise SystemExit("--data is required")
     torch.set_num_threads(cfg.threads)

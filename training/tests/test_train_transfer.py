@@ -73,6 +73,10 @@ def test_group_norm_run_exports_and_fine_tunes(tmp_path, tiny_dataset):
         assert torch.equal(v, src["models"]["image_encoder"][k])
     with pytest.raises(SystemExit, match="norm=group"):
         small_run(tmp_path / "ft2", tiny_dataset, init_from=str(tmp_path / "src" / "last.pt"))
+    # From the command line, `init_from` brings its architecture unless it is given (the shipped
+    # model's fine-tune needs no `norm=` flag).
+    main(["--out", str(tmp_path / "ft3")] + base + ["embed_steps=0", "agent_iters=1", f"init_from={tmp_path / 'src' / 'last.pt'}"])
+    assert json.loads((tmp_path / "ft3" / "config.json").read_text())["norm"] == "group"
     # The agent alone from a checkpoint with other encoders (BatchNorm): encoders stay as given.
     main(["--out", str(tmp_path / "bn")] + base + ["embed_steps=1", "agent_iters=1", "agent_ema=0.9"])
     bn = torch.load(tmp_path / "bn" / "last.pt", map_location="cpu", weights_only=False)
