@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Fit the calibrator (issue 30) of a model set: `cmr-agent eval` on frames the set never trained on,
-# in the paper's protocol and from fleet-grade priors, with the server's default search and with
-# --keep-prior true, then `python -m cmr.calibrate` writes `calibrator` into MODELS/manifest.json.
+# in the paper's protocol and from fleet-grade priors, with keep-prior off and on, and the fleet
+# priors again stated as a bound (--prior-bound 30,5: the request's prior_bound, whose answers the
+# `bounded` signal tells apart), then `python -m cmr.calibrate` writes `calibrator` into
+# MODELS/manifest.json.
 #
 #   scripts/fit-calibrator.sh MODELS REAL
 #
@@ -11,10 +13,11 @@
 # Synthetic frames of fresh seeds are made under $CAL (default ~/.cache/cmr-agent/data/cal) when
 # missing: 80 of the generator's default worlds (seed 7300) and 40 of the classic world (7400).
 # Environment: CAL, REAL_CASES (cases per real frame, default 8), OUT (eval outputs, default
-# $CAL/evals/<manifest sha>), CMR_AGENT_BIN, NICE (default 5).
+# $CAL/evals/<manifest sha>; an eval whose cases.json is already there is reused), CMR_AGENT_BIN,
+# NICE (default 5).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
-[ $# -eq 2 ] || { sed -n 2,14p "$0"; exit 2; }
+[ $# -eq 2 ] || { sed -n 2,17p "$0"; exit 2; }
 MODELS=$(readlink -f "$1"); REAL=$(readlink -f "$2")
 CAL=${CAL:-$HOME/.cache/cmr-agent/data/cal}
 BIN=${CMR_AGENT_BIN:-$ROOT/target/release/cmr-agent}
@@ -27,15 +30,20 @@ OUT=${OUT:-$CAL/evals/$(sha256sum "$MODELS/manifest.json" | cut -c1-12)}
 [ -f "$CAL/classic/.done" ] || { "$BIN" synth --out "$CAL/classic" --sequences 2 --frames 20 --seed 7400 --style test \
   --world classic --look classic --quiet && touch "$CAL/classic/.done"; }
 
-# one eval: data folder, its short name, cases per frame, seed, regime; both search settings
+# one eval: data folder, its short name, cases per frame, seed, regime; each search setting
 cases=()
 run() {
-  local data=$1 name=$2 per=$3 seed=$4 priors=$5 keep
+  local data=$1 name=$2 per=$3 seed=$4 priors=$5 setting
   mkdir -p "$OUT/cases"
-  for keep in false true; do
-    local out=$OUT/$name-$priors-keep-$keep
+  local settings=("keep-false --keep-prior false" "keep-true --keep-prior true")
+  [ "$priors" = fleet ] && settings+=("bounded --keep-prior true --prior-bound 30,5")
+  for setting in "${settings[@]}"; do
+    local out=$OUT/$name-$priors-${setting%% *}
+    # an eval already in OUT is reused (OUT is per model set unless given)
+    [ -f "$out/cases.json" ] && { cases+=("$out/cases.json"); continue; }
+    # shellcheck disable=SC2086
     nice -n "$NICE" "$BIN" eval --data "$data" --models "$MODELS" --perturbations "$OUT/cases/$name-$priors.json" \
-      --cases-per-frame "$per" --seed "$seed" --priors "$priors" --keep-prior "$keep" \
+      --cases-per-frame "$per" --seed "$seed" --priors "$priors" ${setting#* } \
       --out "$out" --no-baseline --worst 0 --quiet
     cases+=("$out/cases.json")
   done

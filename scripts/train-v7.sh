@@ -6,6 +6,10 @@
 #   scripts/train-v7.sh start    # starts or resumes the run, niced, in the background
 #   scripts/train-v7.sh save     # copies the run's last.pt to training/checkpoints/v7.pt (commit it)
 #   scripts/train-v7.sh status   # the run's pid, its last log records
+#   RUN=~/.cache/cmr-agent/runs/v8f scripts/train-v7.sh start-v8f
+#                                # run v8f (issue 29): stage 2 again from the shipped model (v7),
+#                                # encoders kept, half the episodes from fleet-like starts, one
+#                                # thread; `save` and `status` with the same RUN (saves v8f.pt)
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
@@ -26,7 +30,7 @@ NICE=${NICE:-5}
 BIN=${CMR_AGENT_BIN:-$ROOT/target/release/cmr-agent}
 PY=$ROOT/.venv/bin/python
 REAL=${REAL:-$ROOT/../shared/real-train}
-SAVED=$ROOT/training/checkpoints/v7.pt
+SAVED=$ROOT/training/checkpoints/$(basename "$RUN").pt
 
 # world v2 (six rigs' blocks + one classic block) and the real split; validation mixes both
 data() {
@@ -89,6 +93,29 @@ start() {
   echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
 }
 
+# Run v8f: the shipped agent trained on from the shipped model's own weights (cmr.import_onnx of
+# models/, made once into $RUN/../v7-import.pt), stage 1 skipped, with half the episodes starting
+# within 30 deg / 5 m of the truth (the fleet regime) at a lower learning rate.
+start_v8f() {
+  mkdir -p "$RUN"
+  local init=$RUN/../v7-import.pt
+  [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx ../models --out "$init")
+  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
+    cp "$SAVED" "$RUN/last.pt"
+    echo "resuming from the committed $SAVED"
+  fi
+  cd "$ROOT/training"
+  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
+    action_frame=map_z norm=group photometric=heavy scale_max=1.5 lidar_aug=true \
+    map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 \
+    init_from="$init" embed_steps=0 agent_iters=1500 agent_lr=1e-4 agent_lr_min=1e-5 agent_ema=0.995 \
+    bc_only_iters=0 expert_mix_start=0.2 expert_mix_iters=300 pool_size=48 update_epochs=2 near_start_p=0.5 \
+    eval_every=250 eval_frames=36 checkpoint_every=50 log_every=20 threads=1 loader_workers=0 \
+    >> "$RUN/stdout.log" 2>&1 &
+  echo $! > "$RUN/pid"
+  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -135,6 +162,7 @@ status() {
 
 case "${1:-}" in
   data|start|save|status) "$1" ;;
+  start-v8f) start_v8f ;;
   judge) shift; judge "$@" ;;
   *) sed -n 2,22p "$0"; exit 2 ;;
 esac

@@ -79,7 +79,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 
     // Four starts: the first is the single trajectory above (same rows, batched with three more),
     // the others start from the prior turned about the pivot, and the answer is the best score.
-    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false };
+    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None };
     let multi = agent::localize(&mut backend, &map, &tensor, crop_k, prior, four).unwrap();
     assert_eq!(multi.hypotheses.len(), 4);
     let first = &multi.hypotheses[0];
@@ -115,6 +115,38 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
     assert!(went_on.contains(&leader));
     let finals: Vec<f32> = narrowed.hypotheses.iter().map(|h| h.alignment()).collect();
     assert_eq!(narrowed.chosen, agent::best_of(finals));
+
+    // A bounded prior: the starts turn about the prior's camera centre within the bound, and
+    // the answer is the best-scoring pose visited inside the bound, with its steps up to there.
+    let bound = agent::PriorBound { rotation_deg: 30.0, translation_m: 5.0 };
+    let bounded = agent::localize(&mut backend, &map, &tensor, crop_k, prior, SearchConfig { prior_bound: Some(bound), ..four }).unwrap();
+    let centre = nalgebra::Point3::from(prior.camera_position_in_map());
+    for (h, offset) in bounded.hypotheses.iter().zip([0.0, 30.0, -30.0, 15.0]) {
+        assert_eq!(h.start_yaw_offset_deg, offset);
+        let turned = apply_motion(ActionFrame::CameraY, &prior, &centre, offset, 0.0, 0.0);
+        assert!((h.start.matrix() - turned.matrix()).abs().max() < 1e-12, "start {offset}");
+        assert!(bound.contains(&prior, &h.start), "start {offset} inside the bound");
+    }
+    let answer = bounded.camera_from_map();
+    assert!(bound.contains(&prior, &answer));
+    let score = bounded.confidence.alignment;
+    let mut inside = 0;
+    for h in &bounded.hypotheses {
+        for k in 0..=h.steps.len() {
+            let (pose, s) = h.pose_after(k);
+            if bound.contains(&prior, &pose) {
+                inside += 1;
+                assert!(s <= score, "a visited pose inside the bound scores {s} > the answer's {score}");
+            }
+        }
+    }
+    assert!(inside >= 4, "every start is inside");
+    if bounded.kept_prior {
+        assert_eq!((answer, bounded.answer_steps().len()), (prior, 0));
+    } else {
+        assert_eq!(bounded.answer_steps().last().map_or(bounded.best().start, |s| s.camera_from_map), answer);
+    }
+    assert_eq!(bounded.pose_after(bounded.iterations()), answer);
 }
 
 #[test]
@@ -147,7 +179,7 @@ fn batched_workers_match_the_synchronous_loop() {
             // Searches of 1 to 3 starts (one narrowed): the 8-row batch holds some, the rest wait.
             let narrow_after = (i == 4).then_some(1);
             let merge_duplicates = i == 5;
-            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0 })
+            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None })
         })
         .collect();
     let expected: Vec<_> = cases

@@ -32,9 +32,9 @@ fn calibrated_model(dir: &Path, threshold: f64) -> PathBuf {
         "kind": "logistic",
         "target": "test",
         "features": cmr_agent::model::calibrator::SIGNAL_NAMES,
-        "mean": [0.0, 0.0, 0.0, 0.3, 0.2, 0.5, 0.5, 0.5, 0.1, 1.0],
-        "std": [0.2, 0.1, 0.05, 0.4, 0.2, 0.3, 0.5, 0.3, 0.1, 1.0],
-        "weights": [1.1, 0.5, 0.4, 0.6, -0.3, 0.8, -0.2, 0.3, 0.5, 0.1],
+        "mean": [0.0, 0.0, 0.0, 0.3, 0.2, 0.5, 0.5, 0.5, 0.1, 1.0, 0.2],
+        "std": [0.2, 0.1, 0.05, 0.4, 0.2, 0.3, 0.5, 0.3, 0.1, 1.0, 0.4],
+        "weights": [1.1, 0.5, 0.4, 0.6, -0.3, 0.8, -0.2, 0.3, 0.5, 0.1, 0.7],
         "bias": 0.2,
         "threshold": threshold,
     });
@@ -72,6 +72,7 @@ fn eval_config(data: &Path, perturbations: &Path, out: &Path, models: &Path) -> 
         hypotheses: 4,
         // The server's defaults, so both run the same search.
         tuning: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true },
+        prior_bound: None,
         seed: 0,
         frame_stride: 1,
         max_cases: None,

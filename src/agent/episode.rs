@@ -153,19 +153,9 @@ impl Episode {
         });
     }
 
-    pub fn confidence(&self, map: &PreparedMap, layout: &StateLayout) -> Confidence {
-        let policy_certainty = self.steps.last().map(|s| s.confidence).unwrap_or(0.0);
-        self.confidence_of(map, layout, &self.pose, policy_certainty, self.alignment())
-    }
-
-    /// The confidence of the start pose, as if the trajectory had answered before its first
-    /// step (the policy's certainty is that of its first decision, taken there).
-    pub fn confidence_at_start(&self, map: &PreparedMap, layout: &StateLayout) -> Confidence {
-        let policy_certainty = self.steps.first().map(|s| s.confidence).unwrap_or(0.0);
-        self.confidence_of(map, layout, &self.start, policy_certainty, self.start_alignment)
-    }
-
-    fn confidence_of(&self, map: &PreparedMap, layout: &StateLayout, pose: &Pose, policy_certainty: f32, alignment: f32) -> Confidence {
+    /// How sure an answer at `pose` (one this trajectory visited) is: the frustum head's
+    /// agreement there, with the policy's certainty and alignment score the search recorded.
+    pub fn confidence_of(&self, map: &PreparedMap, layout: &StateLayout, pose: &Pose, policy_certainty: f32, alignment: f32) -> Confidence {
         let e = &self.evidence;
         let (frustum_iou, in_view) = frustum_overlap(&map.points, &e.frustum_probs, &e.intrinsics, layout, pose);
         Confidence { frustum_iou, policy_certainty, score: (frustum_iou * policy_certainty).sqrt(), alignment, in_view }

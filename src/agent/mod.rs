@@ -20,7 +20,7 @@ use crate::model::{Backend, Signals, Verdict};
 pub use batch::{Batch, Start, StepError};
 pub use episode::{Confidence, Episode, ImageEvidence, Step};
 pub use input::prepare_image;
-pub use search::{DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, Search, SearchConfig, SearchTuning, best_of, prior_wins, start_yaw_offsets};
+pub use search::{DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, prior_wins, start_yaw_offsets};
 pub use state::{Form2d, ImageGrid, ScatterScratch, Shifts, StateLayout};
 
 /// Milliseconds spent per phase of one localization.
@@ -40,14 +40,20 @@ pub struct Localization {
     pub prior: Pose,
     /// One per start, in the order of `start_yaw_offsets`; the first starts at the prior.
     pub hypotheses: Vec<Hypothesis>,
-    /// The hypothesis whose final pose has the best alignment score: the answer (0 when the
-    /// prior was kept).
+    /// The hypothesis whose pose answers (0 when the prior was kept): the best-scoring final
+    /// pose, or within a prior bound the best-scoring pose visited inside it
+    /// (`search::answer_at`).
     pub chosen: usize,
+    /// Steps of the chosen hypothesis that led to the answer: all of them without a prior bound,
+    /// possibly fewer with one (0 when the prior was kept).
+    pub answer_steps: usize,
     /// The answer is the prior itself, unmoved: it outscored every final pose
     /// (`SearchConfig::keep_prior`).
     pub kept_prior: bool,
-    /// Whether the prior competed with the final poses (`SearchConfig::keep_prior`).
+    /// Whether the prior competed with the answers (`SearchConfig::keep_prior`, or a bound).
     pub prior_competes: bool,
+    /// The request's bound on the prior's error (`SearchConfig::prior_bound`).
+    pub prior_bound: Option<search::PriorBound>,
     /// Of the answer (the chosen hypothesis's final pose, or the prior).
     pub confidence: Confidence,
     /// The request's policy steps per hypothesis.
@@ -66,22 +72,28 @@ impl Localization {
 
     /// The final estimate of camera_from_map.
     pub fn camera_from_map(&self) -> Pose {
-        if self.kept_prior { self.prior } else { self.best().camera_from_map() }
+        if self.kept_prior { self.prior } else { self.best().pose_after(self.answer_steps).0 }
     }
 
-    /// The steps that led to the answer: the chosen hypothesis's, none when the prior was kept.
+    /// The steps that led to the answer: the chosen hypothesis's up to the answer, none when the
+    /// prior was kept.
     pub fn answer_steps(&self) -> &[Step] {
-        if self.kept_prior { &[] } else { &self.best().steps }
+        if self.kept_prior { &[] } else { &self.best().steps[..self.answer_steps] }
     }
 
-    /// The answer had the search stopped after `iterations` steps: the best-scoring pose over
-    /// all hypotheses at that point, or the prior when it competes and scores higher (the
-    /// evaluator's per-iteration figures; after the last step, `camera_from_map`).
+    /// Whether the answer is where the chosen trajectory stopped by choosing the zero step.
+    pub fn converged(&self) -> bool {
+        !self.kept_prior && self.best().converged && self.answer_steps == self.best().steps.len()
+    }
+
+    /// The answer had the search stopped after `iterations` steps, by the same rule
+    /// (`search::answer_at`; the evaluator's per-iteration figures; after the last step,
+    /// `camera_from_map`).
     pub fn pose_after(&self, iterations: usize) -> Pose {
-        let at: Vec<(Pose, f32)> = self.hypotheses.iter().map(|h| h.pose_after(iterations)).collect();
-        let best = &at[best_of(at.iter().map(|(_, score)| *score))];
-        let prior_alignment = self.hypotheses.first().map_or(f32::NAN, |h| h.start_alignment);
-        if self.prior_competes && search::prior_wins(prior_alignment, best.1) { self.prior } else { best.0 }
+        match search::answer_at(&self.hypotheses, &self.prior, self.prior_bound, self.prior_competes, iterations) {
+            None => self.prior,
+            Some((h, k)) => self.hypotheses[h].pose_after(k).0,
+        }
     }
 
     /// Applies `f` to every pose it holds (prior, starts, steps): how serving moves a result from
@@ -116,7 +128,7 @@ impl Localization {
             ((alignment - runner_up) as f64, agreeing as f64 / others.len() as f64)
         };
         let start_mean = self.hypotheses.iter().map(|h| h.start_alignment as f64).sum::<f64>() / self.hypotheses.len().max(1) as f64;
-        let converged = !self.kept_prior && self.best().converged;
+        let converged = self.converged();
         Signals {
             alignment: alignment as f64,
             alignment_gain: alignment as f64 - start_mean,
@@ -128,6 +140,7 @@ impl Localization {
             steps_fraction: self.answer_steps().len() as f64 / self.max_iterations.max(1) as f64,
             in_view: self.confidence.in_view as f64,
             log2_starts: (self.hypotheses.len().max(1) as f64).log2(),
+            bounded: if self.prior_bound.is_some() { 1.0 } else { 0.0 },
         }
     }
 
@@ -181,12 +194,15 @@ mod tests {
 
     fn localization(hypotheses: Vec<Hypothesis>, chosen: usize) -> Localization {
         let confidence = Confidence { frustum_iou: 0.25, policy_certainty: 0.5, score: 0.3, alignment: hypotheses[chosen].alignment(), in_view: 0.125 };
+        let answer_steps = hypotheses[chosen].steps.len();
         Localization {
             prior: Pose::identity(),
             hypotheses,
             chosen,
+            answer_steps,
             kept_prior: false,
             prior_competes: false,
+            prior_bound: None,
             confidence,
             max_iterations: 10,
             timings: Timings::default(),

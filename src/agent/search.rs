@@ -18,8 +18,18 @@
 //!   on.
 //!
 //! Stopped hypotheses keep their last pose and still compete at the end.
+//!
+//! A request may also bound its prior ([`PriorBound`]: the truth is within so many degrees and
+//! metres of it, as a fleet's odometry or GNSS can say). Then the starts spread over that bound
+//! instead of the whole circle, turned about the prior's camera centre, and the answer is the
+//! best-scoring pose that any start *visited* inside the bound (the prior included): on real
+//! frames the trajectories pass near the truth more often than they end there, and the bound
+//! removes the street seen backwards that makes "best visited pose" fail without one
+//! (docs/evaluation.md, "A bounded prior").
 
 use std::sync::Arc;
+
+use nalgebra::Point3;
 
 use crate::geometry::{ActionFrame, Pose, PoseError};
 use crate::geometry::actions::apply_motion;
@@ -40,8 +50,27 @@ pub const MAX_ITERATIONS: u32 = 50;
 /// chosen on the validation set (docs/evaluation.md, "Multi-start search").
 pub const DEFAULT_HYPOTHESES: u32 = 4;
 
+/// What the client knows about its prior: the true camera_from_map is within `rotation_deg`
+/// (geodesic angle) and `translation_m` (distance between the camera positions in the map) of
+/// it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PriorBound {
+    pub rotation_deg: f64,
+    pub translation_m: f64,
+}
+
+impl PriorBound {
+    /// Whether `pose` lies within the bound of `prior` (inclusive).
+    pub fn contains(&self, prior: &Pose, pose: &Pose) -> bool {
+        let delta = prior.rotation().transpose() * pose.rotation();
+        let angle_deg = ((delta.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees();
+        let distance_m = (prior.camera_position_in_map() - pose.camera_position_in_map()).norm();
+        angle_deg <= self.rotation_deg && distance_m <= self.translation_m
+    }
+}
+
 /// How far one request searches.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SearchConfig {
     /// Starts (yaw offsets of the prior); 1 = the paper's single trajectory.
     pub hypotheses: usize,
@@ -54,12 +83,15 @@ pub struct SearchConfig {
     /// The prior itself competes with the hypotheses' final poses: when its alignment score is
     /// higher than every final pose's, the answer is the prior, unmoved.
     pub keep_prior: bool,
+    /// The request's bound on its prior's error: starts within it, and the answer is the best
+    /// pose visited inside it (the module's docs). `None`: the whole circle, final poses only.
+    pub prior_bound: Option<PriorBound>,
 }
 
 impl SearchConfig {
     /// The paper's procedure: one trajectory from the prior, answered with its last pose.
     pub fn single(max_iterations: usize) -> Self {
-        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false }
+        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None }
     }
 }
 
@@ -92,6 +124,7 @@ impl SearchTuning {
             narrow_after: (self.narrow_after > 0).then_some(self.narrow_after as usize),
             merge_duplicates: self.merge_duplicates,
             keep_prior: self.keep_prior,
+            prior_bound: None,
         }
     }
 }
@@ -123,6 +156,58 @@ pub fn start_yaw_offsets(hypotheses: usize) -> Vec<f64> {
             if offset > 180.0 { offset - 360.0 } else { offset }
         })
         .collect()
+}
+
+/// The yaw offsets of H starts within a bound of ±`bound_deg`: the prior first, then the bound's
+/// ends, then points halfway, a quarter of the way, ... alternating sides
+/// (0, +b, −b, +b/2, −b/2, +b/4, ...); `bound_deg` above 180° counts as 180°.
+pub fn bounded_start_yaw_offsets(hypotheses: usize, bound_deg: f64) -> Vec<f64> {
+    let bound = bound_deg.min(180.0);
+    (0..hypotheses)
+        .map(|k| {
+            if k == 0 {
+                return 0.0;
+            }
+            let level = (k - 1) / 2; // 0: the ends, 1: halfway, 2: a quarter, ...
+            let sign = if k % 2 == 1 { 1.0 } else { -1.0 };
+            sign * bound / f64::powi(2.0, level as i32)
+        })
+        .collect()
+}
+
+/// Which pose of a search answers after `iterations` steps: `None` for the prior itself, else
+/// (hypothesis, steps taken to reach the pose; 0 = its start).
+///
+/// Without a bound: the best-scoring final pose over the hypotheses (the first one on ties),
+/// or the prior when `prior_competes` and it scores strictly higher. With a bound: the
+/// best-scoring pose visited within the bound of `prior` (each hypothesis's start and every
+/// step up to `iterations`), the prior first so that it wins a draw; NaN scores never win.
+pub fn answer_at(hypotheses: &[Hypothesis], prior: &Pose, bound: Option<PriorBound>, prior_competes: bool, iterations: usize) -> Option<(usize, usize)> {
+    let Some(bound) = bound else {
+        let finals: Vec<f32> = hypotheses.iter().map(|h| h.pose_after(iterations).1).collect();
+        let best = best_of(finals.iter().copied());
+        let prior_alignment = hypotheses.first().map_or(f32::NAN, |h| h.start_alignment);
+        if prior_competes && prior_wins(prior_alignment, finals[best]) {
+            return None;
+        }
+        return Some((best, iterations.min(hypotheses[best].steps.len())));
+    };
+    let mut best: (Option<(usize, usize)>, f32) = (None, hypotheses.first().map_or(f32::NAN, |h| h.start_alignment));
+    if best.1.is_nan() {
+        best.1 = f32::NEG_INFINITY;
+    }
+    for (h, hypothesis) in hypotheses.iter().enumerate() {
+        for k in 0..=iterations.min(hypothesis.steps.len()) {
+            if h == 0 && k == 0 {
+                continue; // the prior, already the incumbent
+            }
+            let (pose, score) = hypothesis.pose_after(k);
+            if score > best.1 && bound.contains(prior, &pose) {
+                best = (Some((h, k)), score);
+            }
+        }
+    }
+    best.0
 }
 
 /// One finished trajectory of a search.
@@ -184,6 +269,7 @@ pub struct Search {
     narrow_after: Option<usize>,
     merge_duplicates: bool,
     keep_prior: bool,
+    prior_bound: Option<PriorBound>,
 }
 
 impl Search {
@@ -191,16 +277,30 @@ impl Search {
     pub fn new(evidence: ImageEvidence, map: &PreparedMap, prior: Pose, config: SearchConfig, frame: ActionFrame) -> Self {
         let evidence = Arc::new(evidence);
         let max_iterations = config.max_iterations;
-        let offsets = start_yaw_offsets(config.hypotheses.clamp(1, MAX_HYPOTHESES));
+        let hypotheses = config.hypotheses.clamp(1, MAX_HYPOTHESES);
+        // Unbounded, the starts turn about the map's pivot (like the agent's own steps); within a
+        // bound, about the prior's camera centre, so that every start lies inside it.
+        let (offsets, pivot) = match config.prior_bound {
+            None => (start_yaw_offsets(hypotheses), map.pivot),
+            Some(b) => (bounded_start_yaw_offsets(hypotheses, b.rotation_deg), Point3::from(prior.camera_position_in_map())),
+        };
         let episodes = offsets
             .iter()
             .map(|&yaw_deg| {
-                let start = if yaw_deg == 0.0 { prior } else { apply_motion(frame, &prior, &map.pivot, yaw_deg, 0.0, 0.0) };
+                let start = if yaw_deg == 0.0 { prior } else { apply_motion(frame, &prior, &pivot, yaw_deg, 0.0, 0.0) };
                 Episode::new(evidence.clone(), start, max_iterations)
             })
             .collect();
         let narrow_after = config.narrow_after.filter(|_| offsets.len() > 1);
-        Self { prior, episodes, offsets, narrow_after, merge_duplicates: config.merge_duplicates, keep_prior: config.keep_prior }
+        Self {
+            prior,
+            episodes,
+            offsets,
+            narrow_after,
+            merge_duplicates: config.merge_duplicates,
+            keep_prior: config.keep_prior,
+            prior_bound: config.prior_bound,
+        }
     }
 
     /// Call after every batched step: stops duplicates and narrows, as configured.
@@ -252,38 +352,52 @@ impl Search {
         (0..self.episodes.len()).filter(|&h| !self.episodes[h].is_done())
     }
 
-    /// Scores every final pose, keeps the best hypothesis (or the prior, with `keep_prior`, when
-    /// it scores higher still), and turns the search into its result.
+    /// Scores every final pose, chooses the answer ([`answer_at`] after the last step: the best
+    /// hypothesis, or the prior with `keep_prior` when it scores higher still; within a bound,
+    /// the best pose visited inside it), and turns the search into its result.
     pub fn finish(mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch, timings: Timings) -> Localization {
         for episode in &mut self.episodes {
             episode.settle(map, layout, scratch);
         }
-        let mut chosen = best_of(self.episodes.iter().map(Episode::alignment));
-        // The first hypothesis starts at the prior, so its start's score is the prior's.
-        let kept_prior = self.keep_prior && prior_wins(self.episodes[0].start_alignment, self.episodes[chosen].alignment());
-        if kept_prior {
-            chosen = 0;
-        }
-        let confidence = if kept_prior {
-            self.episodes[0].confidence_at_start(map, layout)
-        } else {
-            self.episodes[chosen].confidence(map, layout)
-        };
-        let max_iterations = self.episodes[chosen].max_iterations;
-        let hypotheses = self
+        let max_iterations = self.episodes[0].max_iterations;
+        // A bounded search always lets the prior (its first start) compete.
+        let prior_competes = self.keep_prior || self.prior_bound.is_some();
+        let hypotheses: Vec<Hypothesis> = self
             .episodes
-            .into_iter()
-            .zip(self.offsets)
-            .map(|(e, start_yaw_offset_deg)| Hypothesis {
+            .iter_mut()
+            .zip(&self.offsets)
+            .map(|(e, &start_yaw_offset_deg)| Hypothesis {
                 start_yaw_offset_deg,
                 start: e.start,
                 start_alignment: e.start_alignment,
-                steps: e.steps,
+                steps: std::mem::take(&mut e.steps),
                 converged: e.converged,
                 dropped: e.dropped,
             })
             .collect();
-        Localization { prior: self.prior, hypotheses, chosen, kept_prior, prior_competes: self.keep_prior, confidence, max_iterations, timings, verdict: Default::default() }
+        let (chosen, answer_steps, kept_prior) = match answer_at(&hypotheses, &self.prior, self.prior_bound, prior_competes, max_iterations) {
+            None => (0, 0, true),
+            Some((h, k)) => (h, k, false),
+        };
+        // The policy's certainty at the answer: of the decision taken there (the last one when
+        // the answer is a trajectory's end).
+        let best = &hypotheses[chosen];
+        let (pose, alignment) = best.pose_after(answer_steps);
+        let certainty = best.steps.get(answer_steps).or(best.steps.last()).map_or(0.0, |s| s.confidence);
+        let confidence = self.episodes[chosen].confidence_of(map, layout, &pose, certainty, alignment);
+        Localization {
+            prior: self.prior,
+            hypotheses,
+            chosen,
+            answer_steps,
+            kept_prior,
+            prior_competes,
+            prior_bound: self.prior_bound,
+            confidence,
+            max_iterations,
+            timings,
+            verdict: Default::default(),
+        }
     }
 }
 
@@ -302,10 +416,10 @@ mod tests {
     #[test]
     fn a_hypothesis_that_reaches_an_earlier_one_stops() {
         use crate::geometry::Intrinsics;
-        use nalgebra::{Point3, Vector3};
+        use nalgebra::Vector3;
         let map = PreparedMap { points: vec![[0.0, 0.0, 5.0]], features: vec![0.0; 64], pivot: Point3::new(0.0, 0.0, 5.0), source_points: 1 };
         let evidence = ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 } };
-        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false };
+        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false, prior_bound: None };
         let mut search = Search::new(evidence, &map, Pose::identity(), config, ActionFrame::CameraY);
         let shifted = |dx: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(dx * DUPLICATE_RTE_M, 0.0, 0.0));
         // 0 and 1 meet (half the radius apart); 2 is within the radius of 1 but 1.2 radii from 0;
@@ -327,6 +441,69 @@ mod tests {
         search.after_step(&map, &layout, &mut scratch);
         let dropped: Vec<bool> = search.episodes.iter().map(|e| e.dropped).collect();
         assert_eq!(dropped, vec![false, true, false, true]);
+    }
+
+    #[test]
+    fn bounded_starts_spread_over_the_bound() {
+        assert_eq!(bounded_start_yaw_offsets(1, 30.0), vec![0.0]);
+        assert_eq!(bounded_start_yaw_offsets(3, 30.0), vec![0.0, 30.0, -30.0]);
+        assert_eq!(bounded_start_yaw_offsets(6, 40.0), vec![0.0, 40.0, -40.0, 20.0, -20.0, 10.0]);
+        assert_eq!(bounded_start_yaw_offsets(3, 270.0), vec![0.0, 180.0, -180.0]);
+    }
+
+    #[test]
+    fn a_bound_contains_rotations_and_positions_up_to_its_edges() {
+        use nalgebra::Vector3;
+        let bound = PriorBound { rotation_deg: 30.0, translation_m: 5.0 };
+        let prior = Pose::level_camera_along_x(Vector3::new(10.0, -4.0, 1.5));
+        let at = |yaw: f64, dx: f64| apply_motion(ActionFrame::MapZ, &prior, &Point3::from(prior.camera_position_in_map()), yaw, dx, 0.0);
+        assert!(bound.contains(&prior, &prior));
+        assert!(bound.contains(&prior, &at(29.9, 0.0)) && bound.contains(&prior, &at(-29.9, 4.9)));
+        assert!(!bound.contains(&prior, &at(30.1, 0.0)) && !bound.contains(&prior, &at(0.0, 5.1)));
+        // A turn about the camera centre does not move the camera.
+        assert!((at(25.0, 0.0).camera_position_in_map() - prior.camera_position_in_map()).norm() < 1e-9);
+    }
+
+    /// Unbounded: the best final pose (or the prior when it competes and wins). Bounded: the
+    /// best visited pose inside the bound, the prior winning a draw.
+    #[test]
+    fn the_answer_follows_the_bound() {
+        use nalgebra::Vector3;
+        let prior = Pose::identity();
+        let shifted = |x: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(x, 0.0, 0.0));
+        let step = |x: f64, alignment: f32| Step {
+            iteration: 1,
+            camera_from_map: shifted(x),
+            action: crate::geometry::ActionSet::default().action([5, 5, 5]),
+            probabilities: [vec![1.0], vec![1.0], vec![1.0]],
+            confidence: 0.5,
+            value: 0.0,
+            alignment,
+        };
+        let hypothesis = |start: Pose, start_alignment: f32, steps: Vec<Step>| Hypothesis {
+            start_yaw_offset_deg: 0.0,
+            start,
+            start_alignment,
+            steps,
+            converged: false,
+            dropped: false,
+        };
+        // Start 0 (the prior, 0.5) passes 0.8 at 2 m, ends at 0.6 at 4 m; start 1 ends at 0.9,
+        // 12 m away.
+        let hs = vec![
+            hypothesis(prior, 0.5, vec![step(2.0, 0.8), step(4.0, 0.6)]),
+            hypothesis(shifted(9.0), 0.1, vec![step(12.0, 0.9)]),
+        ];
+        assert_eq!(answer_at(&hs, &prior, None, false, 2), Some((1, 1)));
+        assert_eq!(answer_at(&hs, &prior, None, true, 2), Some((1, 1)));
+        let bound = Some(PriorBound { rotation_deg: 30.0, translation_m: 5.0 });
+        assert_eq!(answer_at(&hs, &prior, bound, true, 2), Some((0, 1)));
+        assert_eq!(answer_at(&hs, &prior, bound, true, 0), None, "after no steps only the starts compete");
+        let wide = Some(PriorBound { rotation_deg: 30.0, translation_m: 20.0 });
+        assert_eq!(answer_at(&hs, &prior, wide, true, 2), Some((1, 1)));
+        // A draw with the prior keeps the prior; a NaN never wins.
+        let draw = vec![hypothesis(prior, 0.8, vec![step(2.0, 0.8), step(3.0, f32::NAN)])];
+        assert_eq!(answer_at(&draw, &prior, bound, true, 2), None);
     }
 
     #[test]

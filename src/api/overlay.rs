@@ -52,9 +52,12 @@ pub struct OverlayRequest {
     #[serde(default)]
     #[schema(minimum = 1, maximum = 500)]
     pub radius_m: Option<f64>,
+    /// How far the prior can be from the truth (as in localize).
+    #[serde(default)]
+    pub prior_bound: Option<crate::serving::request::PriorBoundBody>,
     /// Draw this pose (a rigid camera_from_map within ±1e7 m, validated as the prior is) and do
-    /// not run the agent; leave `prior_camera_from_map`, `max_iterations` and `hypotheses` out
-    /// with it.
+    /// not run the agent; leave `prior_camera_from_map`, `max_iterations`, `hypotheses` and
+    /// `prior_bound` out with it.
     #[serde(default)]
     pub camera_from_map: Option<Matrix4x4>,
 }
@@ -156,7 +159,6 @@ async fn overlay_inner(st: &Arc<AppState>, id: &str, query: Option<&str>, header
 
 /// The two panels of a localization: the prior and the answer.
 fn localization_panels(loc: &Localization, prior_source: PriorSource) -> Vec<PosePanel> {
-    let best = loc.best();
     let verdict = match loc.verdict.p_registered {
         Some(p) if loc.verdict.localized => format!("localized (p {p:.2})"),
         Some(p) => format!("NOT localized (p {p:.2})"),
@@ -169,8 +171,8 @@ fn localization_panels(loc: &Localization, prior_source: PriorSource) -> Vec<Pos
             "final: {verdict}, start {} of {}, {} steps{}, confidence {:.2}",
             loc.chosen + 1,
             loc.hypotheses.len(),
-            best.steps.len(),
-            if best.converged { ", converged" } else { "" },
+            loc.answer_steps().len(),
+            if loc.converged() { ", converged" } else { "" },
             loc.confidence.score
         )
     };
@@ -220,14 +222,15 @@ fn read_overlay_request(q: &OverlayParams, headers: &HeaderMap, body: Bytes) -> 
         max_iterations: r.max_iterations,
         hypotheses: r.hypotheses,
         radius_m: r.radius_m,
+        prior_bound: r.prior_bound,
     };
     let payload = ImagePayload::Base64(r.image);
     match r.camera_from_map {
         None => Ok((Wanted::Localize(request), payload)),
         Some(m) => {
-            if request.prior_camera_from_map.is_some() || request.max_iterations.is_some() || request.hypotheses.is_some() {
+            if request.prior_camera_from_map.is_some() || request.max_iterations.is_some() || request.hypotheses.is_some() || request.prior_bound.is_some() {
                 return Err(ApiError::Invalid(
-                    "camera_from_map draws that pose without running the agent: leave out prior_camera_from_map, max_iterations and hypotheses".into(),
+                    "camera_from_map draws that pose without running the agent: leave out prior_camera_from_map, max_iterations, hypotheses and prior_bound".into(),
                 ));
             }
             let pose = m.pose().map_err(|e| ApiError::Invalid(format!("camera_from_map: {e}")))?;

@@ -99,6 +99,7 @@ impl FrameLocalizer for StoredRegion<'_> {
             max_iterations: Some(search.max_iterations),
             hypotheses: Some(search.hypotheses),
             radius_m: None,
+            prior_bound: None,
         };
         let started = std::time::Instant::now();
         let done = self

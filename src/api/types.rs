@@ -204,7 +204,6 @@ pub struct LocalizeResponse {
 
 impl LocalizeResponse {
     pub fn new(map_id: &str, loc: &Localization, prior_source: PriorSource, timings_ms: TimingsMs) -> Self {
-        let best = loc.best();
         LocalizeResponse {
             map_id: map_id.to_string(),
             pose: loc.camera_from_map().into(),
@@ -220,7 +219,7 @@ impl LocalizeResponse {
                 policy_certainty: loc.confidence.policy_certainty,
                 alignment: loc.confidence.alignment,
             },
-            converged: best.converged && !loc.kept_prior,
+            converged: loc.converged(),
             iterations: loc.answer_steps().len(),
             hypotheses: loc
                 .hypotheses
@@ -399,6 +398,7 @@ impl RawLocalizeParams {
             max_iterations: self.max_iterations,
             hypotheses: self.hypotheses,
             radius_m: self.radius_m,
+            prior_bound: None,
         })
     }
 }

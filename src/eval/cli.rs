@@ -41,6 +41,11 @@ pub struct Args {
     pub hypotheses: usize,
     #[command(flatten)]
     pub search: crate::agent::SearchTuning,
+    /// Every case's request states this bound on its prior, `ROTATION_DEG,TRANSLATION_M` (the
+    /// request's `prior_bound`: starts within it, the best pose visited inside it answers); for
+    /// a fleet-prior case file, `30,5` is what its priors satisfy. Default: none.
+    #[arg(long, value_parser = parse_prior_bound)]
+    pub prior_bound: Option<crate::agent::PriorBound>,
     /// Seed of the perturbations when the file is created.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -91,6 +96,18 @@ pub struct Args {
     pub no_baseline: bool,
 }
 
+/// `ROTATION_DEG,TRANSLATION_M`, both positive (rotation at most 180°).
+fn parse_prior_bound(text: &str) -> Result<crate::agent::PriorBound, String> {
+    let parts: Vec<&str> = text.split(',').map(str::trim).collect();
+    let [rotation, translation] = parts[..] else { return Err(format!("expected ROTATION_DEG,TRANSLATION_M, got {text:?}")) };
+    let number = |s: &str| s.parse::<f64>().map_err(|e| format!("{s:?}: {e}"));
+    let (rotation_deg, translation_m) = (number(rotation)?, number(translation)?);
+    if !(rotation_deg > 0.0 && rotation_deg <= 180.0) || !(translation_m > 0.0 && translation_m.is_finite()) {
+        return Err(format!("the rotation must be in (0, 180] degrees and the translation positive, got {text:?}"));
+    }
+    Ok(crate::agent::PriorBound { rotation_deg, translation_m })
+}
+
 pub fn main(args: Args) -> Result<()> {
     if args.iterations == 0 {
         anyhow::bail!("--iterations must be at least 1");
@@ -105,6 +122,7 @@ pub fn main(args: Args) -> Result<()> {
         iterations: args.iterations,
         hypotheses: args.hypotheses.clamp(1, crate::agent::search::MAX_HYPOTHESES),
         tuning: args.search,
+        prior_bound: args.prior_bound,
         seed: args.seed,
         frame_stride: args.frame_stride,
         max_cases: args.max_cases,

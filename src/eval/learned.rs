@@ -84,6 +84,9 @@ impl Learned {
             "confidence": loc.confidence.score,
             "chosen_start_yaw_offset_deg": best.start_yaw_offset_deg,
             "kept_prior": loc.kept_prior,
+            // Steps of the chosen start that led to the answer (fewer than it ran when a prior
+            // bound answered with a pose it passed).
+            "answer_steps": loc.answer_steps().len(),
             "alignment": loc.hypotheses.iter().map(|h| h.alignment()).collect::<Vec<_>>(),
             // Policy rows this case cost: steps over all hypotheses (the search's price).
             "policy_rows": loc.hypotheses.iter().map(|h| h.steps.len()).sum::<usize>(),

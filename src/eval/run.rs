@@ -39,6 +39,8 @@ pub struct EvalConfig {
     pub hypotheses: usize,
     /// The rest of the search's settings, as the server takes them.
     pub tuning: SearchTuning,
+    /// The bound every case's request states on its prior (`--prior-bound`).
+    pub prior_bound: Option<crate::agent::PriorBound>,
     pub seed: u64,
     pub frame_stride: usize,
     pub max_cases: Option<usize>,
@@ -68,7 +70,7 @@ pub struct EvalConfig {
 impl EvalConfig {
     /// The agent's search as the server would run it with these settings.
     pub fn search(&self) -> SearchConfig {
-        self.tuning.search(self.hypotheses, self.iterations)
+        SearchConfig { prior_bound: self.prior_bound, ..self.tuning.search(self.hypotheses, self.iterations) }
     }
 }
 
@@ -353,6 +355,7 @@ pub(crate) mod tests {
             iterations: 10,
             hypotheses: 1,
             tuning: SearchTuning { narrow_after: 0, merge_duplicates: false, keep_prior: false },
+            prior_bound: None,
             seed: 3,
             frame_stride: 1,
             max_cases: None,

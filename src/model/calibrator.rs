@@ -23,7 +23,7 @@ use utoipa::ToSchema;
 
 /// The signals a calibrator may read, by name (the manifest's `calibrator.features`, Python's
 /// `cmr.calibrate.SIGNALS`). What each one means is on the fields of [`Signals`].
-pub const SIGNAL_NAMES: [&str; 10] = [
+pub const SIGNAL_NAMES: [&str; 11] = [
     "alignment",
     "alignment_gain",
     "alignment_margin",
@@ -34,6 +34,7 @@ pub const SIGNAL_NAMES: [&str; 10] = [
     "steps_fraction",
     "in_view",
     "log2_starts",
+    "bounded",
 ];
 
 /// The only calibrator kind this build applies.
@@ -70,6 +71,10 @@ pub struct Signals {
     pub in_view: f64,
     /// log2 of the number of starts (0 for the paper's single trajectory, 2 for the default 4).
     pub log2_starts: f64,
+    /// 1 when the request stated a bound on its prior (`prior_bound`: starts within it, the best
+    /// visited pose inside it answers), else 0. Absent in records written before it: 0.
+    #[serde(default)]
+    pub bounded: f64,
 }
 
 impl Signals {
@@ -86,6 +91,7 @@ impl Signals {
             "steps_fraction" => self.steps_fraction,
             "in_view" => self.in_view,
             "log2_starts" => self.log2_starts,
+            "bounded" => self.bounded,
             _ => return None,
         })
     }
@@ -233,6 +239,7 @@ mod tests {
             steps_fraction: 0.5,
             in_view: 0.2,
             log2_starts: 2.0,
+            bounded: 0.0,
         }
     }
 

@@ -5,7 +5,7 @@
 use serde::Deserialize;
 use utoipa::ToSchema;
 
-use crate::agent::search::{MAX_HYPOTHESES, MAX_ITERATIONS, SearchConfig, SearchTuning};
+use crate::agent::search::{MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, SearchConfig, SearchTuning};
 use crate::geometry::pose::Matrix4x4;
 use crate::geometry::{Intrinsics, LocalFrame, Pose};
 use crate::maps::MapEntry;
@@ -26,6 +26,25 @@ pub struct IntrinsicsBody {
     /// Principal point y, pixels.
     pub cy: f64,
 }
+
+/// How far the prior can be from the truth, as the client knows it (a fleet's odometry or GNSS).
+#[derive(Debug, Clone, Copy, serde::Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PriorBoundBody {
+    /// Largest rotation between the prior and the true camera_from_map (geodesic angle),
+    /// degrees, in (0, 180].
+    #[schema(exclusive_minimum = 0.0, maximum = 180.0)]
+    pub rotation_deg: f64,
+    /// Largest distance between the prior's and the true camera position in the map, metres,
+    /// in (0, 500].
+    #[schema(exclusive_minimum = 0.0, maximum = 500.0)]
+    pub translation_m: f64,
+}
+
+/// The range of `prior_bound.rotation_deg` (its lower end excluded), degrees.
+pub const PRIOR_BOUND_ROTATION_MAX_DEG: f64 = 180.0;
+/// The range of `prior_bound.translation_m` (its lower end excluded), metres.
+pub const PRIOR_BOUND_TRANSLATION_MAX_M: f64 = 500.0;
 
 #[derive(Debug, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
@@ -59,6 +78,12 @@ pub struct LocalizeRequest {
     #[serde(default)]
     #[schema(minimum = 1, maximum = 500)]
     pub radius_m: Option<f64>,
+    /// The prior is known to be within this of the truth: the starts spread over the bound
+    /// (the prior turned about its own camera centre by 0, ±rotation_deg, ±rotation_deg/2, ...)
+    /// and the answer is the best-scoring pose the search visited inside it, the prior included,
+    /// so it never lies outside. Absent: the whole circle (docs/server.md, "A bounded prior").
+    #[serde(default)]
+    pub prior_bound: Option<PriorBoundBody>,
 }
 
 /// The range of `radius_m`, metres.
@@ -171,7 +196,19 @@ impl ValidLocalizeRequest {
         } else {
             None
         };
-        let search = defaults.search.search(hypotheses, max_iterations as usize);
+        let prior_bound = match request.prior_bound {
+            None => None,
+            Some(b) => {
+                if !(b.rotation_deg > 0.0 && b.rotation_deg <= PRIOR_BOUND_ROTATION_MAX_DEG) {
+                    return Err(invalid("prior_bound.rotation_deg", format!("must be in (0, {PRIOR_BOUND_ROTATION_MAX_DEG}], got {}", b.rotation_deg)));
+                }
+                if !(b.translation_m > 0.0 && b.translation_m <= PRIOR_BOUND_TRANSLATION_MAX_M) {
+                    return Err(invalid("prior_bound.translation_m", format!("must be in (0, {PRIOR_BOUND_TRANSLATION_MAX_M}], got {}", b.translation_m)));
+                }
+                Some(PriorBound { rotation_deg: b.rotation_deg, translation_m: b.translation_m })
+            }
+        };
+        let search = SearchConfig { prior_bound, ..defaults.search.search(hypotheses, max_iterations as usize) };
         Ok(Self { map, intrinsics, frame, prior: frame.camera_from_local(&prior), prior_source, search, crop })
     }
 }
@@ -196,7 +233,10 @@ mod tests {
     fn every_field_is_checked_with_its_name() {
         let k = serde_json::json!({"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0});
         let ok = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &DEFAULTS, entry(), false).unwrap();
-        assert_eq!((ok.search.hypotheses, ok.search.max_iterations), (4, 10));
+        assert_eq!((ok.search.hypotheses, ok.search.max_iterations, ok.search.prior_bound), (4, 10, None));
+        let bounded = serde_json::json!({"image": "", "intrinsics": k, "prior_bound": {"rotation_deg": 30.0, "translation_m": 5.0}});
+        let bounded = ValidLocalizeRequest::new(&request(bounded), &DEFAULTS, entry(), false).unwrap();
+        assert_eq!(bounded.search.prior_bound, Some(PriorBound { rotation_deg: 30.0, translation_m: 5.0 }));
         // No prior anywhere: the level camera at the map's origin, looking along +x.
         assert_eq!((ok.prior, ok.prior_source), (Pose::level_camera_along_x(nalgebra::Vector3::zeros()), PriorSource::Default));
         let mut far = entry();
@@ -216,6 +256,9 @@ mod tests {
             (serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": [[1, 0, 0, 0, 9], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}), "row 0 must have 4 numbers"),
             (serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": [[1, 0, 0, 3e38], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}), "beyond"),
             (serde_json::json!({"image": "", "intrinsics": k, "radius_m": 0.5}), "radius_m"),
+            (serde_json::json!({"image": "", "intrinsics": k, "prior_bound": {"rotation_deg": 0.0, "translation_m": 5.0}}), "prior_bound.rotation_deg"),
+            (serde_json::json!({"image": "", "intrinsics": k, "prior_bound": {"rotation_deg": 181.0, "translation_m": 5.0}}), "prior_bound.rotation_deg"),
+            (serde_json::json!({"image": "", "intrinsics": k, "prior_bound": {"rotation_deg": 30.0, "translation_m": 501.0}}), "prior_bound.translation_m"),
         ];
         for (json, needle) in cases {
             let e = ValidLocalizeRequest::new(&request(json), &DEFAULTS, entry(), false).unwrap_err();

@@ -46,7 +46,10 @@ from .files import atomic_write_bytes, git_commit
 
 # model::calibrator::SIGNAL_NAMES, in its order.
 SIGNALS = ("alignment", "alignment_gain", "alignment_margin", "agreement", "frustum_iou", "policy_certainty", "converged",
-           "steps_fraction", "in_view", "log2_starts")
+           "steps_fraction", "in_view", "log2_starts", "bounded")
+# Signals that records written before them lack, with the value they stood for then (Rust's
+# `#[serde(default)]` on the same fields): no bound was stated before `bounded` existed.
+SIGNAL_DEFAULTS = {"bounded": 0.0}
 # The eval methods whose records are fitted (eval::learned::AGENT, AGENT_SINGLE_START).
 METHODS = ("cmr-agent", "cmr-agent, single start")
 TARGET = "registered: the answer's rotation error (sum of absolute Euler angles) < 10 deg and translation error < 5 m (protocol A)"
@@ -76,7 +79,8 @@ def load_cases(paths: list[Path], drives: dict[str, str] | None = None) -> dict:
         sequences = {r["sequence"] for r in kept}
         by_drive = drives is not None and sequences <= set(drives)
         for r in kept:
-            rows["x"].append([float(r["notes"]["signals"][name]) for name in SIGNALS])
+            signals = {**SIGNAL_DEFAULTS, **r["notes"]["signals"]}
+            rows["x"].append([float(signals[name]) for name in SIGNALS])
             rows["y"].append(registered(r["errors"][-1]))
             rows["file"].append(i)
             rows["group"].append(f"{data}:{drives[r['sequence']] if by_drive else r['sequence']}")
