@@ -141,13 +141,17 @@ fn held_out_cases(limit: usize) -> Vec<Case> {
         .collect()
 }
 
-async fn localize(server: &TestServer, id: &str, case: &Case, prior: &Pose) -> (Pose, f64) {
-    localize_at(&server.client, &server.base, id, case, prior).await
+async fn localize(server: &TestServer, id: &str, case: &Case, prior: &Pose, bound: Option<[f64; 2]>) -> (Pose, f64) {
+    localize_at(&server.client, &server.base, id, case, prior, bound).await
 }
 
-/// The localize of `case` from `prior` against the server at `base`: the answer and its total ms.
-async fn localize_at(client: &reqwest::Client, base: &str, id: &str, case: &Case, prior: &Pose) -> (Pose, f64) {
-    let request = serde_json::json!({"image": case.image_b64, "intrinsics": case.intrinsics, "prior_camera_from_map": prior.to_rows()});
+/// The localize of `case` from `prior` against the server at `base`, stating `bound` (degrees,
+/// metres) as the request's `prior_bound` when given: the answer and its total ms.
+async fn localize_at(client: &reqwest::Client, base: &str, id: &str, case: &Case, prior: &Pose, bound: Option<[f64; 2]>) -> (Pose, f64) {
+    let mut request = serde_json::json!({"image": case.image_b64, "intrinsics": case.intrinsics, "prior_camera_from_map": prior.to_rows()});
+    if let Some([rotation_deg, translation_m]) = bound {
+        request["prior_bound"] = serde_json::json!({"rotation_deg": rotation_deg, "translation_m": translation_m});
+    }
     let r = client.post(format!("{base}/v1/maps/{id}/localize")).json(&request).send().await.unwrap();
     let status = r.status().as_u16();
     let body: serde_json::Value = r.json().await.unwrap();
@@ -158,12 +162,12 @@ async fn localize_at(client: &reqwest::Client, base: &str, id: &str, case: &Case
 /// Localizes every case from `prior(case)` (moved to the map frame of `frame`) against region `id`; returns the answers and prints
 /// and returns RR (position < 5 m and rotation < 10°), mean position error and mean rotation
 /// error over the registered ones, and the mean total time.
-async fn run_cases(server: &TestServer, id: &str, cases: &[Case], label: &str, frame: LocalFrame, prior: impl Fn(&Case) -> Pose) -> (Vec<Pose>, f64) {
+async fn run_cases(server: &TestServer, id: &str, cases: &[Case], label: &str, frame: LocalFrame, prior: impl Fn(&Case) -> Pose, bound: Option<[f64; 2]>) -> (Vec<Pose>, f64) {
     let (mut registered, mut position, mut rotation, mut ms, mut answers) = (0usize, Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for case in cases {
         let start = frame.camera_from_map(&prior(case));
         let truth = frame.camera_from_map(&case.truth);
-        let (estimate, total_ms) = localize(server, id, case, &start).await;
+        let (estimate, total_ms) = localize(server, id, case, &start, bound).await;
         let (m, deg) = difference(&estimate, &truth);
         let (m0, deg0) = difference(&start, &truth);
         println!("{label} frame {:3}: start {m0:.2} m / {deg0:.1} deg -> {m:.3} m / {deg:.3} deg, {total_ms:.0} ms", case.frame);
@@ -220,13 +224,13 @@ async fn a_region_built_from_a_drive_localizes_held_out_frames_also_at_utm_coord
     let server = drive_server(maps.path()).await;
     let cases = held_out_cases(usize::MAX);
     assert!(cases.len() >= 40, "{} held-out frames", cases.len());
-    let (_, rr) = run_cases(&server, "drive", &cases, "heading 30 deg off", LocalFrame::default(), |c| perturbed(&c.truth, 0.0, 0.0, if c.frame % 4 == 1 { 30.0 } else { -30.0 })).await;
+    let (_, rr) = run_cases(&server, "drive", &cases, "heading 30 deg off", LocalFrame::default(), |c| perturbed(&c.truth, 0.0, 0.0, if c.frame % 4 == 1 { 30.0 } else { -30.0 }), None).await;
     assert!(rr >= 0.95, "RR {:.1} %", rr * 100.0);
 
     let some: Vec<Case> = cases.into_iter().step_by(4).collect();
-    let (plain, _) = run_cases(&server, "drive", &some, "5 m / 30 deg off", LocalFrame::default(), |c| c.prior).await;
+    let (plain, _) = run_cases(&server, "drive", &some, "5 m / 30 deg off", LocalFrame::default(), |c| c.prior, None).await;
     let frame = LocalFrame::new(UTM).unwrap();
-    let (shifted, _) = run_cases(&server, "drive-utm", &some, "UTM, 5 m / 30 deg off", frame, |c| c.prior).await;
+    let (shifted, _) = run_cases(&server, "drive-utm", &some, "UTM, 5 m / 30 deg off", frame, |c| c.prior, None).await;
     let (mut worst_m, mut worst_deg) = (0f64, 0f64);
     for ((case, a), b) in some.iter().zip(&plain).zip(&shifted) {
         let (m, deg) = difference(b, &frame.camera_from_map(a));
@@ -251,8 +255,22 @@ async fn five_metre_thirty_degree_priors_register_ninety_five_percent() {
     let maps = tempfile::tempdir().unwrap();
     let server = drive_server(maps.path()).await;
     let cases = held_out_cases(usize::MAX);
-    let (_, rr) = run_cases(&server, "drive", &cases, "5 m / 30 deg off", LocalFrame::default(), |c| c.prior).await;
+    let (_, rr) = run_cases(&server, "drive", &cases, "5 m / 30 deg off", LocalFrame::default(), |c| c.prior, None).await;
     assert!(rr >= 0.95, "RR {:.1} %", rr * 100.0);
+    server.stop().await;
+}
+
+/// The same priors with the bound they satisfy stated (`prior_bound` 30° / 5 m: the search stays
+/// inside it), against issue 29's bar for this test, RR ≥ 90 %; ignored while the shipped model
+/// is below it: `cargo test --release --test fleet_maps -- --ignored stated --nocapture`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore]
+async fn five_metre_thirty_degree_priors_with_the_bound_stated_register_ninety_percent() {
+    let maps = tempfile::tempdir().unwrap();
+    let server = drive_server(maps.path()).await;
+    let cases = held_out_cases(usize::MAX);
+    let (_, rr) = run_cases(&server, "drive", &cases, "5 m / 30 deg off, bound stated", LocalFrame::default(), |c| c.prior, Some([30.0, 5.0])).await;
+    assert!(rr >= 0.90, "RR {:.1} %", rr * 100.0);
     server.stop().await;
 }
 
@@ -425,7 +443,7 @@ async fn a_ten_million_point_region_stays_under_one_and_a_half_gigabytes() {
     println!("10 M upload: {:.1} s, {} points, {} tiles, timings {}; VmHWM {:.0} MiB", t.elapsed().as_secs_f64(), json["map"]["num_points"], json["map"]["tiles"], json["timings_ms"], hwm());
     assert!(json["map"]["num_points"].as_u64().unwrap() >= 10_000_000);
     for case in held_out_cases(5) {
-        let (estimate, total_ms) = localize_at(&client, &base, "big", &case, &case.prior).await;
+        let (estimate, total_ms) = localize_at(&client, &base, "big", &case, &case.prior, None).await;
         let (m, deg) = difference(&estimate, &case.truth);
         println!("frame {}: {m:.3} m / {deg:.3} deg from the truth, {total_ms:.0} ms; VmHWM {:.0} MiB", case.frame, hwm());
     }
