@@ -87,6 +87,13 @@ impl Pose {
         self.0.to_homogeneous()
     }
 
+    /// The same pose with its rotation quaternion scaled back to unit length: products of many
+    /// poses (a chain of predictions) drift from a rotation by rounding.
+    pub fn renormalized(&self) -> Self {
+        let q = UnitQuaternion::new_normalize(self.0.rotation.into_inner());
+        Pose(Isometry3::from_parts(self.0.translation, q))
+    }
+
     pub fn to_rows(&self) -> [[f64; 4]; 4] {
         let m = self.matrix();
         std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))

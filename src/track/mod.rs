@@ -129,7 +129,10 @@ pub struct TrackedFrame {
 /// the camera is predicted to stand still.
 pub fn predict(before_last: Option<&Pose>, last: &Pose) -> Pose {
     match before_last {
-        Some(before) => last.compose(&before.inverse()).compose(last),
+        // Renormalised: a dead-reckoned drive composes predictions of predictions, and the
+        // rotation's rounding error grows with every one (after 30 frames RᵀR was 1.2e-3 off the
+        // identity, beyond what a request's prior may be).
+        Some(before) => last.compose(&before.inverse()).compose(last).renormalized(),
         None => *last,
     }
 }
@@ -266,6 +269,18 @@ mod tests {
             map_from_lidar = map_from_lidar.compose(&step);
         }
         truth
+    }
+
+    /// A drive dead-reckoned for 200 frames (each prediction from the two before it) stays a
+    /// pose a request accepts as its prior: rounding does not pile up in the rotation.
+    #[test]
+    fn a_long_chain_of_predictions_stays_a_rotation() {
+        let truth = drive(2);
+        let (mut before, mut last) = (truth[0], truth[1]);
+        for _ in 0..200 {
+            (before, last) = (last, predict(Some(&before), &last));
+        }
+        Pose::from_matrix(&last.to_rows()).expect("a valid prior after 200 predictions");
     }
 
     /// Answers with the truth when the prior is within `reach_m` of it, else with the prior,
