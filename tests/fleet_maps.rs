@@ -274,6 +274,11 @@ async fn five_metre_thirty_degree_priors_with_the_bound_stated_register_ninety_p
     server.stop().await;
 }
 
+/// The demo test's bar on the answer's distance from the truth, metres (`server_default_model.rs`):
+/// 1 m until the refinement round (2026-12-03), whose answer for the demo is 1.10 m / 0.69° (it
+/// was 0.55 m / 1.8°; the round registers more cases overall, docs/evaluation.md).
+const DEMO_BAR_M: f64 = 1.5;
+
 /// The shipped demo map moved by +(500 km, 5,400 km, 100 m) (before the origin, float32 storage
 /// put it 2.7 m / 113° off) localizes the demo request within the demo test's 1 m / 5° of the
 /// truth (moved), with the origin the server chooses and with the origin given at upload (which
@@ -327,7 +332,7 @@ async fn the_demo_map_at_utm_coordinates_localizes_like_the_demo() {
         // As good as the demo (its own test's bar). Not always the same trajectory: the agent's
         // discrete choices can flip for inputs a rounding apart (the demo itself answers 0.32 m /
         // 3° apart from its initial pose read from the sidecar and the same pose sent as JSON).
-        assert!(tm < 1.0 && tdeg < 5.0, "{id}: {tm} m, {tdeg} deg from the truth");
+        assert!(tm < DEMO_BAR_M && tdeg < 5.0, "{id}: {tm} m, {tdeg} deg from the truth");
         let _ = (m, deg);
     }
     let stored = cmr_agent::maps::formats::parse(&std::fs::read(maps.path().join("demo-utm-given.bin")).unwrap(), cmr_agent::maps::formats::CloudFormat::KittiBin).unwrap();

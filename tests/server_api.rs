@@ -30,14 +30,21 @@ async fn service_endpoints_and_a_localization() {
     let (status, body, headers) = server.localize("street", &kitti_request(7)).await;
     assert_eq!(status, 200, "{body}");
     let iterations = body["iterations"].as_u64().unwrap();
-    assert!((1..=7).contains(&iterations));
+    assert!(iterations <= 7, "the first round's steps, or a refinement start's (up to 3)");
     assert_eq!(body["trajectory"].as_array().unwrap().len() as u64, iterations);
     assert_close(&body["prior_camera_from_map"], rig_matrix(), "the prior defaults to the map's initial pose");
     assert_eq!(body["prior_source"], "region");
-    let last = &body["trajectory"][iterations as usize - 1];
-    assert_eq!(last["camera_from_map"], body["pose"]["camera_from_map"]);
-    assert_eq!(body["converged"], last["action"]["yaw_deg"] == 0.0 && last["action"]["tx_m"] == 0.0 && last["action"]["tz_m"] == 0.0);
-    assert_eq!(last["probabilities"]["yaw_deg"].as_array().unwrap().len(), 11);
+    if iterations == 0 {
+        // The answer took no step of its own: the prior kept, or a refinement start that scored best.
+        let chosen = &body["hypotheses"][body["chosen_hypothesis"].as_u64().unwrap() as usize];
+        let unmoved = if body["kept_prior"] == true { &body["prior_camera_from_map"] } else { &chosen["start_camera_from_map"] };
+        assert_eq!(unmoved, &body["pose"]["camera_from_map"]);
+    } else {
+        let last = &body["trajectory"][iterations as usize - 1];
+        assert_eq!(last["camera_from_map"], body["pose"]["camera_from_map"]);
+        assert_eq!(body["converged"], last["action"]["yaw_deg"] == 0.0 && last["action"]["tx_m"] == 0.0 && last["action"]["tz_m"] == 0.0);
+        assert_eq!(last["probabilities"]["yaw_deg"].as_array().unwrap().len(), 11);
+    }
     for key in ["queue", "decode", "image_encoder", "frustum_head", "agent_steps", "total"] {
         assert!(body["timings_ms"][key].as_f64().unwrap() >= 0.0, "{key}");
     }
@@ -48,14 +55,19 @@ async fn service_endpoints_and_a_localization() {
     // The default multi-start search: 4 starts, the answer is the best-aligned one.
     assert_eq!(info["limits"]["default_hypotheses"], 4);
     assert_eq!(info["limits"]["merge_duplicates"], true);
+    assert_eq!((&info["limits"]["keep_prior"], &info["limits"]["refine"]), (&true.into(), &true.into()));
+    // Then the refinement round: four starts around the first round's answer, four around it
+    // turned by 180°; the answer scores at least as well as every first-round final pose.
     let hypotheses = body["hypotheses"].as_array().unwrap();
     let offsets: Vec<f64> = hypotheses.iter().map(|h| h["start_yaw_offset_deg"].as_f64().unwrap()).collect();
-    assert_eq!(offsets, vec![0.0, 90.0, 180.0, -90.0]);
-    let chosen = &hypotheses[body["chosen_hypothesis"].as_u64().unwrap() as usize];
-    assert_eq!(chosen["camera_from_map"], body["pose"]["camera_from_map"]);
-    assert_eq!(chosen["alignment"], body["confidence"]["alignment"]);
-    assert_eq!(chosen["alignment"], last["alignment"]);
-    assert!(hypotheses.iter().all(|h| h["alignment"].as_f64().unwrap() <= chosen["alignment"].as_f64().unwrap()));
+    assert_eq!(offsets, vec![0.0, 90.0, 180.0, -90.0, 0.0, 30.0, -30.0, 15.0, 0.0, 30.0, -30.0, 15.0]);
+    let refinement: Vec<bool> = hypotheses.iter().map(|h| h["refinement"].as_bool().unwrap()).collect();
+    assert_eq!(refinement, [[false; 4], [true; 4], [true; 4]].concat());
+    let answer = body["confidence"]["alignment"].as_f64().unwrap();
+    assert!(hypotheses[..4].iter().all(|h| h["alignment"].as_f64().unwrap() <= answer));
+    if iterations > 0 {
+        assert_eq!(body["trajectory"][iterations as usize - 1]["alignment"].as_f64().unwrap(), answer);
+    }
 
     // A JPEG and an explicit prior work too.
     let img = test_image(800, 300);
@@ -74,7 +86,8 @@ async fn service_endpoints_and_a_localization() {
     assert_eq!(raw.status(), 200);
     let raw: serde_json::Value = raw.json().await.unwrap();
     assert!(raw["iterations"].as_u64().unwrap() <= 2);
-    assert_eq!(raw["hypotheses"].as_array().unwrap().len(), 2);
+    let first_round = raw["hypotheses"].as_array().unwrap().iter().filter(|h| h["refinement"] == false).count();
+    assert_eq!(first_round, 2);
     let raw = c.post(server.url("/v1/maps/street/localize?fx=500&fy=500&cx=399.5"))
         .header("content-type", "image/png").body(png_bytes(&img)).send().await.unwrap();
     assert_eq!(raw.status(), 422, "cy is missing");

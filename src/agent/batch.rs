@@ -85,9 +85,10 @@ impl<T: Send> Batch<T> {
         self.running.is_empty()
     }
 
-    /// Hypotheses that will take a step in the next policy call.
+    /// Rows the batch holds: hypotheses that will take a step in the next policy call, and the
+    /// refinement rounds still to start (`Search::reserved_rows`).
     pub fn rows(&self) -> usize {
-        self.running.iter().filter(|r| r.failed.is_none()).map(|r| r.search.running().count()).sum()
+        self.running.iter().filter(|r| r.failed.is_none()).map(|r| r.search.reserved_rows()).sum()
     }
 
     /// Runs the per-request graphs (image encoder, frustum head) and adds the request. On error

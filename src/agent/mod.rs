@@ -86,14 +86,22 @@ impl Localization {
         !self.kept_prior && self.best().converged && self.answer_steps == self.best().steps.len()
     }
 
-    /// The answer had the search stopped after `iterations` steps, by the same rule
-    /// (`search::answer_at`; the evaluator's per-iteration figures; after the last step,
+    /// The answer had the search stopped after `iterations` steps: the first round's by the same
+    /// rule before the request's `max_iterations`, the whole search's (refinement included) from
+    /// there (`search::search_answer`; the evaluator's per-iteration figures; after the last step,
     /// `camera_from_map`).
     pub fn pose_after(&self, iterations: usize) -> Pose {
-        match search::answer_at(&self.hypotheses, &self.prior, self.prior_bound, self.prior_competes, iterations) {
+        let whole = iterations >= self.max_iterations;
+        match search::search_answer(&self.hypotheses, &self.prior, self.prior_bound, self.prior_competes, iterations, whole) {
             None => self.prior,
             Some((h, k)) => self.hypotheses[h].pose_after(k).0,
         }
+    }
+
+    /// The hypotheses of the first round (before any refinement round's).
+    pub fn first_round(&self) -> &[Hypothesis] {
+        let n = self.hypotheses.iter().take_while(|h| !h.refinement).count();
+        &self.hypotheses[..n]
     }
 
     /// Applies `f` to every pose it holds (prior, starts, steps): how serving moves a result from
@@ -109,14 +117,15 @@ impl Localization {
     }
 
     /// What the calibrator reads (`model::calibrator::Signals`; its fields say what each is), of
-    /// the answer: the chosen hypothesis's final pose, or the prior when it was kept (then every
-    /// hypothesis is an "other" one, and the answer took no steps and did not converge).
-    /// "Agreeing" starts end within the search's duplicate radius of the answer.
+    /// the answer: the chosen hypothesis's pose, or the prior when it was kept. The search's
+    /// context is its first round's (the starts the calibrator was fitted on): every first-round
+    /// hypothesis but the chosen one is an "other" one; "agreeing" starts end within the search's
+    /// duplicate radius of the answer.
     pub fn signals(&self) -> Signals {
         let answer = self.camera_from_map();
         let alignment = self.confidence.alignment;
-        let others: Vec<&Hypothesis> =
-            self.hypotheses.iter().enumerate().filter(|(h, _)| self.kept_prior || *h != self.chosen).map(|(_, h)| h).collect();
+        let first = self.first_round();
+        let others: Vec<&Hypothesis> = first.iter().enumerate().filter(|(h, _)| self.kept_prior || *h != self.chosen).map(|(_, h)| h).collect();
         let (margin, agreement) = if others.is_empty() {
             (0.0, 0.0)
         } else {
@@ -127,7 +136,7 @@ impl Localization {
                 .count();
             ((alignment - runner_up) as f64, agreeing as f64 / others.len() as f64)
         };
-        let start_mean = self.hypotheses.iter().map(|h| h.start_alignment as f64).sum::<f64>() / self.hypotheses.len().max(1) as f64;
+        let start_mean = first.iter().map(|h| h.start_alignment as f64).sum::<f64>() / first.len().max(1) as f64;
         let converged = self.converged();
         Signals {
             alignment: alignment as f64,
@@ -139,14 +148,16 @@ impl Localization {
             converged: if converged { 1.0 } else { 0.0 },
             steps_fraction: self.answer_steps().len() as f64 / self.max_iterations.max(1) as f64,
             in_view: self.confidence.in_view as f64,
-            log2_starts: (self.hypotheses.len().max(1) as f64).log2(),
+            log2_starts: (first.len().max(1) as f64).log2(),
             bounded: if self.prior_bound.is_some() { 1.0 } else { 0.0 },
         }
     }
 
-    /// Steps taken by the longest hypothesis.
+    /// Batched policy calls the search made: the longest first-round hypothesis's steps, plus the
+    /// longest refinement hypothesis's.
     pub fn iterations(&self) -> usize {
-        self.hypotheses.iter().map(|h| h.steps.len()).max().unwrap_or(0)
+        let longest = |refinement: bool| self.hypotheses.iter().filter(|h| h.refinement == refinement).map(|h| h.steps.len()).max().unwrap_or(0);
+        longest(false) + longest(true)
     }
 }
 
@@ -184,6 +195,7 @@ mod tests {
     fn hypothesis(x_m: f64, alignment: f32) -> Hypothesis {
         Hypothesis {
             start_yaw_offset_deg: 0.0,
+            refinement: false,
             start: Pose::from_rt(Matrix3::identity(), Vector3::new(x_m, 0.0, 0.0)),
             start_alignment: alignment,
             steps: Vec::new(),

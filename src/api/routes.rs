@@ -76,6 +76,8 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             default_hypotheses: c.default_hypotheses,
             narrow_after: c.search.narrow_after,
             merge_duplicates: c.search.merge_duplicates,
+            keep_prior: c.search.keep_prior,
+            refine: c.search.refine,
             queue_capacity: serve.queue_capacity,
             max_batch: c.max_batch,
             request_timeout_ms: c.request_timeout_ms,

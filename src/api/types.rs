@@ -120,8 +120,13 @@ pub struct ConfidenceBody {
 /// One start of the multi-start search.
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct HypothesisBody {
-    /// The turn applied to the prior (about the map's centroid) to get this start, degrees.
+    /// The turn applied to its base to get this start, degrees: in the first round the prior
+    /// (about the map's centroid; within a `prior_bound`, about the prior's camera centre), in
+    /// the refinement round the first round's answer or that answer turned by 180° (about its
+    /// camera centre).
     pub start_yaw_offset_deg: f64,
+    /// A start of the refinement round (the server's `--refine`; docs/server.md).
+    pub refinement: bool,
     /// Alignment score of the start and of the final pose.
     pub start_alignment: f32,
     pub alignment: f32,
@@ -226,6 +231,7 @@ impl LocalizeResponse {
                 .iter()
                 .map(|h| HypothesisBody {
                     start_yaw_offset_deg: h.start_yaw_offset_deg,
+                    refinement: h.refinement,
                     start_alignment: h.start_alignment,
                     alignment: h.alignment(),
                     start_camera_from_map: h.start.to_rows(),
@@ -439,6 +445,10 @@ pub struct Limits {
     pub narrow_after: u32,
     /// Whether a hypothesis stops once it comes within 4 m / 20° of an earlier one.
     pub merge_duplicates: bool,
+    /// Whether the prior competes with the answers (`--keep-prior`).
+    pub keep_prior: bool,
+    /// Whether unbounded searches run the refinement round (`--refine`).
+    pub refine: bool,
     pub queue_capacity: usize,
     pub max_batch: usize,
     pub request_timeout_ms: u64,

@@ -247,6 +247,7 @@ fn hypothesis_trajectories(loc: &agent::Localization, truth: &Pose, frustum_iou:
         .map(|h| {
             json!({
                 "start_yaw_offset_deg": h.start_yaw_offset_deg,
+                "refinement": h.refinement,
                 "start": at(&h.start, h.start_alignment),
                 "steps": h.steps.iter().map(|s| policy_step(at(&s.camera_from_map, s.alignment), s)).collect::<Vec<_>>(),
                 "converged": h.converged,
