@@ -100,8 +100,7 @@ impl Localization {
 
     /// The hypotheses of the first round (before any refinement round's).
     pub fn first_round(&self) -> &[Hypothesis] {
-        let n = self.hypotheses.iter().take_while(|h| !h.refinement).count();
-        &self.hypotheses[..n]
+        &self.hypotheses[..search::first_round_len(&self.hypotheses)]
     }
 
     /// Applies `f` to every pose it holds (prior, starts, steps): how serving moves a result from

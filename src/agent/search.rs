@@ -71,8 +71,7 @@ impl PriorBound {
     /// rounding, since the bounded starts lie exactly on its edge and must count as inside in
     /// any frame (the server works in a region's local frame, the evaluator in the map's).
     pub fn contains(&self, prior: &Pose, pose: &Pose) -> bool {
-        let delta = prior.rotation().transpose() * pose.rotation();
-        let angle_deg = ((delta.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees();
+        let angle_deg = PoseError::between(prior, pose).rre_geodesic_deg;
         let distance_m = (prior.camera_position_in_map() - pose.camera_position_in_map()).norm();
         angle_deg <= self.rotation_deg + BOUND_SLACK && distance_m <= self.translation_m + BOUND_SLACK
     }
@@ -107,7 +106,7 @@ impl SearchConfig {
     /// The most policy rows this search steps at once: its starts, or the refinement round's
     /// when that is larger (a worker reserves them when it admits the request).
     pub fn peak_rows(&self) -> usize {
-        let refinement = if self.refines() { REFINE_STARTS * REFINE_TURNS_DEG.len() } else { 0 };
+        let refinement = if self.refines() { REFINE_ROWS } else { 0 };
         self.hypotheses.clamp(1, MAX_HYPOTHESES).max(refinement)
     }
 
@@ -132,6 +131,8 @@ pub const REFINE_ITERATIONS: usize = 3;
 /// The refinement round's bases: the first round's answer turned by these yaws (about its
 /// camera centre).
 pub const REFINE_TURNS_DEG: [f64; 2] = [0.0, 180.0];
+/// Hypotheses (policy rows at its first step) of the refinement round.
+pub const REFINE_ROWS: usize = REFINE_STARTS * REFINE_TURNS_DEG.len();
 
 /// The search settings besides the number of starts: one set of flags for `serve`, `localize`
 /// and `eval`, so that all three run the same search. Defaults chosen on the validation set
@@ -314,7 +315,7 @@ pub fn best_of(scores: impl IntoIterator<Item = f32>) -> usize {
 /// group's ([`REFINE_STARTS`] consecutive hypotheses; [`answer_at`] within [`REFINE_BOUND`] of
 /// the group's first start, which competes) when it scores strictly higher. `None`: the prior.
 pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, bound: Option<PriorBound>, prior_competes: bool, iterations: usize, with_refinement: bool) -> Option<(usize, usize)> {
-    let first = hypotheses.iter().take_while(|h| !h.refinement).count();
+    let first = first_round_len(hypotheses);
     let score = |a: Option<(usize, usize)>| match a {
         None => hypotheses.first().map_or(f32::NAN, |h| h.start_alignment),
         Some((h, k)) => hypotheses[h].pose_after(k).1,
@@ -337,6 +338,11 @@ pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, bound: Option<Prio
         }
     }
     best
+}
+
+/// How many of `hypotheses` belong to the first round (the refinement round's come after).
+pub fn first_round_len(hypotheses: &[Hypothesis]) -> usize {
+    hypotheses.iter().take_while(|h| !h.refinement).count()
 }
 
 /// The hypotheses of one request in progress.
@@ -480,7 +486,7 @@ impl Search {
     /// it is still to start (reserved, so that a batch never grows past its bound when it does).
     pub fn reserved_rows(&self) -> usize {
         let running = self.running().count();
-        if self.refine_pending { running.max(REFINE_STARTS * REFINE_TURNS_DEG.len()) } else { running }
+        if self.refine_pending { running.max(REFINE_ROWS) } else { running }
     }
 
     /// The hypotheses that still take steps.
@@ -602,31 +608,35 @@ mod tests {
         assert!((at(25.0, 0.0).camera_position_in_map() - prior.camera_position_in_map()).norm() < 1e-9);
     }
 
-    /// Unbounded: the best final pose (or the prior when it competes and wins). Bounded: the
-    /// best visited pose inside the bound, the prior winning a draw.
-    #[test]
-    fn the_answer_follows_the_bound() {
-        use nalgebra::Vector3;
-        let prior = Pose::identity();
-        let shifted = |x: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(x, 0.0, 0.0));
-        let step = |x: f64, alignment: f32| Step {
+    /// A pose `x_m` along camera_from_map's translation x, unrotated.
+    fn shifted(x_m: f64) -> Pose {
+        Pose::from_rt(nalgebra::Matrix3::identity(), nalgebra::Vector3::new(x_m, 0.0, 0.0))
+    }
+
+    /// A step that reached `shifted(x_m)`, scoring `alignment` there.
+    fn step_to(x_m: f64, alignment: f32) -> Step {
+        Step {
             iteration: 1,
-            camera_from_map: shifted(x),
+            camera_from_map: shifted(x_m),
             action: crate::geometry::ActionSet::default().action([5, 5, 5]),
             probabilities: [vec![1.0], vec![1.0], vec![1.0]],
             confidence: 0.5,
             value: 0.0,
             alignment,
-        };
-        let hypothesis = |start: Pose, start_alignment: f32, steps: Vec<Step>| Hypothesis {
-            start_yaw_offset_deg: 0.0,
-            refinement: false,
-            start,
-            start_alignment,
-            steps,
-            converged: false,
-            dropped: false,
-        };
+        }
+    }
+
+    /// A trajectory from `start` (scoring `start_alignment`) through `steps`.
+    fn trajectory(start: Pose, start_alignment: f32, steps: Vec<Step>, refinement: bool) -> Hypothesis {
+        Hypothesis { start_yaw_offset_deg: 0.0, refinement, start, start_alignment, steps, converged: false, dropped: false }
+    }
+
+    /// Unbounded: the best final pose (or the prior when it competes and wins). Bounded: the
+    /// best visited pose inside the bound, the prior winning a draw.
+    #[test]
+    fn the_answer_follows_the_bound() {
+        let prior = Pose::identity();
+        let (step, hypothesis) = (step_to, |start, start_alignment, steps| trajectory(start, start_alignment, steps, false));
         // Start 0 (the prior, 0.5) passes 0.8 at 2 m, ends at 0.6 at 4 m; start 1 ends at 0.9,
         // 12 m away.
         let hs = vec![
@@ -650,26 +660,8 @@ mod tests {
     /// not count.
     #[test]
     fn the_refinement_round_wins_only_by_scoring_higher() {
-        use nalgebra::Vector3;
-        let shifted = |x: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(x, 0.0, 0.0));
-        let step = |x: f64, alignment: f32| Step {
-            iteration: 1,
-            camera_from_map: shifted(x),
-            action: crate::geometry::ActionSet::default().action([5, 5, 5]),
-            probabilities: [vec![1.0], vec![1.0], vec![1.0]],
-            confidence: 0.5,
-            value: 0.0,
-            alignment,
-        };
-        let h = |start: f64, start_alignment: f32, steps: Vec<Step>, refinement: bool| Hypothesis {
-            start_yaw_offset_deg: 0.0,
-            refinement,
-            start: shifted(start),
-            start_alignment,
-            steps,
-            converged: false,
-            dropped: false,
-        };
+        let step = step_to;
+        let h = |start: f64, start_alignment: f32, steps: Vec<Step>, refinement: bool| trajectory(shifted(start), start_alignment, steps, refinement);
         let prior = shifted(0.0);
         // First round: one start ending at 10 m, 0.5. Refinement: a group around 10 m whose
         // second start passes 0.7 at 12 m and ends 20 m away (outside the bound) at 0.9; a group
