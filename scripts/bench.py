@@ -52,7 +52,7 @@ OHA = os.path.join(os.path.dirname(__file__), "..", ".tools", "bin", "oha")
 _spec = importlib.util.spec_from_file_location("track_http", os.path.join(os.path.dirname(__file__), "track-http.py"))
 TRACK = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(TRACK)
-STAGES = ["queue", "decode", "image_encoder", "frustum_head", "agent_steps", "agent_state_build", "total"]
+STAGES = ["queue", "decode", "image_encoder", "frustum_head", "agent_steps", "agent_state_build", "agent_polish", "total"]
 TICK = os.sysconf("SC_CLK_TCK")
 
 

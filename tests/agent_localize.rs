@@ -79,7 +79,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 
     // Four starts: the first is the single trajectory above (same rows, batched with three more),
     // the others start from the prior turned about the pivot, and the answer is the best score.
-    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false };
+    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false };
     let multi = agent::localize(&mut backend, &map, &tensor, crop_k, prior, four).unwrap();
     assert_eq!(multi.hypotheses.len(), 4);
     let first = &multi.hypotheses[0];
@@ -147,6 +147,22 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
         assert_eq!(bounded.answer_steps().last().map_or(bounded.best().start, |s| s.camera_from_map), answer);
     }
     assert_eq!(bounded.pose_after(bounded.iterations()), answer);
+    assert!(bounded.polish.is_none());
+
+    // The same search polished: the search's answer is the same, the polish moves it only to
+    // poses that score higher, within its reach and the bound.
+    let polished = agent::localize(&mut backend, &map, &tensor, crop_k, prior, SearchConfig { prior_bound: Some(bound), polish: true, ..four }).unwrap();
+    let p = polished.polish.expect("a bounded search polishes");
+    assert_eq!((polished.search_answer(), p.from, p.from_alignment), (answer, answer, score));
+    assert_eq!(polished.camera_from_map(), p.camera_from_map);
+    assert_eq!(polished.pose_after(polished.iterations()), p.camera_from_map);
+    assert!(p.alignment >= p.from_alignment && p.scores > 0);
+    assert!(p.scores <= agent::polish::MAX_SCORES);
+    assert!(bound.contains(&prior, &p.camera_from_map) && agent::polish::REACH.contains(&answer, &p.camera_from_map));
+    assert_eq!(polished.signals(), bounded.signals(), "the verdict reads the search's answer");
+    // A single start without a bound never polishes (track's small searches).
+    let single = agent::localize(&mut backend, &map, &tensor, crop_k, prior, SearchConfig { polish: true, ..SearchConfig::single(3) }).unwrap();
+    assert!(single.polish.is_none());
 }
 
 #[test]
@@ -179,7 +195,7 @@ fn batched_workers_match_the_synchronous_loop() {
             // Searches of 1 to 3 starts (one narrowed): the 8-row batch holds some, the rest wait.
             let narrow_after = (i == 4).then_some(1);
             let merge_duplicates = i == 5;
-            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None, refine: i % 3 == 1 })
+            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None, refine: i % 3 == 1, polish: i % 2 == 1 })
         })
         .collect();
     let expected: Vec<_> = cases

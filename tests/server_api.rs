@@ -38,10 +38,10 @@ async fn service_endpoints_and_a_localization() {
         // The answer took no step of its own: the prior kept, or a refinement start that scored best.
         let chosen = &body["hypotheses"][body["chosen_hypothesis"].as_u64().unwrap() as usize];
         let unmoved = if body["kept_prior"] == true { &body["prior_camera_from_map"] } else { &chosen["start_camera_from_map"] };
-        assert_eq!(unmoved, &body["pose"]["camera_from_map"]);
+        assert_eq!(unmoved, &body["polish"]["from_camera_from_map"]);
     } else {
         let last = &body["trajectory"][iterations as usize - 1];
-        assert_eq!(last["camera_from_map"], body["pose"]["camera_from_map"]);
+        assert_eq!(last["camera_from_map"], body["polish"]["from_camera_from_map"], "the polish starts at the search's answer");
         assert_eq!(body["converged"], last["action"]["yaw_deg"] == 0.0 && last["action"]["tx_m"] == 0.0 && last["action"]["tz_m"] == 0.0);
         assert_eq!(last["probabilities"]["yaw_deg"].as_array().unwrap().len(), 11);
     }
@@ -56,6 +56,12 @@ async fn service_endpoints_and_a_localization() {
     assert_eq!(info["limits"]["default_hypotheses"], 4);
     assert_eq!(info["limits"]["merge_duplicates"], true);
     assert_eq!((&info["limits"]["keep_prior"], &info["limits"]["refine"]), (&true.into(), &true.into()));
+    // The continuous polish: from the search's answer, never to a lower score, within 10° / 3 m.
+    assert_eq!(info["limits"]["polish"], true);
+    let polish = &body["polish"];
+    assert!(polish["alignment"].as_f64().unwrap() >= polish["from_alignment"].as_f64().unwrap(), "{polish}");
+    assert!(polish["rotation_deg"].as_f64().unwrap() <= 10.0 + 1e-6 && polish["translation_m"].as_f64().unwrap() <= 3.0 + 1e-6, "{polish}");
+    assert!((1..=60).contains(&polish["scores"].as_u64().unwrap()), "{polish}");
     // Then the refinement round: four starts around the first round's answer, four around it
     // turned by 180°; the answer scores at least as well as every first-round final pose.
     let hypotheses = body["hypotheses"].as_array().unwrap();

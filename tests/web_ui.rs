@@ -338,9 +338,14 @@ async fn web_page_in_chromium() {
     let bands = js(&c, TOP_VIEW_UTM_ROWS).await.as_u64().unwrap();
     assert_eq!(bands, 41, "rows of points 5 cm apart at y ≈ 5,049,158 m drawn as {bands} bands");
 
-    // The slider: the start redraws the points elsewhere.
+    // The slider: the start, each step, and the polished answer when the polish moved it; the
+    // start redraws the points elsewhere.
+    let polished = answer["polish"]["rotation_deg"].as_f64().unwrap_or(0.0) > 0.0 || answer["polish"]["translation_m"].as_f64().unwrap_or(0.0) > 0.0;
     let last = js(&c, "return document.getElementById('iteration').max").await;
-    assert_eq!(last, json!(iterations.to_string()));
+    assert_eq!(last, json!((iterations + polished as u64).to_string()));
+    if polished {
+        assert!(text(&c, "#iter-label").await.starts_with("polished: turned"));
+    }
     if iterations > 0 {
         let before = js(&c, "return document.getElementById('image-canvas').toDataURL()").await;
         set_value(&c, "iteration", "0").await;

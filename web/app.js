@@ -26,7 +26,8 @@ const state = {
   pointsFor: null,
   image: null, // { base64, el: HTMLImageElement, width, height, label }
   result: null, // the localize response
-  poses: [], // [start of the chosen hypothesis, after step 1, ...] as 4x4 row-major arrays
+  poses: [], // [start of the chosen hypothesis, after step 1, ..., the polished answer] as 4x4 row-major arrays
+  polished: false, // the last of `poses` is the polish's, not a step's
   iteration: 0,
   timer: null,
 };
@@ -251,6 +252,9 @@ async function localize() {
     state.intrinsicsUsed = body.intrinsics;
     const chosen = result.hypotheses[result.chosen_hypothesis];
     state.poses = [chosen.start_camera_from_map, ...result.trajectory.map((s) => s.camera_from_map)];
+    // The continuous polish (docs/server.md) moves the search's answer a little: its own last frame.
+    state.polished = Boolean(result.polish) && (result.polish.rotation_deg > 0 || result.polish.translation_m > 0);
+    if (state.polished) state.poses.push(result.pose.camera_from_map);
     const slider = $('iteration');
     slider.max = String(state.poses.length - 1);
     slider.disabled = false;
@@ -268,6 +272,7 @@ function clearResult() {
   stop();
   state.result = null;
   state.poses = [];
+  state.polished = false;
   state.iteration = 0;
   const slider = $('iteration');
   slider.max = '0';
@@ -284,7 +289,10 @@ function setIteration(k) {
   $('iteration').value = String(state.iteration);
   const r = state.result;
   let label;
-  if (state.iteration === 0) {
+  if (state.polished && state.iteration === state.poses.length - 1) {
+    const p = r.polish;
+    label = `polished: turned ${p.rotation_deg.toFixed(2)}°, moved ${p.translation_m.toFixed(2)} m, alignment ${p.from_alignment.toFixed(3)} → ${p.alignment.toFixed(3)}`;
+  } else if (state.iteration === 0) {
     const chosen = r.hypotheses[r.chosen_hypothesis];
     label = `start (prior ${chosen.start_yaw_offset_deg >= 0 ? '+' : ''}${chosen.start_yaw_offset_deg.toFixed(0)}°)`;
   } else {

@@ -5,6 +5,7 @@
 pub mod batch;
 pub mod episode;
 pub mod input;
+pub mod polish;
 pub mod search;
 pub mod state;
 
@@ -32,6 +33,8 @@ pub struct Timings {
     pub agent_steps_ms: f64,
     /// The part of `agent_steps_ms` spent building this request's observations (Rust).
     pub state_build_ms: f64,
+    /// The part of `agent_steps_ms` spent on the continuous polish (`polish`).
+    pub polish_ms: f64,
 }
 
 /// The result of one localization: every hypothesis of the search, and which one answers.
@@ -63,6 +66,8 @@ pub struct Localization {
     /// false`) as the search leaves it; set from [`Localization::signals`] by whoever holds the
     /// model set's [`crate::model::Calibration`] (`serving::Localizer`, `cmr-agent eval`).
     pub verdict: Verdict,
+    /// The continuous polish of the answer (`polish`), when the search ran it.
+    pub polish: Option<polish::Polish>,
 }
 
 impl Localization {
@@ -70,8 +75,15 @@ impl Localization {
         &self.hypotheses[self.chosen]
     }
 
-    /// The final estimate of camera_from_map.
+    /// The final estimate of camera_from_map: the search's answer ([`Localization::search_answer`]),
+    /// polished when the search ran the polish.
     pub fn camera_from_map(&self) -> Pose {
+        self.polish.map_or_else(|| self.search_answer(), |p| p.camera_from_map)
+    }
+
+    /// The search's own answer, before any polish: the chosen hypothesis's pose, or the prior when
+    /// it was kept.
+    pub fn search_answer(&self) -> Pose {
         if self.kept_prior { self.prior } else { self.best().pose_after(self.answer_steps).0 }
     }
 
@@ -89,9 +101,12 @@ impl Localization {
     /// The answer had the search stopped after `iterations` steps: the first round's by the same
     /// rule before the request's `max_iterations`, the whole search's (refinement included) from
     /// there (`search::search_answer`; the evaluator's per-iteration figures; after the last step,
-    /// `camera_from_map`).
+    /// `camera_from_map`, polish included).
     pub fn pose_after(&self, iterations: usize) -> Pose {
         let whole = iterations >= self.max_iterations;
+        if whole {
+            return self.camera_from_map();
+        }
         match search::search_answer(&self.hypotheses, &self.prior, self.prior_bound, self.prior_competes, iterations, whole) {
             None => self.prior,
             Some((h, k)) => self.hypotheses[h].pose_after(k).0,
@@ -107,6 +122,9 @@ impl Localization {
     /// the region's local frame to the map frame (`geometry::LocalFrame`).
     pub fn map_poses(&mut self, f: impl Fn(&Pose) -> Pose) {
         self.prior = f(&self.prior);
+        if let Some(p) = &mut self.polish {
+            (p.from, p.camera_from_map) = (f(&p.from), f(&p.camera_from_map));
+        }
         for h in &mut self.hypotheses {
             h.start = f(&h.start);
             for s in &mut h.steps {
@@ -116,12 +134,14 @@ impl Localization {
     }
 
     /// What the calibrator reads (`model::calibrator::Signals`; its fields say what each is), of
-    /// the answer: the chosen hypothesis's pose, or the prior when it was kept. The search's
+    /// the search's answer before any polish (the chosen hypothesis's pose, or the prior when it
+    /// was kept: what the calibrator was fitted on; the polish moves it in steps of at most 1° or
+    /// 0.5 m, and only ever to a pose that scores higher). The search's
     /// context is its first round's (the starts the calibrator was fitted on): every first-round
     /// hypothesis but the chosen one is an "other" one; "agreeing" starts end within the search's
     /// duplicate radius of the answer.
     pub fn signals(&self) -> Signals {
-        let answer = self.camera_from_map();
+        let answer = self.search_answer();
         let alignment = self.confidence.alignment;
         let first = self.first_round();
         let others: Vec<&Hypothesis> = first.iter().enumerate().filter(|(h, _)| self.kept_prior || *h != self.chosen).map(|(_, h)| h).collect();
@@ -218,6 +238,7 @@ mod tests {
             max_iterations: 10,
             timings: Timings::default(),
             verdict: Verdict::default(),
+            polish: None,
         }
     }
 

@@ -78,6 +78,7 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             merge_duplicates: c.search.merge_duplicates,
             keep_prior: c.search.keep_prior,
             refine: c.search.refine,
+            polish: c.search.polish,
             queue_capacity: serve.queue_capacity,
             max_batch: c.max_batch,
             request_timeout_ms: c.request_timeout_ms,

@@ -152,6 +152,8 @@ pub struct TimingsMs {
     pub agent_steps: f64,
     /// Part of agent_steps: building the observations in Rust.
     pub agent_state_build: f64,
+    /// Part of agent_steps: the continuous polish of the answer (0 when it did not run).
+    pub agent_polish: f64,
     pub total: f64,
 }
 
@@ -165,6 +167,7 @@ impl TimingsMs {
             frustum_head: agent.frustum_head_ms,
             agent_steps: agent.agent_steps_ms,
             agent_state_build: agent.state_build_ms,
+            agent_polish: agent.polish_ms,
             total,
         }
     }
@@ -204,8 +207,32 @@ pub struct LocalizeResponse {
     /// The answer is the prior, unmoved: its alignment score beat every hypothesis's final pose
     /// (the server's `--keep-prior`, on by default).
     pub kept_prior: bool,
+    /// How the search's answer was polished into `pose` (the server's `--polish`, on by
+    /// default); null when the polish did not run.
+    pub polish: Option<PolishBody>,
     pub timings_ms: TimingsMs,
 }
+
+/// The continuous polish of an answer (docs/server.md, "The continuous polish"): from the
+/// search's answer (the chosen hypothesis's pose, or the kept prior), turns about the camera
+/// centre and sideways shifts kept while they raise the alignment score.
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct PolishBody {
+    /// The search's answer before the polish (camera_from_map, map frame).
+    #[schema(value_type = Matrix4x4)]
+    pub from_camera_from_map: Rows4x4,
+    /// Its alignment score.
+    pub from_alignment: f32,
+    /// The polished answer's alignment score (`pose` is the polished answer).
+    pub alignment: f32,
+    /// Heading change from `from_camera_from_map` to `pose`, degrees (geodesic).
+    pub rotation_deg: f64,
+    /// Camera centre moved from `from_camera_from_map` to `pose`, metres.
+    pub translation_m: f64,
+    /// Poses scored.
+    pub scores: usize,
+}
+
 
 impl LocalizeResponse {
     pub fn new(map_id: &str, loc: &Localization, prior_source: PriorSource, timings_ms: TimingsMs) -> Self {
@@ -243,6 +270,17 @@ impl LocalizeResponse {
                 .collect(),
             chosen_hypothesis: loc.chosen,
             kept_prior: loc.kept_prior,
+            polish: loc.polish.map(|p| {
+                let moved = crate::geometry::PoseError::between(&p.camera_from_map, &p.from);
+                PolishBody {
+                    from_camera_from_map: p.from.to_rows(),
+                    from_alignment: p.from_alignment,
+                    alignment: p.alignment,
+                    rotation_deg: moved.rre_geodesic_deg,
+                    translation_m: (p.camera_from_map.camera_position_in_map() - p.from.camera_position_in_map()).norm(),
+                    scores: p.scores,
+                }
+            }),
             timings_ms,
         }
     }
@@ -449,6 +487,8 @@ pub struct Limits {
     pub keep_prior: bool,
     /// Whether unbounded searches run the refinement round (`--refine`).
     pub refine: bool,
+    /// Whether the answer is polished on the alignment score (`--polish`).
+    pub polish: bool,
     pub queue_capacity: usize,
     pub max_batch: usize,
     pub request_timeout_ms: u64,

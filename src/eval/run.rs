@@ -354,7 +354,7 @@ pub(crate) mod tests {
             threads: 1,
             iterations: 10,
             hypotheses: 1,
-            tuning: SearchTuning { narrow_after: 0, merge_duplicates: false, keep_prior: false, refine: false },
+            tuning: SearchTuning { narrow_after: 0, merge_duplicates: false, keep_prior: false, refine: false, polish: false },
             prior_bound: None,
             seed: 3,
             frame_stride: 1,

@@ -227,7 +227,7 @@ mod tests {
     }
 
     const DEFAULTS: RequestDefaults =
-        RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true, refine: true }, radius_m: 40.0 };
+        RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true, refine: true, polish: true }, radius_m: 40.0 };
 
     #[test]
     fn every_field_is_checked_with_its_name() {
@@ -281,7 +281,7 @@ mod tiled_tests {
         let origin = [500_000.0, 5_400_000.0, 0.0];
         let extent = Extent { min: [499_900.0, 5_399_950.0, 90.0], max: [500_200.0, 5_400_050.0, 120.0] };
         let entry = MapEntry { id: "big".into(), num_points: 5_000_000, file_bytes: 0, source_sha256: String::new(), metadata: Default::default(), origin, extent };
-        let defaults = RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true, refine: true }, radius_m: 40.0 };
+        let defaults = RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true, refine: true, polish: true }, radius_m: 40.0 };
         let k = serde_json::json!({"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0});
         let e = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &defaults, entry.clone(), true).unwrap_err();
         assert!(e.to_string().contains("needs a prior"), "{e}");
