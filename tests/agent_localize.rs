@@ -221,6 +221,10 @@ fn batched_workers_match_the_synchronous_loop() {
             let diff = (g.camera_from_map().matrix() - w.camera_from_map().matrix()).abs().max();
             assert!(diff < 1e-9, "batched result differs by {diff}");
         }
+        // The polished answer too (cases 1 and 5 polish; case 3 is a single start, which does not).
+        assert_eq!(got.polish.is_some(), want.polish.is_some());
+        let diff = (got.camera_from_map().matrix() - want.camera_from_map().matrix()).abs().max();
+        assert!(diff < 1e-9, "batched answer differs by {diff}");
     }
     let stats = scheduler.batch_stats();
     assert!(stats.largest_batch > 3, "requests were stepped together: {stats:?}");

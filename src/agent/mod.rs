@@ -50,8 +50,8 @@ pub struct Localization {
     /// Steps of the chosen hypothesis that led to the answer: all of them without a prior bound,
     /// possibly fewer with one (0 when the prior was kept).
     pub answer_steps: usize,
-    /// The answer is the prior itself, unmoved: it outscored every final pose
-    /// (`SearchConfig::keep_prior`).
+    /// The search's answer is the prior itself, unmoved: it outscored every final pose
+    /// (`SearchConfig::keep_prior`); the polish may still move it (`polish`).
     pub kept_prior: bool,
     /// Whether the prior competed with the answers (`SearchConfig::keep_prior`, or a bound).
     pub prior_competes: bool,

@@ -204,8 +204,9 @@ pub struct LocalizeResponse {
     pub hypotheses: Vec<HypothesisBody>,
     /// Index into `hypotheses` of the answer (0 when the prior was kept).
     pub chosen_hypothesis: usize,
-    /// The answer is the prior, unmoved: its alignment score beat every hypothesis's final pose
-    /// (the server's `--keep-prior`, on by default).
+    /// The search's answer is the prior, unmoved: its alignment score beat every hypothesis's
+    /// final pose (the server's `--keep-prior`, on by default); `polish` may still have moved
+    /// `pose` from it.
     pub kept_prior: bool,
     /// How the search's answer was polished into `pose` (the server's `--polish`, on by
     /// default); null when the polish did not run.

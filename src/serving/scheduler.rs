@@ -442,6 +442,7 @@ mod tests {
         a.chosen == b.chosen
             && a.answer_steps == b.answer_steps
             && a.kept_prior == b.kept_prior
+            && a.polish == b.polish
             && a.hypotheses.len() == b.hypotheses.len()
             && a.hypotheses.iter().zip(&b.hypotheses).all(|(x, y)| x.steps.len() == y.steps.len() && x.camera_from_map() == y.camera_from_map())
     }
