@@ -110,13 +110,15 @@ fn print_figures(label: &str, s: &serde_json::Value) {
     );
 }
 
-/// The ATE `track_a_drive_offline_and_over_http` allows (metres; see there).
-const TRACKED_ATE_M: f64 = 1.5;
+/// The ATE `track_a_drive_offline_and_over_http` allows (metres; see there). Measured with the
+/// refinement round and the polish (2026-12-03): 0.65 m (0.93 m before the polish).
+const TRACKED_ATE_M: f64 = 1.0;
 
 /// The ATE allowed over four frames that all run the full search (metres): 0.3 until the
-/// refinement round (2026-12-03), whose answers on this drive are further off (1.15 m measured;
-/// printed below) while it registers more cases on every evaluation set (docs/evaluation.md).
-const FULL_SEARCH_ATE_M: f64 = 1.5;
+/// refinement round (2026-12-03), whose answers on this drive are further off (1.15 m measured)
+/// while it registers more cases on every evaluation set (docs/evaluation.md); 0.68 m with the
+/// polish (printed below).
+const FULL_SEARCH_ATE_M: f64 = 1.0;
 
 /// 100 frames, 5 mm apart (0.5 m in all, centred on the map's scan): the first from a prior
 /// 5 m / 30° off with the full search, the rest tracked; then frames 40-59 over HTTP with the
@@ -125,7 +127,7 @@ const FULL_SEARCH_ATE_M: f64 = 1.5;
 /// The ATE bound is the shipped model's, not the tracking issue's 0.3 m (that bar stays in
 /// `acceptance_drive_of_20_m`): model v3 met 0.3 m here because it answered the map scan's
 /// centre, where this whole drive sits; model v7, trained on maps not centred on the camera,
-/// places the camera from the image alone and tracks this drive with ATE 0.8-1.05 m
+/// places the camera from the image alone and tracks this drive with ATE 0.65-1.05 m
 /// (models/MODEL_CARD.md). The bound catches a tracker that loses the drive (tens of metres).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn track_a_drive_offline_and_over_http() {
