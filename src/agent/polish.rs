@@ -2,8 +2,9 @@
 //! alignment score (`state::alignment`) around it, in steps finer than the policy's.
 //!
 //! Why: the policy moves in discrete steps and stops where its own reading of the observation
-//! says, and the alignment score around that stop is sharper in heading and sideways position
-//! than the policy is. Moves: turns about the camera's own centre (map vertical, or camera y for a
+//! says, and the alignment score around that stop is sharper in heading than the policy is (and
+//! sideways too on synthetic frames; on real ones the sideways moves win cases but do not reduce
+//! the mean position error). Moves: turns about the camera's own centre (map vertical, or camera y for a
 //! `camera_y` model) and shifts along the action frame's sideways axis (`tx`), of [`YAW_DEG`] and
 //! [`LATERAL_M`] at first; a move is kept when it scores strictly higher (first improvement, in
 //! the order +yaw, −yaw, +lateral, −lateral); when none does, both steps halve, [`HALVINGS`]

@@ -84,6 +84,10 @@ impl Learned {
             "confidence": loc.confidence.score,
             "chosen_start_yaw_offset_deg": best.start_yaw_offset_deg,
             "kept_prior": loc.kept_prior,
+            // The answer (polished, when the search polished) and the truth, camera_from_map,
+            // map frame, row-major 3x4: for error breakdowns (along the heading, sideways, up).
+            "answer_camera_from_map": loc.camera_from_map().to_row_major_3x4(),
+            "truth_camera_from_map": case.truth.to_row_major_3x4(),
             // Steps of the chosen start that led to the answer (fewer than it ran when a prior
             // bound answered with a pose it passed).
             "answer_steps": loc.answer_steps().len(),
