@@ -251,11 +251,13 @@ async fn track_a_drive_offline_and_over_http() {
 }
 
 /// The bar on a drive that moves: 100 frames 0.2 m apart (20 m) in a region made of
-/// frame 50's scan. Fails with the shipped model (it places every camera near frame 50's sensor:
-/// ATE ≈ 6 m, see docs/tracking.md); kept as the acceptance check for a model trained with
-/// cameras away from the map scan's centre (and for fused regions once `map build` lands).
+/// frame 50's scan. Fails with the shipped model: v3 placed every camera near frame 50's sensor
+/// (ATE ≈ 6 m, docs/tracking.md); v7 with the refinement round and the polish (2026-12-03):
+/// ATE 5.87 m, the cold frame 5 m / 30° off and then all 99 frames dead-reckoned, since the
+/// calibrator vouches for none of the tracked answers. Kept as the acceptance check for the next
+/// model and calibrator.
 #[test]
-#[ignore = "the shipped model localizes every camera at the map scan's sensor position (docs/tracking.md)"]
+#[ignore = "no tracked answer is `localized` with the shipped model and calibrator: every frame is dead-reckoned (docs/tracking.md)"]
 fn acceptance_drive_of_20_m() {
     let root = tempfile::tempdir().unwrap();
     let sequence = synth_drive(&root.path().join("drive"), 100, 0.2);
