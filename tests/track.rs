@@ -253,7 +253,7 @@ async fn track_a_drive_offline_and_over_http() {
 /// The bar on a drive that moves: 100 frames 0.2 m apart (20 m) in a region made of
 /// frame 50's scan. Fails with the shipped model: v3 placed every camera near frame 50's sensor
 /// (ATE ≈ 6 m, docs/tracking.md); v7 with the refinement round and the polish (2026-12-03):
-/// ATE 5.87 m, the cold frame 5 m / 30° off and then all 99 frames dead-reckoned, since the
+/// ATE 5.87 m: after the cold frame all 99 frames dead-reckoned (cold reference RR 60 %), since the
 /// calibrator vouches for none of the tracked answers. Kept as the acceptance check for the next
 /// model and calibrator.
 #[test]
