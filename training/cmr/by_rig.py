@@ -41,6 +41,11 @@ def table(cases: list[dict], rig_of: dict[str, str]) -> list[str]:
     return rows
 
 
+def camera_centre(camera_from_map: np.ndarray) -> np.ndarray:
+    """The camera centre in the map frame (metres) of a camera_from_map [3, 4]: -Rᵀ t."""
+    return -camera_from_map[:, :3].T @ camera_from_map[:, 3]
+
+
 def axes(cases: list[dict], rig_of: dict[str, str], method: str = "cmr-agent") -> list[str]:
     """Markdown rows (header first): per rig, the registered answers' camera-centre offsets from
     the truth's along its ground heading and sideways (metres; mean |.| and signed mean)."""
@@ -50,11 +55,10 @@ def axes(cases: list[dict], rig_of: dict[str, str], method: str = "cmr-agent") -
         if case["method"] != method or not registered(case["errors"][-1]) or "answer_camera_from_map" not in notes:
             continue
         answer, truth = (np.asarray(notes[k], dtype=float).reshape(3, 4) for k in ("answer_camera_from_map", "truth_camera_from_map"))
-        centre = lambda m: -m[:, :3].T @ m[:, 3]  # noqa: E731
         forward = truth[2, :3] * [1.0, 1.0, 0.0]  # the optical axis in the map, on the ground plane
         forward /= np.linalg.norm(forward)
         right = np.cross(forward, [0.0, 0.0, 1.0])
-        offset = centre(answer) - centre(truth)
+        offset = camera_centre(answer) - camera_centre(truth)
         groups[rig_of.get(case["sequence"], "?")].append((offset @ forward, offset @ right))
     rows = ["| rig | registered | along the heading, mean abs (signed) | sideways, mean abs (signed) |", "|---|---|---|---|"]
     for rig, v in sorted(groups.items()):
