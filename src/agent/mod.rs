@@ -21,7 +21,7 @@ use crate::model::{Backend, Signals, Verdict};
 pub use batch::{Batch, Start, StepError};
 pub use episode::{Confidence, Episode, ImageEvidence, Step};
 pub use input::prepare_image;
-pub use search::{DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, prior_wins, start_yaw_offsets};
+pub use search::{DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, outscores, start_yaw_offsets};
 pub use state::{Form2d, ImageGrid, ScatterScratch, Shifts, StateLayout};
 
 /// Milliseconds spent per phase of one localization.
@@ -103,11 +103,10 @@ impl Localization {
     /// there (`search::search_answer`; the evaluator's per-iteration figures; after the last step,
     /// `camera_from_map`, polish included).
     pub fn pose_after(&self, iterations: usize) -> Pose {
-        let whole = iterations >= self.max_iterations;
-        if whole {
+        if iterations >= self.max_iterations {
             return self.camera_from_map();
         }
-        match search::search_answer(&self.hypotheses, &self.prior, self.prior_bound, self.prior_competes, iterations, whole) {
+        match search::search_answer(&self.hypotheses, &self.prior, self.prior_bound, self.prior_competes, iterations, false) {
             None => self.prior,
             Some((h, k)) => self.hypotheses[h].pose_after(k).0,
         }

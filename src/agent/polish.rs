@@ -18,7 +18,7 @@ use nalgebra::Point3;
 use crate::geometry::actions::apply_motion;
 use crate::geometry::{ActionFrame, Pose};
 
-use super::search::PriorBound;
+use super::search::{PriorBound, outscores};
 
 /// The first turn, degrees.
 pub const YAW_DEG: f64 = 1.0;
@@ -54,7 +54,7 @@ pub struct Polish {
 /// is given. A NaN score never wins.
 pub fn polish(frame: ActionFrame, from: Pose, from_alignment: f32, bound: Option<(&Pose, PriorBound)>, mut score: impl FnMut(&Pose) -> f32) -> Polish {
     let (mut yaw, mut lateral) = (YAW_DEG, LATERAL_M);
-    let (mut pose, mut best) = (from, if from_alignment.is_nan() { f32::NEG_INFINITY } else { from_alignment });
+    let (mut pose, mut best) = (from, from_alignment);
     let mut scores = 0;
     let mut level = 0;
     while level <= HALVINGS && scores < MAX_SCORES {
@@ -70,7 +70,7 @@ pub fn polish(frame: ActionFrame, from: Pose, from_alignment: f32, bound: Option
             }
             scores += 1;
             let s = score(&candidate);
-            if s > best {
+            if outscores(s, best) {
                 (pose, best, improved) = (candidate, s, true);
             }
         }
@@ -79,8 +79,7 @@ pub fn polish(frame: ActionFrame, from: Pose, from_alignment: f32, bound: Option
             level += 1;
         }
     }
-    let alignment = if pose == from { from_alignment } else { best };
-    Polish { from, from_alignment, camera_from_map: pose, alignment, scores }
+    Polish { from, from_alignment, camera_from_map: pose, alignment: best, scores }
 }
 
 #[cfg(test)]

@@ -72,10 +72,15 @@ impl PriorBound {
     /// rounding, since the bounded starts lie exactly on its edge and must count as inside in
     /// any frame (the server works in a region's local frame, the evaluator in the map's).
     pub fn contains(&self, prior: &Pose, pose: &Pose) -> bool {
-        let angle_deg = PoseError::between(prior, pose).rre_geodesic_deg;
-        let distance_m = (prior.camera_position_in_map() - pose.camera_position_in_map()).norm();
+        let (angle_deg, distance_m) = offset_between(prior, pose);
         angle_deg <= self.rotation_deg + BOUND_SLACK && distance_m <= self.translation_m + BOUND_SLACK
     }
+}
+
+/// How far `b` is from `a` in a bound's terms: the geodesic angle between their rotations
+/// (degrees) and the distance between their camera centres in the map (metres).
+pub fn offset_between(a: &Pose, b: &Pose) -> (f64, f64) {
+    (PoseError::between(a, b).rre_geodesic_deg, (a.camera_position_in_map() - b.camera_position_in_map()).norm())
 }
 
 /// What [`PriorBound::contains`] adds to both limits (degrees, metres).
@@ -119,6 +124,12 @@ impl SearchConfig {
     /// trajectory stays as it is) without a prior bound.
     pub fn refines(&self) -> bool {
         self.refine && self.hypotheses > 1 && self.prior_bound.is_none()
+    }
+
+    /// Whether the answer is polished: `polish`, for a multi-start or bounded search (`track`'s
+    /// single-start searches drift when polished: docs/evaluation.md, "A continuous polish").
+    pub fn polishes(&self) -> bool {
+        self.polish && (self.hypotheses > 1 || self.prior_bound.is_some())
     }
 
     /// The paper's procedure: one trajectory from the prior, answered with its last pose.
@@ -248,7 +259,7 @@ pub fn answer_at(hypotheses: &[Hypothesis], prior: &Pose, bound: Option<PriorBou
         let finals: Vec<f32> = hypotheses.iter().map(|h| h.pose_after(iterations).1).collect();
         let best = best_of(finals.iter().copied());
         let prior_alignment = hypotheses.first().map_or(f32::NAN, |h| h.start_alignment);
-        if prior_competes && prior_wins(prior_alignment, finals[best]) {
+        if prior_competes && outscores(prior_alignment, finals[best]) {
             return None;
         }
         return Some((best, iterations.min(hypotheses[best].steps.len())));
@@ -306,10 +317,11 @@ impl Hypothesis {
     }
 }
 
-/// Whether the prior, scoring `prior_alignment`, beats the best final pose's `best_alignment`
-/// (strictly: a draw keeps the search's answer; NaN never wins).
-pub fn prior_wins(prior_alignment: f32, best_alignment: f32) -> bool {
-    prior_alignment > best_alignment || (best_alignment.is_nan() && !prior_alignment.is_nan())
+/// Whether a challenger's alignment score beats the incumbent's: strictly (a draw keeps the
+/// incumbent), and NaN never wins (a NaN incumbent loses to any number). How the prior competes
+/// with the search's answer, and a refinement group with the first round's.
+pub fn outscores(challenger: f32, incumbent: f32) -> bool {
+    challenger > incumbent || (incumbent.is_nan() && !challenger.is_nan())
 }
 
 /// Index of the best-scoring candidate; the first one on ties (so the prior's own trajectory
@@ -347,7 +359,7 @@ pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, bound: Option<Prio
             Some((h, k)) => (offset + h, k),
         };
         let s = score(Some(answer));
-        if s > best_score || (best_score.is_nan() && !s.is_nan()) {
+        if outscores(s, best_score) {
             (best, best_score) = (Some(answer), s);
         }
     }
@@ -412,7 +424,7 @@ impl Search {
             merge_duplicates: config.merge_duplicates,
             keep_prior: config.keep_prior,
             prior_bound: config.prior_bound,
-            polish: config.polish && (hypotheses > 1 || config.prior_bound.is_some()),
+            polish: config.polishes(),
         }
     }
 
@@ -707,12 +719,12 @@ mod tests {
     }
 
     #[test]
-    fn the_prior_is_kept_only_when_it_scores_strictly_higher() {
-        assert!(prior_wins(0.5, 0.4));
-        assert!(!prior_wins(0.4, 0.4), "a draw keeps the search's answer");
-        assert!(!prior_wins(0.3, 0.4));
-        assert!(!prior_wins(f32::NAN, 0.4));
-        assert!(prior_wins(0.1, f32::NAN));
+    fn a_challenger_wins_only_by_scoring_strictly_higher() {
+        assert!(outscores(0.5, 0.4));
+        assert!(!outscores(0.4, 0.4), "a draw keeps the incumbent");
+        assert!(!outscores(0.3, 0.4));
+        assert!(!outscores(f32::NAN, 0.4));
+        assert!(outscores(0.1, f32::NAN));
     }
 
     #[test]

@@ -234,7 +234,6 @@ pub struct PolishBody {
     pub scores: usize,
 }
 
-
 impl LocalizeResponse {
     pub fn new(map_id: &str, loc: &Localization, prior_source: PriorSource, timings_ms: TimingsMs) -> Self {
         LocalizeResponse {
@@ -272,15 +271,8 @@ impl LocalizeResponse {
             chosen_hypothesis: loc.chosen,
             kept_prior: loc.kept_prior,
             polish: loc.polish.map(|p| {
-                let moved = crate::geometry::PoseError::between(&p.camera_from_map, &p.from);
-                PolishBody {
-                    from_camera_from_map: p.from.to_rows(),
-                    from_alignment: p.from_alignment,
-                    alignment: p.alignment,
-                    rotation_deg: moved.rre_geodesic_deg,
-                    translation_m: (p.camera_from_map.camera_position_in_map() - p.from.camera_position_in_map()).norm(),
-                    scores: p.scores,
-                }
+                let (rotation_deg, translation_m) = crate::agent::search::offset_between(&p.from, &p.camera_from_map);
+                PolishBody { from_camera_from_map: p.from.to_rows(), from_alignment: p.from_alignment, alignment: p.alignment, rotation_deg, translation_m, scores: p.scores }
             }),
             timings_ms,
         }
