@@ -10,6 +10,10 @@
 #                                # run v8f (issue 29): stage 2 again from the shipped model (v7),
 #                                # encoders kept, half the episodes from fleet-like starts, one
 #                                # thread; `save` and `status` with the same RUN (saves v8f.pt)
+#   RUN=~/.cache/cmr-agent/runs/v9e scripts/train-v7.sh start-v9e
+#                                # run v9e (issue 29): stage 1 continued from the shipped model's
+#                                # float weights (v7's iteration-1,500 export, imported), agent
+#                                # kept, the ranking term doubled, real frames six times in the draw
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
@@ -116,6 +120,31 @@ start_v8f() {
   echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
 }
 
+# Run v9e: stage 1 only, from the shipped model's float export (runs/v7/judge/s2k15/float, the
+# ONNX files `models/` was quantised from; imported once into $RUN/../v7-float-import.pt, which also
+# carries the shipped agent, kept as it is), the ranking term's weight doubled and its margin
+# doubled, the real training frames six times in the draw (about half of all samples), one thread.
+start_v9e() {
+  mkdir -p "$RUN"
+  local init=$RUN/../v7-float-import.pt r=$DATA/real-split/train
+  [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$RUN/../v7/judge/s2k15/float" --out "$init")
+  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
+    cp "$SAVED" "$RUN/last.pt"
+    echo "resuming from the committed $SAVED"
+  fi
+  cd "$ROOT/training"
+  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(ls -d "$DATA"/v7/train/b* | paste -sd, -),$r,$r,$r,$r,$r,$r" \
+    --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
+    action_frame=map_z norm=group embed_schedule=cosine embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 \
+    embed_grad_clip=5 photometric=heavy scale_max=1.5 lidar_aug=true rank_weight=4 rank_poses=8 rank_far=0.5 \
+    rank_margin=0.1 map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 \
+    init_from="$init" embed_steps=6000 embed_eval_every=1000 agent_iters=0 \
+    checkpoint_every=100 log_every=20 threads=1 loader_workers=0 \
+    >> "$RUN/stdout.log" 2>&1 &
+  echo $! > "$RUN/pid"
+  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -163,6 +192,7 @@ status() {
 case "${1:-}" in
   data|start|save|status) "$1" ;;
   start-v8f) start_v8f ;;
+  start-v9e) start_v9e ;;
   judge) shift; judge "$@" ;;
   *) sed -n 2,22p "$0"; exit 2 ;;
 esac
