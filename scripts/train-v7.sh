@@ -14,6 +14,9 @@
 #                                # run v9e (issue 29): stage 1 continued from the shipped model's
 #                                # float weights (v7's iteration-1,500 export, imported), agent
 #                                # kept, the ranking term doubled, real frames six times in the draw
+#   RUN=~/.cache/cmr-agent/runs/v9a scripts/train-v7.sh start-v9a
+#                                # run v9a: stage 2 continued on v9e's finished encoders (the
+#                                # agent from v7's, as v9e kept it), 600 iterations, one thread
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
@@ -145,6 +148,27 @@ start_v9e() {
   echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
 }
 
+# Run v9a: the agent (v7's, kept by v9e) trained on for 600 iterations on v9e's final encoders,
+# frozen; v7's stage-2 recipe at a tenth of its learning rate.
+start_v9a() {
+  mkdir -p "$RUN"
+  local init=$RUN/../v9e/last.pt
+  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
+    cp "$SAVED" "$RUN/last.pt"
+    echo "resuming from the committed $SAVED"
+  fi
+  cd "$ROOT/training"
+  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
+    action_frame=map_z norm=group photometric=heavy scale_max=1.5 lidar_aug=true \
+    map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 \
+    init_from="$init" embed_steps=0 agent_iters=600 agent_lr=1e-4 agent_lr_min=1e-5 agent_ema=0.995 \
+    bc_only_iters=0 expert_mix_start=0.2 expert_mix_iters=300 pool_size=48 update_epochs=2 near_start_p=0.3 \
+    eval_every=300 eval_frames=36 checkpoint_every=50 log_every=20 threads=1 loader_workers=0 \
+    >> "$RUN/stdout.log" 2>&1 &
+  echo $! > "$RUN/pid"
+  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -193,6 +217,7 @@ case "${1:-}" in
   data|start|save|status) "$1" ;;
   start-v8f) start_v8f ;;
   start-v9e) start_v9e ;;
+  start-v9a) start_v9a ;;
   judge) shift; judge "$@" ;;
   *) sed -n 2,22p "$0"; exit 2 ;;
 esac
