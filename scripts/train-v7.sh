@@ -14,6 +14,9 @@
 #                                # run v9e (issue 29): stage 1 continued from the shipped model's
 #                                # float weights (v7's iteration-1,500 export, imported), agent
 #                                # kept, the ranking term doubled, real frames six times in the draw
+#   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
+#                                # run v9m: like v9e but v7's data mix and ranking term, with half
+#                                # the samples mirrored (image and map together), 4,000 steps
 #   RUN=~/.cache/cmr-agent/runs/v9a scripts/train-v7.sh start-v9a
 #                                # run v9a: stage 2 continued on v9e's finished encoders (the
 #                                # agent from v7's, as v9e kept it), 600 iterations, one thread
@@ -148,6 +151,38 @@ start_v9e() {
   echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
 }
 
+# Run v9m: stage 1 continued from the shipped float weights (as v9e) with v7's own data mix and
+# ranking term, half of the samples mirrored left to right (image and map together:
+# data.mirror_sample), learning rate 1e-4 -> 1e-5 over 4,000 steps, one thread; a copy of the
+# checkpoint at every 1,000 steps in $RUN/snap/ (the shipping rule's candidates).
+start_v9m() {
+  mkdir -p "$RUN/snap"
+  local init=$RUN/../v7-float-import.pt
+  [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$RUN/../v7/judge/s2k15/float" --out "$init")
+  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
+    cp "$SAVED" "$RUN/last.pt"
+    echo "resuming from the committed $SAVED"
+  fi
+  cd "$ROOT/training"
+  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
+    action_frame=map_z norm=group embed_schedule=cosine embed_lr=1e-4 embed_warmup=100 embed_lr_min=1e-5 \
+    embed_grad_clip=5 photometric=heavy scale_max=1.5 lidar_aug=true rank_weight=2 rank_poses=8 rank_far=0.5 \
+    map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 mirror_p=0.5 \
+    init_from="$init" embed_steps=4000 embed_eval_every=1000 agent_iters=0 \
+    checkpoint_every=100 log_every=20 threads=1 loader_workers=0 \
+    >> "$RUN/stdout.log" 2>&1 &
+  echo $! > "$RUN/pid"
+  # keep the checkpoint of every 1,000th step (the run itself keeps only the latest)
+  nohup bash -c 'while kill -0 '"$(cat "$RUN/pid")"' 2>/dev/null; do
+      s=$(grep -o "\"stage\": \"embed\", \"step\": [0-9]*" "'"$RUN"'/stdout.log" | tail -1 | grep -o "[0-9]*$")
+      for k in 1000 2000 3000 4000; do
+        [ -n "$s" ] && [ "$s" -ge "$k" ] && [ ! -f "'"$RUN"'/snap/$k.pt" ] && "'"$PY"'" -c "import torch,sys; c=torch.load(sys.argv[1], map_location=\"cpu\", weights_only=False); sys.exit(c[\"embed_step\"] < $k)" "'"$RUN"'/last.pt" && cp "'"$RUN"'/last.pt" "'"$RUN"'/snap/$k.pt"
+      done
+      sleep 20
+    done' > /dev/null 2>&1 &
+  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+}
+
 # Run v9a: the agent (v7's, kept by v9e) trained on for 600 iterations on v9e's final encoders,
 # frozen; v7's stage-2 recipe at a tenth of its learning rate.
 start_v9a() {
@@ -218,6 +253,7 @@ case "${1:-}" in
   start-v8f) start_v8f ;;
   start-v9e) start_v9e ;;
   start-v9a) start_v9a ;;
+  start-v9m) start_v9m ;;
   judge) shift; judge "$@" ;;
   *) sed -n 2,22p "$0"; exit 2 ;;
 esac

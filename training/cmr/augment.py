@@ -53,11 +53,14 @@ class AugmentOptions:
     near_start_p: float = 0.0
     near_start_yaw_deg: float = 30.0
     near_start_shift_m: float = 5.0
+    # Mirror images (`data.mirror_sample`): this share of the samples is flipped left to right,
+    # the image and the map together, so the geometry stays exact (traffic keeps left there).
+    mirror_p: float = 0.0
 
     @property
     def active(self) -> bool:
         return (self.photometric != "basic" or self.scale_max > 1.0 or self.lidar or self.map_window > 0 or self.virtual_scan_p > 0
-                or self.near_start_p > 0)
+                or self.near_start_p > 0 or self.mirror_p > 0)
 
 
 DEFAULT = AugmentOptions()

@@ -332,8 +332,31 @@ def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points:
     points = g.transform(q, scan)
     truth = frame.calib.camera_from_lidar @ g.invert(q)
     labels = g.in_frustum(k, g.transform(truth, points), OUT_W, OUT_H)
-    return Sample(image=np.ascontiguousarray(image), intrinsics=k, points=points.astype(np.float32),
-                  labels=labels, truth=truth, initial=frame.calib.camera_from_lidar.copy(), motion=q)
+    sample = Sample(image=np.ascontiguousarray(image), intrinsics=k, points=points.astype(np.float32),
+                    labels=labels, truth=truth, initial=frame.calib.camera_from_lidar.copy(), motion=q)
+    # drawn last, so the other options' draws stay as they were
+    if train and augment.mirror_p > 0 and rng.random() < augment.mirror_p:
+        sample = mirror_sample(sample)
+    return sample
+
+
+# Left-right reflections: of the camera frame (x right) and of the map and LiDAR frames (y left).
+_MIRROR_CAMERA = np.diag([-1.0, 1.0, 1.0, 1.0])
+_MIRROR_MAP = np.diag([1.0, -1.0, 1.0, 1.0])
+
+
+def mirror_sample(s: Sample) -> Sample:
+    """The same sample seen in a mirror: the image flipped left to right (its principal point with
+    it: cx' = OUT_W - 1 - cx, pixel centres at integers), the map reflected across its x-z plane
+    (y -> -y) and every pose conjugated, P' = S_camera P S_map, a proper rotation again. Each point
+    projects to the mirrored pixel of where it projected before (u' = OUT_W - 1 - u, v' = v), so
+    labels, correspondences and the true pose stay exact. Ground motions stay ground motions."""
+    k = s.intrinsics.copy()
+    k[2] = OUT_W - 1 - k[2]
+    conj = lambda pose: _MIRROR_CAMERA @ pose @ _MIRROR_MAP  # noqa: E731
+    return Sample(image=np.ascontiguousarray(s.image[:, :, ::-1]), intrinsics=k,
+                  points=(s.points * np.array([1.0, -1.0, 1.0], np.float32)).astype(np.float32), labels=s.labels,
+                  truth=conj(s.truth), initial=conj(s.initial), motion=_MIRROR_MAP @ s.motion @ _MIRROR_MAP)
 
 
 def split_frames(frames: list[Frame], holdout_every: int) -> tuple[list[Frame], list[Frame]]:

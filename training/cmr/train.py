@@ -136,6 +136,9 @@ class Config:
     near_start_p: float = 0.0
     near_start_yaw_deg: float = 30.0
     near_start_shift_m: float = 5.0
+    # Mirror augmentation (augment.AugmentOptions.mirror_p): this share of the samples flipped left
+    # to right, image and map together.
+    mirror_p: float = 0.0
     # Start from another run's checkpoint (its weights only; optimisers and counters start fresh):
     # fine-tuning. Ignored when <out>/last.pt exists (resume wins).
     init_from: str = ""
@@ -205,7 +208,7 @@ class Run:
                                       virtual_scan_p=cfg.virtual_scan_p, virtual_scan_offset_m=cfg.virtual_scan_offset_m,
                                       virtual_scan_radius_m=cfg.virtual_scan_radius_m,
                                       near_start_p=cfg.near_start_p, near_start_yaw_deg=cfg.near_start_yaw_deg,
-                                      near_start_shift_m=cfg.near_start_shift_m)
+                                      near_start_shift_m=cfg.near_start_shift_m, mirror_p=cfg.mirror_p)
         embed_params = [p for k in ("point_encoder", "image_encoder", "frustum_head") for p in self.models[k].parameters()]
         self.opt_embed = torch.optim.Adam(embed_params, lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))

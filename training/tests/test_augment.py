@@ -84,6 +84,34 @@ def test_zoom_and_crop_keep_points_on_their_pixels(pattern_frame, monkeypatch, s
         assert len(k_seen) > 1, "the zoom must change the focal length"
 
 
+def test_a_mirrored_sample_reads_each_point_where_it_was(pattern_frame, monkeypatch):
+    """mirror_p = 1: every point, projected with the mirrored sample's pose and intrinsics, reads the
+    colour the original image has where the unmirrored point projects; poses stay rotations."""
+    monkeypatch.setattr(data, "colour_jitter", lambda rgb, rng: rgb)
+    data._decoded.cache_clear()
+    reflect = np.diag([1.0, -1.0, 1.0, 1.0])
+    for seed in range(4):
+        s = make_sample(pattern_frame, np.random.default_rng(seed), train=True, num_points=4000,
+                        augment=aug.AugmentOptions(mirror_p=1.0))
+        plain = make_sample(pattern_frame, np.random.default_rng(seed), train=True, num_points=4000)
+        assert np.array_equal(s.labels, plain.labels)
+        assert np.allclose(s.image, plain.image[:, :, ::-1])
+        for pose in (s.truth, s.initial, s.motion):
+            assert abs(np.linalg.det(pose[:3, :3]) - 1.0) < 1e-9
+        cam = g.transform(s.truth, s.points.astype(np.float64))
+        assert np.array_equal(g.in_frustum(s.intrinsics, cam, OUT_W, OUT_H), s.labels)
+        uv, _ = g.project(s.intrinsics, cam[s.labels])
+        uv_plain, _ = g.project(plain.intrinsics, g.transform(plain.truth, plain.points[plain.labels].astype(np.float64)))
+        assert np.allclose(uv[:, 0], OUT_W - 1 - uv_plain[:, 0], atol=1e-6) and np.allclose(uv[:, 1], uv_plain[:, 1], atol=1e-6)
+        rgb = s.image.transpose(1, 2, 0) * IMAGE_STD + IMAGE_MEAN
+        inner = (uv[:, 0] > 1) & (uv[:, 0] < OUT_W - 2) & (uv[:, 1] > 1) & (uv[:, 1] < OUT_H - 2)
+        assert inner.sum() > 200
+        lidar = g.transform(reflect @ g.invert(s.motion), s.points[s.labels].astype(np.float64))
+        uv0, _ = g.project(np.array(K0), g.transform(pattern_frame.calib.camera_from_lidar, lidar))
+        err = np.abs(_bilinear(rgb, uv[inner]) - pattern(uv0[inner, 0], uv0[inner, 1]))
+        assert np.median(err) < 0.01 and np.percentile(err, 99) < 0.04, (seed, np.median(err), err.max())
+
+
 def test_zoomed_plan_is_the_servers_plan_at_zoom_one():
     for w, h in [(1241, 376), (620, 188), (1600, 900), (960, 300)]:
         assert g.preprocess_plan(w, h, 0.5, OUT_W, OUT_H) == g.preprocess_plan(w, h, 0.5, OUT_W, OUT_H, None, 1.0)
