@@ -14,6 +14,9 @@
 #                                # run v9e (issue 29): stage 1 continued from the shipped model's
 #                                # float weights (v7's iteration-1,500 export, imported), agent
 #                                # kept, the ranking term doubled, real frames six times in the draw
+#   RUN=~/.cache/cmr-agent/runs/v10 scripts/train-v7.sh start-v10
+#                                # run v10 (issue 29): v7's whole recipe (both stages, from
+#                                # scratch) with half the samples mirrored; across sessions
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -151,6 +154,31 @@ start_v9e() {
   echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
 }
 
+# Run v10: `start`'s run (v7's recipe, both stages from scratch) with half the samples mirrored
+# (mirror_p=0.5) and stage 2 starting from the shipped agent (v7's, map_z) instead of v3's; two
+# threads. `save` at every stop.
+start_v10() {
+  mkdir -p "$RUN"
+  local agent=$RUN/../v7-float-import.pt
+  [ -f "$agent" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$RUN/../v7/judge/s2k15/float" --out "$agent")
+  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
+    cp "$SAVED" "$RUN/last.pt"
+    echo "resuming from the committed $SAVED"
+  fi
+  cd "$ROOT/training"
+  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
+    action_frame=map_z norm=group embed_schedule=cosine embed_lr=1e-3 embed_warmup=200 embed_lr_min=2e-5 \
+    embed_grad_clip=5 photometric=heavy scale_max=1.5 lidar_aug=true rank_weight=2 rank_poses=8 rank_far=0.5 \
+    map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 mirror_p=0.5 \
+    embed_steps=30000 embed_eval_every=2000 \
+    init_agent_from="$agent" agent_iters=3000 agent_lr=3e-4 agent_lr_min=2e-5 agent_ema=0.995 \
+    bc_only_iters=300 expert_mix_start=0.3 expert_mix_iters=300 pool_size=48 update_epochs=2 near_start_p=0.3 \
+    eval_every=250 eval_frames=36 checkpoint_every=100 log_every=20 threads=2 loader_workers=1 \
+    >> "$RUN/stdout.log" 2>&1 &
+  echo $! > "$RUN/pid"
+  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+}
+
 # Run v9m: stage 1 continued from the shipped float weights (as v9e) with v7's own data mix and
 # ranking term, half of the samples mirrored left to right (image and map together:
 # data.mirror_sample), learning rate 1e-4 -> 1e-5 over 4,000 steps, one thread; a copy of the
@@ -254,6 +282,7 @@ case "${1:-}" in
   start-v9e) start_v9e ;;
   start-v9a) start_v9a ;;
   start-v9m) start_v9m ;;
+  start-v10) start_v10 ;;
   judge) shift; judge "$@" ;;
   *) sed -n 2,22p "$0"; exit 2 ;;
 esac
