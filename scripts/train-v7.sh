@@ -86,12 +86,18 @@ progress() {
   "$PY" -c "import torch,sys; c=torch.load(sys.argv[1], map_location='cpu', weights_only=False); print(c['embed_step'] + c['agent_iter'])" "$1"
 }
 
-start() {
-  mkdir -p "$RUN"
+# The committed checkpoint replaces the run directory's last.pt when that is missing or behind it
+# (byte for byte, so a run resumes from either place with the same state).
+resume_saved() {
   if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
     cp "$SAVED" "$RUN/last.pt"
     echo "resuming from the committed $SAVED"
   fi
+}
+
+start() {
+  mkdir -p "$RUN"
+  resume_saved
   cd "$ROOT/training"
   nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
     action_frame=map_z norm=group embed_schedule=cosine embed_lr=1e-3 embed_warmup=200 embed_lr_min=2e-5 \
@@ -113,10 +119,7 @@ start_v8f() {
   mkdir -p "$RUN"
   local init=$RUN/../v7-import.pt
   [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx ../models --out "$init")
-  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
-    cp "$SAVED" "$RUN/last.pt"
-    echo "resuming from the committed $SAVED"
-  fi
+  resume_saved
   cd "$ROOT/training"
   nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
     action_frame=map_z norm=group photometric=heavy scale_max=1.5 lidar_aug=true \
@@ -137,10 +140,7 @@ start_v9e() {
   mkdir -p "$RUN"
   local init=$RUN/../v7-float-import.pt r=$DATA/real-split/train
   [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$RUN/../v7/judge/s2k15/float" --out "$init")
-  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
-    cp "$SAVED" "$RUN/last.pt"
-    echo "resuming from the committed $SAVED"
-  fi
+  resume_saved
   cd "$ROOT/training"
   nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(ls -d "$DATA"/v7/train/b* | paste -sd, -),$r,$r,$r,$r,$r,$r" \
     --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
@@ -161,10 +161,7 @@ start_v10() {
   mkdir -p "$RUN"
   local agent=$RUN/../v7-float-import.pt
   [ -f "$agent" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$RUN/../v7/judge/s2k15/float" --out "$agent")
-  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
-    cp "$SAVED" "$RUN/last.pt"
-    echo "resuming from the committed $SAVED"
-  fi
+  resume_saved
   cd "$ROOT/training"
   nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
     action_frame=map_z norm=group embed_schedule=cosine embed_lr=1e-3 embed_warmup=200 embed_lr_min=2e-5 \
@@ -187,10 +184,7 @@ start_v9m() {
   mkdir -p "$RUN/snap"
   local init=$RUN/../v7-float-import.pt
   [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$RUN/../v7/judge/s2k15/float" --out "$init")
-  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
-    cp "$SAVED" "$RUN/last.pt"
-    echo "resuming from the committed $SAVED"
-  fi
+  resume_saved
   cd "$ROOT/training"
   nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
     action_frame=map_z norm=group embed_schedule=cosine embed_lr=1e-4 embed_warmup=100 embed_lr_min=1e-5 \
@@ -216,10 +210,7 @@ start_v9m() {
 start_v9a() {
   mkdir -p "$RUN"
   local init=$RUN/../v9e/last.pt
-  if [ -f "$SAVED" ] && { [ ! -f "$RUN/last.pt" ] || [ "$(progress "$SAVED")" -gt "$(progress "$RUN/last.pt")" ]; }; then
-    cp "$SAVED" "$RUN/last.pt"
-    echo "resuming from the committed $SAVED"
-  fi
+  resume_saved
   cd "$ROOT/training"
   nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
     action_frame=map_z norm=group photometric=heavy scale_max=1.5 lidar_aug=true \
@@ -284,5 +275,5 @@ case "${1:-}" in
   start-v9m) start_v9m ;;
   start-v10) start_v10 ;;
   judge) shift; judge "$@" ;;
-  *) sed -n 2,22p "$0"; exit 2 ;;
+  *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
