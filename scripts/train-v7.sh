@@ -156,7 +156,8 @@ start_v9e() {
 
 # Run v10: `start`'s run (v7's recipe, both stages from scratch) with half the samples mirrored
 # (mirror_p=0.5) and stage 2 starting from the shipped agent (v7's, map_z) instead of v3's; two
-# threads. `save` at every stop.
+# threads; a copy of every 500th stage-2 iteration in $RUN/snap/ (the shipping rule's
+# candidates). `save` at every stop.
 start_v10() {
   mkdir -p "$RUN"
   local agent=$RUN/../v7-float-import.pt
@@ -170,7 +171,7 @@ start_v10() {
     embed_steps=30000 embed_eval_every=2000 \
     init_agent_from="$agent" agent_iters=3000 agent_lr=3e-4 agent_lr_min=2e-5 agent_ema=0.995 \
     bc_only_iters=300 expert_mix_start=0.3 expert_mix_iters=300 pool_size=48 update_epochs=2 near_start_p=0.3 \
-    eval_every=250 eval_frames=36 checkpoint_every=100 log_every=20 threads=2 loader_workers=1 \
+    eval_every=250 eval_frames=36 checkpoint_every=100 keep_agent_every=500 log_every=20 threads=2 loader_workers=1 \
     >> "$RUN/stdout.log" 2>&1 &
   echo $! > "$RUN/pid"
   echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"

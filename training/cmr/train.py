@@ -154,6 +154,11 @@ class Config:
     embed_eval_every: int = 0  # stage 1: match accuracy + frustum P/R on the validation frames every k steps (0: off)
     log_every: int = 10
     checkpoint_every: int = 50
+    # Copies of the checkpoint kept aside (<out>/snap/embed_NNNNNN.pt, agent_NNNNN.pt) every k stage-1
+    # steps / stage-2 iterations (0: none): the candidates a shipping rule names, which `last.pt`
+    # alone would overwrite.
+    keep_embed_every: int = 0
+    keep_agent_every: int = 0
     eval_every: int = 200
     eval_frames: int = 24
 
@@ -251,6 +256,11 @@ class Run:
             import os
             os.fsync(f.fileno())
         tmp.replace(path)
+
+    def keep(self, name: str) -> None:
+        """A checkpoint like `last.pt`, kept as `<out>/snap/<name>`."""
+        (self.dir / "snap").mkdir(exist_ok=True)
+        self.save(f"snap/{name}")
 
     def _load(self, path: Path) -> None:
         if not path.exists():
@@ -465,6 +475,8 @@ class Run:
                 print(json.dumps(rec), flush=True)
             if self.embed_step % cfg.checkpoint_every == 0:
                 self.save("last.pt")
+            if cfg.keep_embed_every and self.embed_step % cfg.keep_embed_every == 0:
+                self.keep(f"embed_{self.embed_step:06d}.pt")
             if cfg.embed_eval_every and (self.embed_step % cfg.embed_eval_every == 0 or self.embed_step == cfg.embed_steps):
                 self.validate_embeddings()
                 self.embed_train_mode()
@@ -572,6 +584,8 @@ class Run:
                 print(json.dumps(rec), flush=True)
             if self.agent_iter % cfg.checkpoint_every == 0:
                 self.save("last.pt")
+            if cfg.keep_agent_every and self.agent_iter % cfg.keep_agent_every == 0:
+                self.keep(f"agent_{self.agent_iter:05d}.pt")
             if cfg.eval_every and self.agent_iter % cfg.eval_every == 0:
                 self.validate()
         self.save("last.pt")

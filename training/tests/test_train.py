@@ -84,6 +84,15 @@ def test_cli_run_checkpoints_and_resumes(tmp_path, tiny_dataset):
     assert [r["step"] for r in log if r["stage"] == "agent"] == [1, 2]
 
 
+def test_copies_are_kept_aside_every_k_steps(tmp_path, tiny_dataset):
+    args = ["--data", str(tiny_dataset), "--out", str(tmp_path), "--set"] + [f"{k}={v}" for k, v in SMALL.items()]
+    main(args + ["embed_steps=3", "agent_iters=2", "keep_embed_every=2", "keep_agent_every=1"])
+    assert sorted(p.name for p in (tmp_path / "snap").iterdir()) == ["agent_00001.pt", "agent_00002.pt", "embed_000002.pt"]
+    kept = torch.load(tmp_path / "snap" / "agent_00001.pt", map_location="cpu", weights_only=False)
+    assert (kept["embed_step"], kept["agent_iter"]) == (3, 1)
+    assert not list((tmp_path / "snap").glob("*.tmp"))
+
+
 def test_averaged_agent_lags_the_live_one_and_is_what_ships(tmp_path, tiny_dataset):
     from cmr.export import load_models
     args = ["--data", str(tiny_dataset), "--out", str(tmp_path), "--set"] + [f"{k}={v}" for k, v in SMALL.items()]
