@@ -95,133 +95,90 @@ resume_saved() {
   fi
 }
 
-start() {
+# The shipped model's float weights as a checkpoint (v7's iteration-1,500 export, the ONNX files
+# `models/` was quantised from), made once: where the runs after v7 start from.
+v7_float() {
+  local init=$HOME/.cache/cmr-agent/runs/v7-float-import.pt
+  [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$HOME/.cache/cmr-agent/runs/v7/judge/s2k15/float" --out "$init" >&2)
+  echo "$init"
+}
+
+# Settings every run since v7 shares: the action frame, the encoders' normalisation, the transfer
+# augmentations and a quarter of the maps cut like a fleet region's crop.
+COMMON=(action_frame=map_z norm=group photometric=heavy scale_max=1.5 lidar_aug=true
+  map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25)
+# v7's stage 1 and stage 2.
+V7_STAGE1=(embed_schedule=cosine embed_lr=1e-3 embed_warmup=200 embed_lr_min=2e-5 embed_grad_clip=5
+  rank_weight=2 rank_poses=8 rank_far=0.5 embed_steps=30000 embed_eval_every=2000)
+V7_STAGE2=(agent_iters=3000 agent_lr=3e-4 agent_lr_min=2e-5 agent_ema=0.995 bc_only_iters=300
+  expert_mix_start=0.3 expert_mix_iters=300 pool_size=48 update_epochs=2 near_start_p=0.3
+  eval_every=250 eval_frames=36 checkpoint_every=100 log_every=20 threads=2 loader_workers=1)
+
+# launch TRAIN_ROOTS SETTING...: starts or resumes $RUN (after `resume_saved`) with `cmr.train`,
+# niced, in the background, on TRAIN_ROOTS with val-mix for validation and COMMON + SETTING...
+# (a later setting of the same key wins).
+launch() {
+  local roots=$1; shift
   mkdir -p "$RUN"
   resume_saved
   cd "$ROOT/training"
-  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
-    action_frame=map_z norm=group embed_schedule=cosine embed_lr=1e-3 embed_warmup=200 embed_lr_min=2e-5 \
-    embed_grad_clip=5 photometric=heavy scale_max=1.5 lidar_aug=true rank_weight=2 rank_poses=8 rank_far=0.5 \
-    map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 \
-    embed_steps=30000 embed_eval_every=2000 \
-    init_agent_from="$HOME/.cache/cmr-agent/runs/v3-import.pt" agent_iters=3000 agent_lr=3e-4 agent_lr_min=2e-5 agent_ema=0.995 \
-    bc_only_iters=300 expert_mix_start=0.3 expert_mix_iters=300 pool_size=48 update_epochs=2 near_start_p=0.3 \
-    eval_every=250 eval_frames=36 checkpoint_every=100 log_every=20 threads=2 loader_workers=1 \
-    >> "$RUN/stdout.log" 2>&1 &
+  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$roots" --val-data "$DATA/v7/val-mix" --out "$RUN" \
+    --set "${COMMON[@]}" "$@" >> "$RUN/stdout.log" 2>&1 &
   echo $! > "$RUN/pid"
   echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+}
+
+# Run v7: both stages, stage 2 from the v3 agent's weights.
+start() {
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" \
+    init_agent_from="$HOME/.cache/cmr-agent/runs/v3-import.pt"
 }
 
 # Run v8f: the shipped agent trained on from the shipped model's own weights (cmr.import_onnx of
 # models/, made once into $RUN/../v7-import.pt), stage 1 skipped, with half the episodes starting
 # within 30 deg / 5 m of the truth (the fleet regime) at a lower learning rate.
 start_v8f() {
-  mkdir -p "$RUN"
   local init=$RUN/../v7-import.pt
   [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx ../models --out "$init")
-  resume_saved
-  cd "$ROOT/training"
-  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
-    action_frame=map_z norm=group photometric=heavy scale_max=1.5 lidar_aug=true \
-    map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 \
-    init_from="$init" embed_steps=0 agent_iters=1500 agent_lr=1e-4 agent_lr_min=1e-5 agent_ema=0.995 \
-    bc_only_iters=0 expert_mix_start=0.2 expert_mix_iters=300 pool_size=48 update_epochs=2 near_start_p=0.5 \
-    eval_every=250 eval_frames=36 checkpoint_every=50 log_every=20 threads=1 loader_workers=0 \
-    >> "$RUN/stdout.log" 2>&1 &
-  echo $! > "$RUN/pid"
-  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+  launch "$(train_roots)" "${V7_STAGE2[@]}" init_from="$init" embed_steps=0 agent_iters=1500 agent_lr=1e-4 \
+    agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 near_start_p=0.5 checkpoint_every=50 threads=1 loader_workers=0
 }
 
-# Run v9e: stage 1 only, from the shipped model's float export (runs/v7/judge/s2k15/float, the
-# ONNX files `models/` was quantised from; imported once into $RUN/../v7-float-import.pt, which also
-# carries the shipped agent, kept as it is), the ranking term's weight doubled and its margin
-# doubled, the real training frames six times in the draw (about half of all samples), one thread.
+# Run v9e: stage 1 only, from the shipped model's float weights (the agent in them kept as it is),
+# the ranking term's weight and margin doubled, the real training frames six times in the draw
+# (about half of all samples), one thread.
 start_v9e() {
-  mkdir -p "$RUN"
-  local init=$RUN/../v7-float-import.pt r=$DATA/real-split/train
-  [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$RUN/../v7/judge/s2k15/float" --out "$init")
-  resume_saved
-  cd "$ROOT/training"
-  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(ls -d "$DATA"/v7/train/b* | paste -sd, -),$r,$r,$r,$r,$r,$r" \
-    --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
-    action_frame=map_z norm=group embed_schedule=cosine embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 \
-    embed_grad_clip=5 photometric=heavy scale_max=1.5 lidar_aug=true rank_weight=4 rank_poses=8 rank_far=0.5 \
-    rank_margin=0.1 map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 \
-    init_from="$init" embed_steps=6000 embed_eval_every=1000 agent_iters=0 \
-    checkpoint_every=100 log_every=20 threads=1 loader_workers=0 \
-    >> "$RUN/stdout.log" 2>&1 &
-  echo $! > "$RUN/pid"
-  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
-}
-
-# Run v10: `start`'s run (v7's recipe, both stages from scratch) with half the samples mirrored
-# (mirror_p=0.5) and stage 2 starting from the shipped agent (v7's, map_z) instead of v3's; two
-# threads; a copy of every 500th stage-2 iteration in $RUN/snap/ (the shipping rule's
-# candidates). `save` at every stop.
-start_v10() {
-  mkdir -p "$RUN"
-  local agent=$RUN/../v7-float-import.pt
-  [ -f "$agent" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$RUN/../v7/judge/s2k15/float" --out "$agent")
-  resume_saved
-  cd "$ROOT/training"
-  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
-    action_frame=map_z norm=group embed_schedule=cosine embed_lr=1e-3 embed_warmup=200 embed_lr_min=2e-5 \
-    embed_grad_clip=5 photometric=heavy scale_max=1.5 lidar_aug=true rank_weight=2 rank_poses=8 rank_far=0.5 \
-    map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 mirror_p=0.5 \
-    embed_steps=30000 embed_eval_every=2000 \
-    init_agent_from="$agent" agent_iters=3000 agent_lr=3e-4 agent_lr_min=2e-5 agent_ema=0.995 \
-    bc_only_iters=300 expert_mix_start=0.3 expert_mix_iters=300 pool_size=48 update_epochs=2 near_start_p=0.3 \
-    eval_every=250 eval_frames=36 checkpoint_every=100 keep_agent_every=500 log_every=20 threads=2 loader_workers=1 \
-    >> "$RUN/stdout.log" 2>&1 &
-  echo $! > "$RUN/pid"
-  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+  local r=$DATA/real-split/train
+  launch "$(ls -d "$DATA"/v7/train/b* | paste -sd, -),$r,$r,$r,$r,$r,$r" "${V7_STAGE1[@]}" init_from="$(v7_float)" \
+    embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 rank_weight=4 rank_margin=0.1 embed_steps=6000 \
+    embed_eval_every=1000 agent_iters=0 checkpoint_every=100 log_every=20 threads=1 loader_workers=0
 }
 
 # Run v9m: stage 1 continued from the shipped float weights (as v9e) with v7's own data mix and
 # ranking term, half of the samples mirrored left to right (image and map together:
-# data.mirror_sample), learning rate 1e-4 -> 1e-5 over 4,000 steps, one thread; a copy of the
-# checkpoint at every 1,000 steps in $RUN/snap/ (the shipping rule's candidates).
+# data.mirror_sample), learning rate 1e-4 -> 1e-5 over 4,000 steps, one thread; a copy of every
+# 1,000th step in $RUN/snap/ (the shipping rule's candidates).
 start_v9m() {
-  mkdir -p "$RUN/snap"
-  local init=$RUN/../v7-float-import.pt
-  [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$RUN/../v7/judge/s2k15/float" --out "$init")
-  resume_saved
-  cd "$ROOT/training"
-  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
-    action_frame=map_z norm=group embed_schedule=cosine embed_lr=1e-4 embed_warmup=100 embed_lr_min=1e-5 \
-    embed_grad_clip=5 photometric=heavy scale_max=1.5 lidar_aug=true rank_weight=2 rank_poses=8 rank_far=0.5 \
-    map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 mirror_p=0.5 \
-    init_from="$init" embed_steps=4000 embed_eval_every=1000 agent_iters=0 \
-    checkpoint_every=100 log_every=20 threads=1 loader_workers=0 \
-    >> "$RUN/stdout.log" 2>&1 &
-  echo $! > "$RUN/pid"
-  # keep the checkpoint of every 1,000th step (the run itself keeps only the latest)
-  nohup bash -c 'while kill -0 '"$(cat "$RUN/pid")"' 2>/dev/null; do
-      s=$(grep -o "\"stage\": \"embed\", \"step\": [0-9]*" "'"$RUN"'/stdout.log" | tail -1 | grep -o "[0-9]*$")
-      for k in 1000 2000 3000 4000; do
-        [ -n "$s" ] && [ "$s" -ge "$k" ] && [ ! -f "'"$RUN"'/snap/$k.pt" ] && "'"$PY"'" -c "import torch,sys; c=torch.load(sys.argv[1], map_location=\"cpu\", weights_only=False); sys.exit(c[\"embed_step\"] < $k)" "'"$RUN"'/last.pt" && cp "'"$RUN"'/last.pt" "'"$RUN"'/snap/$k.pt"
-      done
-      sleep 20
-    done' > /dev/null 2>&1 &
-  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+  launch "$(train_roots)" "${V7_STAGE1[@]}" init_from="$(v7_float)" mirror_p=0.5 embed_lr=1e-4 \
+    embed_warmup=100 embed_lr_min=1e-5 embed_steps=4000 embed_eval_every=1000 keep_embed_every=1000 agent_iters=0 \
+    checkpoint_every=100 log_every=20 threads=1 loader_workers=0
 }
 
 # Run v9a: the agent (v7's, kept by v9e) trained on for 600 iterations on v9e's final encoders,
-# frozen; v7's stage-2 recipe at a tenth of its learning rate.
+# frozen; v7's stage-2 recipe at a tenth of its learning rate; a copy of iteration 300 in
+# $RUN/snap/.
 start_v9a() {
-  mkdir -p "$RUN"
-  local init=$RUN/../v9e/last.pt
-  resume_saved
-  cd "$ROOT/training"
-  nohup nice -n "$NICE" "$PY" -m cmr.train --data "$(train_roots)" --val-data "$DATA/v7/val-mix" --out "$RUN" --set \
-    action_frame=map_z norm=group photometric=heavy scale_max=1.5 lidar_aug=true \
-    map_window=5 map_scans=3 map_window_p=0 virtual_scan_p=0.25 \
-    init_from="$init" embed_steps=0 agent_iters=600 agent_lr=1e-4 agent_lr_min=1e-5 agent_ema=0.995 \
-    bc_only_iters=0 expert_mix_start=0.2 expert_mix_iters=300 pool_size=48 update_epochs=2 near_start_p=0.3 \
-    eval_every=300 eval_frames=36 checkpoint_every=50 log_every=20 threads=1 loader_workers=0 \
-    >> "$RUN/stdout.log" 2>&1 &
-  echo $! > "$RUN/pid"
-  echo "started pid $(cat "$RUN/pid"), log $RUN/stdout.log"
+  launch "$(train_roots)" "${V7_STAGE2[@]}" init_from="$RUN/../v9e/last.pt" embed_steps=0 agent_iters=600 \
+    agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 eval_every=300 checkpoint_every=50 \
+    keep_agent_every=300 threads=1 loader_workers=0
+}
+
+# Run v10: v7's recipe (both stages from scratch) with half the samples mirrored (mirror_p=0.5)
+# and stage 2 starting from the shipped agent (v7's, map_z) instead of v3's; a copy of every
+# 500th stage-2 iteration in $RUN/snap/ (the shipping rule's candidates). `save` at every stop.
+start_v10() {
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" mirror_p=0.5 init_agent_from="$(v7_float)" \
+    keep_agent_every=500
 }
 
 save() {
