@@ -17,6 +17,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v10 scripts/train-v7.sh start-v10
 #                                # run v10 (issue 29): v7's whole recipe (both stages, from
 #                                # scratch) with half the samples mirrored; across sessions
+#   RUN=~/.cache/cmr-agent/runs/v11 scripts/train-v7.sh start-v11
+#                                # run v11 (issue 29): v7's recipe with the image encoder on an
+#                                # ImageNet-pretrained EfficientNet-Lite0 backbone; across sessions
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -181,6 +184,15 @@ start_v10() {
     keep_agent_every=500
 }
 
+# Run v11: v7's recipe (both stages from scratch, stage 2 from the shipped agent like v10) with the
+# image encoder on an ImageNet-pretrained EfficientNet-Lite0 (models.LiteImageEncoder; its
+# backbone at a tenth of the learning rate, its BatchNorm statistics kept); a copy of every 500th
+# stage-2 iteration in $RUN/snap/. `save` at every stop.
+start_v11() {
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 \
+    backbone_lr_scale=0.1 init_agent_from="$(v7_float)" keep_agent_every=500
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -232,6 +244,7 @@ case "${1:-}" in
   start-v9a) start_v9a ;;
   start-v9m) start_v9m ;;
   start-v10) start_v10 ;;
+  start-v11) start_v11 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac

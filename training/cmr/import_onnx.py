@@ -17,7 +17,7 @@ statistics).
 
 The result is checked, not trusted: each imported PyTorch module must answer as the ONNX graph
 does in ONNX Runtime on the contract's example inputs (relative error < 1e-4), else ValueError.
-The architecture (`norm`, `image_edges`) is the one whose export has the model set's initializer
+The architecture (`norm`, `image_edges`, `image_backbone`) is the one whose export has the model set's initializer
 shapes; the action frame comes from the manifest (`actions.frame`, absent = camera_y).
 """
 
@@ -34,7 +34,7 @@ from onnx import numpy_helper
 
 from . import geometry as g
 from .export import graph_inputs, is_correlation_agent, onnx_bytes
-from .models import NORMS, build_all
+from .models import IMAGE_BACKBONES, NORMS, build_all
 
 RTOL = 1e-4
 
@@ -187,7 +187,9 @@ def import_models(model_dir: Path) -> tuple[dict[str, torch.nn.Module], dict]:
     correlation = doc.get("state_2d", {}).get("form", "features") == "correlation"
     # A quantised set (`cmr.quantize`) comes back with its weights dequantised.
     graphs = {name: dequantized(onnx.load(str(model_dir / spec["file"]))) for name, spec in doc["graphs"].items()}
-    for arch in (dict(norm=norm, image_edges=edges) for norm in NORMS for edges in (False, True)):
+    archs = [dict(norm=norm, image_edges=edges, image_backbone="scratch") for norm in NORMS for edges in (False, True)]
+    archs += [dict(norm=norm, image_edges=False, image_backbone=b) for norm in NORMS for b in IMAGE_BACKBONES if b != "scratch"]
+    for arch in archs:
         models = build_all(**arch)
         tables = _tables_if_matching(models, graphs, correlation)
         if tables is not None:

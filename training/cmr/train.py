@@ -34,7 +34,7 @@ from .data import find_sequences, list_frames, make_sample, split_frames
 from .episodes import embed, embed_many, gae, rollout
 from .export import atomic_write_bytes
 from .losses import circle_loss, weighted_bce
-from .models import STRIDE, arch_of, build_all
+from .models import STRIDE, arch_of, build_all, load_lite0
 
 
 @dataclass
@@ -69,6 +69,11 @@ class Config:
     # Optional, off: the image encoder also sees its input's luma gradient magnitude, computed in
     # the graph (the ONNX input stays [1, 3, 160, 512] RGB).
     image_edges: bool = False
+    # The image encoder (models.IMAGE_BACKBONES): "scratch" (every model up to v10) or
+    # "efficientnet_lite0" (ImageNet-pretrained backbone, loaded at the start of a run that is not
+    # initialised from a checkpoint), whose pretrained weights learn at backbone_lr_scale x the rate.
+    image_backbone: str = "scratch"
+    backbone_lr_scale: float = 0.1
     circle_points: int = 512
     circle_radius_cells: float = 1.0
     circle_scale: float = 10.0
@@ -203,7 +208,10 @@ class Run:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
         torch.manual_seed(cfg.seed)
-        self.models = {k: m.to(self.device) for k, m in build_all(cfg.norm, cfg.image_edges).items()}
+        self.models = {k: m.to(self.device) for k, m in build_all(cfg.norm, cfg.image_edges, cfg.image_backbone).items()}
+        if cfg.image_backbone != "scratch" and not cfg.init_from:
+            print(f"image backbone {cfg.image_backbone}: {load_lite0(self.models['image_encoder'])} pretrained tensors",
+                  flush=True)
         self.augment = AugmentOptions(photometric=cfg.photometric, scale_max=cfg.scale_max, lidar=cfg.lidar_aug,
                                       beams_min=cfg.beams_min, beams_max=cfg.beams_max,
                                       beam_dropout_p=cfg.beam_dropout_p, density_min=cfg.density_min,
@@ -214,8 +222,7 @@ class Run:
                                       virtual_scan_radius_m=cfg.virtual_scan_radius_m,
                                       near_start_p=cfg.near_start_p, near_start_yaw_deg=cfg.near_start_yaw_deg,
                                       near_start_shift_m=cfg.near_start_shift_m, mirror_p=cfg.mirror_p)
-        embed_params = [p for k in ("point_encoder", "image_encoder", "frustum_head") for p in self.models[k].parameters()]
-        self.opt_embed = torch.optim.Adam(embed_params, lr=cfg.embed_lr)
+        self.opt_embed = torch.optim.Adam(self.embed_param_groups(), lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))
         self.agent_ema = copy.deepcopy(self.models["agent"]).eval() if cfg.agent_ema > 0 else None
         self.embed_step = 0
@@ -279,7 +286,7 @@ class Run:
     def _init_from(self, path: Path) -> None:
         state = torch.load(path, map_location=self.device, weights_only=False)
         arch = arch_of(state.get("meta", {}).get("config", {}))
-        mine = dict(norm=self.cfg.norm, image_edges=self.cfg.image_edges)
+        mine = dict(norm=self.cfg.norm, image_edges=self.cfg.image_edges, image_backbone=self.cfg.image_backbone)
         if arch != mine:
             wanted = " ".join(f"{k}={v}" for k, v in arch.items())
             raise SystemExit(f"{path} was trained with {wanted}; pass --set {wanted}")
@@ -431,6 +438,18 @@ class Run:
             moved.append(g.apply_action(truth, camera_centre, yaw_deg, shift[0], shift[2]))
         return moved
 
+    def embed_param_groups(self) -> list[dict]:
+        """Stage 1's parameters; a pretrained backbone's in a group of their own whose learning rate
+        is `backbone_lr_scale` times the schedule's (its `lr_scale`, kept in the optimiser's state)."""
+        stage1 = [self.models[k] for k in ("point_encoder", "image_encoder", "frustum_head")]
+        backbone = self.models["image_encoder"].backbone_parameters() if self.cfg.image_backbone != "scratch" else []
+        ids = {id(p) for p in backbone}
+        rest = [p for m in stage1 for p in m.parameters() if id(p) not in ids]
+        groups = [dict(params=rest, lr_scale=1.0)]
+        if backbone:
+            groups.append(dict(params=backbone, lr_scale=self.cfg.backbone_lr_scale))
+        return groups
+
     def embed_train_mode(self) -> None:
         """The stage-1 modules in training mode; with `embed_frozen_bn`, their BatchNorm layers
         stay in evaluation mode."""
@@ -460,7 +479,7 @@ class Run:
                 progress = self.stage_progress(self.embed_step, cfg.embed_steps, started, cfg.embed_seconds)
             lr = self.embed_lr(self.embed_step, progress)
             for group in self.opt_embed.param_groups:
-                group["lr"] = lr
+                group["lr"] = lr * group.get("lr_scale", 1.0)
             self.opt_embed.zero_grad()
             loss.backward()
             if cfg.embed_grad_clip > 0:
@@ -627,7 +646,7 @@ class Run:
 
 
 def adopt_init_architecture(cfg: Config, given: set[str]) -> Config:
-    """With `init_from`, the architecture (`norm`, `image_edges`) is the checkpoint's unless given
+    """With `init_from`, the architecture (`norm`, `image_edges`, `image_backbone`) is the checkpoint's unless given
     explicitly: a fine-tune of `models/` (v3: BatchNorm, v7: GroupNorm) needs no flag for it. A
     value given that contradicts the checkpoint stops the run in `Run._init_from`."""
     if not cfg.init_from or not Path(cfg.init_from).exists():

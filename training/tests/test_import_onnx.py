@@ -13,9 +13,9 @@ from cmr.import_onnx import import_models
 from cmr.models import build_all
 
 
-def randomised(norm: str) -> dict:
+def randomised(norm: str, image_backbone: str = "scratch") -> dict:
     torch.manual_seed(1)
-    models = build_all(norm=norm)
+    models = build_all(norm=norm, image_backbone=image_backbone)
     with torch.no_grad():
         for m in models.values():
             for mod in m.modules():
@@ -38,12 +38,13 @@ def outputs(name: str, module: torch.nn.Module) -> list[torch.Tensor]:
     return list(out) if isinstance(out, tuple) else [out]
 
 
-@pytest.mark.parametrize("norm,correlation", [("batch", True), ("batch", False), ("group", True)])
-def test_round_trip_reproduces_the_modules(tmp_path, norm, correlation):
-    original = randomised(norm)
+@pytest.mark.parametrize("norm,correlation,backbone", [("batch", True, "scratch"), ("batch", False, "scratch"),
+                                                       ("group", True, "scratch"), ("group", True, "efficientnet_lite0")])
+def test_round_trip_reproduces_the_modules(tmp_path, norm, correlation, backbone):
+    original = randomised(norm, backbone)
     export_models(original, tmp_path, dict(data="test", seeds={}), action_frame="map_z", correlation=correlation)
     imported, meta = import_models(tmp_path)
-    assert meta["config"] == dict(norm=norm, image_edges=False, action_frame="map_z")
+    assert meta["config"] == dict(norm=norm, image_edges=False, image_backbone=backbone, action_frame="map_z")
     for name, module in original.items():
         for want, got in zip(outputs(name, module), outputs(name, imported[name])):
             rel = float((want - got).abs().max() / want.abs().max().clamp(min=1e-6))

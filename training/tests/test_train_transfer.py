@@ -165,3 +165,64 @@ def test_rank_loss_prefers_the_truth_and_reaches_both_encoders(tmp_path, tiny_da
     for name in ("point_encoder", "image_encoder"):
         grads = [q.grad for q in run.models[name].parameters() if q.grad is not None]
         assert grads and any(g.abs().sum() > 0 for g in grads), name
+
+
+def test_same_padding_is_tensorflows_and_keeps_shapes_static():
+    from cmr.models import SamePad
+    for k in (3, 5):
+        x, w = torch.randn(1, 4, 40, 128), torch.randn(4, 1, k, k)
+        before = (k - 2) // 2
+        want = torch.nn.functional.conv2d(torch.nn.functional.pad(x, (before, k - 2 - before) * 2), w, stride=2, groups=4)
+        got = torch.nn.functional.conv2d(SamePad(k, 2)(x), w, stride=2, groups=4)
+        assert torch.equal(got, want)
+
+
+def test_pretrained_backbone_loads_every_tensor_keeps_its_statistics_and_the_contract(tmp_path):
+    from cmr.flops import count
+    from cmr.models import LITE0_BLOCKS, LiteImageEncoder, lite0_weights_path, load_lite0
+    import onnx
+    enc = LiteImageEncoder(norm="group")
+    want = torch.load(lite0_weights_path(), map_location="cpu", weights_only=True)
+    copied = load_lite0(enc)
+    # stem conv + BN (1 + 5), each block's convs (2 or 3) and BNs (5 each); block 0 has no expansion
+    assert copied == 6 + sum((3 if e != 1 else 2) * 6 for e, *_ in LITE0_BLOCKS)
+    assert torch.equal(enc.blocks[10].project[1].weight, want["_blocks.10._project_conv.weight"])
+    mean = enc.stem[2].running_mean.clone()
+    enc.train()
+    assert all(not bn.training for bn in enc.blocks.modules() if isinstance(bn, torch.nn.BatchNorm2d))
+    assert enc.smooth.training
+    enc(torch.randn(2, 3, 160, 512)).sum().backward()
+    assert torch.equal(enc.stem[2].running_mean, mean)
+    enc.eval()
+    doc = export_models({"image_encoder": enc}, tmp_path, dict(data="test"))
+    graph = onnx.load(str(tmp_path / doc["graphs"]["image_encoder"]["file"]))
+    flops, unresolved = count(graph, {})
+    assert not unresolved and 0.8e9 < flops < 1.0e9
+    sess = ort.InferenceSession(str(tmp_path / doc["graphs"]["image_encoder"]["file"]), providers=["CPUExecutionProvider"])
+    image = example_inputs("image_encoder")[0]
+    with torch.no_grad():
+        assert np.abs(sess.run(None, {"image": image.numpy()})[0] - enc(image).numpy()).max() < 1e-4
+
+
+def test_a_pretrained_backbone_run_trains_its_backbone_slower_and_resumes(tmp_path, tiny_dataset):
+    from cmr.models import load_lite0
+    run = small_run(tmp_path, tiny_dataset, norm="group", image_backbone="efficientnet_lite0", backbone_lr_scale=0.1)
+    fresh = build_all("group", image_backbone="efficientnet_lite0")["image_encoder"]
+    load_lite0(fresh)
+    for k, v in fresh.state_dict().items():
+        if k.startswith(("stem", "blocks")):
+            assert torch.equal(v, run.models["image_encoder"].state_dict()[k])
+    groups = run.opt_embed.param_groups
+    assert [g_["lr_scale"] for g_ in groups] == [1.0, 0.1]
+    assert len(groups[1]["params"]) == len(run.models["image_encoder"].backbone_parameters())
+    base = ["--data", str(tiny_dataset), "--out", str(tmp_path / "cli"), "--set"] + [f"{k}={v}" for k, v in SMALL.items()]
+    base += ["norm=group", "image_backbone=efficientnet_lite0", "embed_lr=1e-3"]
+    main(base + ["embed_steps=1", "agent_iters=0"])
+    state = torch.load(tmp_path / "cli" / "last.pt", map_location="cpu", weights_only=False)
+    assert [g_["lr"] for g_ in state["opt_embed"]["param_groups"]] == pytest.approx([1e-3, 1e-4])
+    models, meta = load_models(tmp_path / "cli" / "last.pt")
+    assert meta["config"]["image_backbone"] == "efficientnet_lite0"
+    assert type(models["image_encoder"]).__name__ == "LiteImageEncoder"
+    main(base + ["embed_steps=2", "agent_iters=0"])  # resumes with the backbone's own group
+    log = [json.loads(line) for line in (tmp_path / "cli" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in log if r["stage"] == "embed"] == [1, 2]
