@@ -99,10 +99,14 @@ resume_saved() {
 }
 
 # The shipped model's float weights as a checkpoint (v7's iteration-1,500 export, the ONNX files
-# `models/` was quantised from), made once: where the runs after v7 start from.
+# `models/` was quantised from), made once: where the runs after v7 start from. A run that resumes
+# (its last.pt or committed checkpoint exists) already holds what it took from them, so the file is
+# only made for a fresh start; a machine that lost the float export cannot start one afresh.
 v7_float() {
   local init=$HOME/.cache/cmr-agent/runs/v7-float-import.pt
-  [ -f "$init" ] || (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$HOME/.cache/cmr-agent/runs/v7/judge/s2k15/float" --out "$init" >&2)
+  if [ ! -f "$init" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]; then
+    (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$HOME/.cache/cmr-agent/runs/v7/judge/s2k15/float" --out "$init" >&2)
+  fi
   echo "$init"
 }
 
