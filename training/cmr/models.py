@@ -231,6 +231,9 @@ class LiteImageEncoder(nn.Module):
         self.smooth = nn.Sequential(nn.Conv2d(64, 64, 3, 1, 1, groups=64, bias=False), norm_layer(norm, 64),
                                     nn.ReLU(inplace=True))
         self.out = nn.Conv2d(64, FEATURE_DIM, 1)
+        # PyTorch's CPU depthwise convolutions run about a third faster channels-last (forward and
+        # backward, 2 threads); the exported graph is the same, its values equal to ~1e-6.
+        self.to(memory_format=torch.channels_last)
 
     def backbone_parameters(self) -> list[nn.Parameter]:
         return [*self.stem.parameters(), *self.blocks.parameters()]
@@ -244,7 +247,7 @@ class LiteImageEncoder(nn.Module):
         return self
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
-        x = self.stem(image * self.in_scale + self.in_shift)
+        x = self.stem(image.contiguous(memory_format=torch.channels_last) * self.in_scale + self.in_shift)
         taps = []
         for i, block in enumerate(self.blocks):
             x = block(x)
