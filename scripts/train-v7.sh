@@ -31,7 +31,8 @@
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
 #                                # rtv-fleet, dev-protocol, dev-fleet, synth-test, v2-val, own-synth
 #                                # (default: the shipping rule's rtv-protocol synth-test); EVAL_FLAGS
-#                                # adds eval flags (e.g. "--keep-prior true") and TAG a suffix
+#                                # adds eval flags (e.g. "--keep-prior true") and TAG a suffix;
+#                                # QUANTIZE_GRAPHS=agent keeps the image encoder float (a new NAME)
 #
 # Resuming: `start` resumes from $RUN/last.pt; when that is missing (a fresh machine) or behind
 # the committed training/checkpoints/v7.pt (fewer steps), the committed file is copied there first, byte
@@ -213,7 +214,7 @@ judge() {
   if [ ! -f "$out/models/manifest.json" ]; then
     (cd "$ROOT/training" && nice -n "$NICE" "$PY" -m cmr.export --checkpoint "$ckpt" --out "$out/float" &&
       nice -n "$NICE" "$PY" -m cmr.quantize --models "$out/float" --calibration "$DATA/v7/train/b0" "$DATA/real-split/train" \
-        --out "$out/models") > "$out/export.log" 2>&1
+        ${QUANTIZE_GRAPHS:+--graphs "$QUANTIZE_GRAPHS"} --out "$out/models") > "$out/export.log" 2>&1
   fi
   local set data cases
   for set in "${sets[@]}"; do
