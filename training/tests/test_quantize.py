@@ -14,7 +14,7 @@ import pytest
 from cmr.data import find_sequences, list_frames
 from cmr.export import export_models
 from cmr.import_onnx import dequantized, import_models
-from cmr.quantize import QUANTIZED, calibration_inputs, quantize_set
+from cmr.quantize import QUANTIZED, RECIPES, calibration_inputs, quantize_set
 from test_import_onnx import randomised
 
 
@@ -39,6 +39,9 @@ def test_only_convolutions_are_quantised(sets):
         producer = _producers(model)
         from_dq = lambda node: [i for i in node.input if getattr(producer.get(i), "op_type", "") == "DequantizeLinear"]  # noqa: E731
         convs = [n for n in model.graph.node if n.op_type == "Conv"]
+        if RECIPES[name]["first_conv_float"]:  # the stem reads pixels in float
+            assert not from_dq(convs[0]), f"{name}: {convs[0].name} is quantised"
+            convs = convs[1:]
         assert convs and all(len(from_dq(n)) >= 2 for n in convs), name  # activation and weight
         for node in model.graph.node:
             if node.op_type in ("MatMul", "Gemm"):
@@ -55,8 +58,9 @@ def test_quantised_graphs_answer_as_the_float_ones(sets):
         for feed in feeds[name][:2]:
             want, got = want_session.run(None, feed)[0], got_session.run(None, feed)[0]
             assert np.isfinite(got).all()
-            rel = np.abs(want - got).max() / np.abs(want).max()
-            assert 0 < rel < 0.05, f"{name}: relative error {rel:.3g}"
+            # RMS, not the largest error: a percentile calibration clips the rare extremes on purpose
+            rel = np.sqrt(np.mean((want - got) ** 2) / np.mean(want ** 2))
+            assert 0 < rel < 0.05, f"{name}: relative RMS error {rel:.3g}"
 
 
 def test_a_row_does_not_depend_on_its_batch(sets):
@@ -82,6 +86,7 @@ def test_the_set_names_its_files_and_keeps_the_other_graphs(sets):
         if name not in QUANTIZED:
             assert data == (float_dir / spec["file"]).read_bytes()
     assert doc["provenance"]["quantized"]["graphs"] == list(QUANTIZED)
+    assert "Percentile 99.9" in doc["provenance"]["quantized"]["recipes"]["image_encoder"]
     with pytest.raises(ValueError, match="--out must differ"):
         quantize_set(int8_dir, int8_dir, [])
     with pytest.raises(ValueError, match="quantised already"):
