@@ -12,8 +12,8 @@ each batch by its own range). Each graph has its recipe (`RECIPES`): the agent's
 calibration's extremes (MinMax); the image encoder's cut the outer 0.1 % of each activation's
 histogram (Percentile 99.9), and its first convolution stays float. On the EfficientNet-Lite0
 encoder of run v11 this raised the int8 features' cosine to the float ones on 22 real frames from
-0.984 to 0.9985 at the same speed (`training/README.md`, "Quantised graphs"). The frustum head (0.3 ms) and the point encoder stay float: most of
-the encoder's time is its BEV scatter and gathers, and its head MatMuls in int8 saved 6 %
+0.984 to 0.9985 at the same speed. The frustum head (0.3 ms) and the point encoder stay float:
+most of the encoder's time is its BEV scatter and gathers, and its head MatMuls in int8 saved 6 %
 (measurements: `training/README.md`, "Quantised graphs").
 
 Writes a complete model set in `--out` (the other graphs copied, the manifest's sha256 updated and
