@@ -58,9 +58,11 @@ def test_quantised_graphs_answer_as_the_float_ones(sets):
         for feed in feeds[name][:2]:
             want, got = want_session.run(None, feed)[0], got_session.run(None, feed)[0]
             assert np.isfinite(got).all()
-            # RMS, not the largest error: a percentile calibration clips the rare extremes on purpose
-            rel = np.sqrt(np.mean((want - got) ** 2) / np.mean(want ** 2))
-            assert 0 < rel < 0.05, f"{name}: relative RMS error {rel:.3g}"
+            if RECIPES[name]["method"] == "MinMax":  # every value inside the calibrated ranges
+                rel = np.abs(want - got).max() / np.abs(want).max()
+            else:  # RMS: a percentile calibration clips the rare extremes on purpose
+                rel = np.sqrt(np.mean((want - got) ** 2) / np.mean(want ** 2))
+            assert 0 < rel < 0.05, f"{name}: relative error {rel:.3g}"
 
 
 def test_a_row_does_not_depend_on_its_batch(sets):
