@@ -20,6 +20,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v11 scripts/train-v7.sh start-v11
 #                                # run v11 (issue 29): v7's recipe with the image encoder on an
 #                                # ImageNet-pretrained EfficientNet-Lite0 backbone; across sessions
+#   RUN=~/.cache/cmr-agent/runs/v12 scripts/train-v7.sh start-v12
+#                                # run v12 (issue 29): the shipped v11 trained on with half the
+#                                # samples mirrored, both stages; across sessions
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -198,6 +201,23 @@ start_v11() {
     backbone_lr_scale=0.1 init_agent_from="$(v7_float)" keep_agent_every=500
 }
 
+# Run v12: the shipped v11 (stage-2 iteration 2,000; its checkpoint, kept in git at commit e0ba91f
+# and copied once to runs/v11-shipped.pt) trained on with half the samples mirrored (v10's
+# augmentation, which v11 did not have): 8,000 more stage-1 steps at a fifth of v7's learning
+# rate, then 1,500 stage-2 iterations from v11's agent at a third of its rate; a copy of every
+# 2,000th stage-1 step and every 500th stage-2 iteration in $RUN/snap/. `save` at every stop.
+start_v12() {
+  local init=$HOME/.cache/cmr-agent/runs/v11-shipped.pt
+  if [ ! -f "$init" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]; then
+    mkdir -p "$(dirname "$init")"
+    git -C "$ROOT" show e0ba91f:training/checkpoints/v11.pt > "$init.tmp" && mv "$init.tmp" "$init"
+  fi
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 \
+    backbone_lr_scale=0.1 init_from="$init" mirror_p=0.5 embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 \
+    embed_steps=8000 keep_embed_every=2000 agent_iters=1500 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 \
+    expert_mix_start=0.2 keep_agent_every=500
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -250,6 +270,7 @@ case "${1:-}" in
   start-v9m) start_v9m ;;
   start-v10) start_v10 ;;
   start-v11) start_v11 ;;
+  start-v12) start_v12 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
