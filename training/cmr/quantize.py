@@ -18,7 +18,10 @@ most of the encoder's time is its BEV scatter and gathers, and its head MatMuls 
 
 Writes a complete model set in `--out` (the other graphs copied, the manifest's sha256 updated and
 the quantisation noted in its provenance); it never writes into `--models`. Judge the result with
-`cmr-agent eval --models OUT` on synthetic and real frames before shipping it.
+`cmr-agent eval --models OUT` on synthetic and real frames before shipping it. How close its image
+features stay to the float set's, on frames of your choice (the figure quoted above):
+
+    python -m cmr.quantize --models FLOAT --check OUT --data ~/.cache/cmr-agent/data/real-split/val ../../shared/real-dev --frames 22
 """
 
 from __future__ import annotations
@@ -190,26 +193,68 @@ def quantize_set(model_dir: Path, out_dir: Path, frames: list, graphs: tuple[str
     return doc
 
 
+def feature_agreement(float_dir: Path, quantized_dir: Path, frames: list) -> dict:
+    """How closely `quantized_dir`'s image encoder reproduces `float_dir`'s on `frames`: per feature
+    cell (64 channels; [1, 64, 40, 128] per frame) the cosine of the two feature vectors, pooled over
+    every cell of every frame. Returns {frames, cells, mean, p01 (1st percentile), min}; both sets
+    must share the image contract (ValueError otherwise). ONNX Runtime on the CPU, one thread."""
+    import onnxruntime as ort
+
+    docs = [json.loads((Path(d) / "manifest.json").read_text()) for d in (float_dir, quantized_dir)]
+    if docs[0]["image"] != docs[1]["image"]:
+        raise ValueError(f"{float_dir} and {quantized_dir} differ in their image contract")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 1
+    sessions = [ort.InferenceSession(str(Path(d) / doc["graphs"]["image_encoder"]["file"]), options,
+                                     providers=["CPUExecutionProvider"]) for d, doc in zip((float_dir, quantized_dir), docs)]
+    cosines = []
+    for i, frame in enumerate(frames):
+        image = make_sample(frame, np.random.default_rng([0, i]), train=False).image[None].astype(np.float32)
+        a, b = (s.run(None, {s.get_inputs()[0].name: image})[0][0] for s in sessions)  # [C, H, W]
+        dot = (a * b).sum(0)
+        cosines.append((dot / np.maximum(np.linalg.norm(a, axis=0) * np.linalg.norm(b, axis=0), 1e-12)).ravel())
+    c = np.concatenate(cosines) if cosines else np.zeros(0)
+    if c.size == 0:
+        raise ValueError("no frames to check")
+    return dict(frames=len(frames), cells=int(c.size), mean=float(c.mean()), p01=float(np.percentile(c, 1)),
+                min=float(c.min()))
+
+
+def _frames(roots: list[Path], count: int) -> list:
+    """`count` frames spread evenly over the KITTI-layout `roots` (ValueError when there are none)."""
+    frames = [f for root in roots for f in list_frames(find_sequences(root))]
+    if not frames:
+        raise ValueError(f"no frames under {' '.join(map(str, roots))}")
+    pick = np.linspace(0, len(frames) - 1, min(count, len(frames))).round().astype(int)
+    return [frames[i] for i in pick]
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--models", type=Path, required=True, help="float model set (manifest.json + graphs)")
-    ap.add_argument("--calibration", type=Path, nargs="+", required=True,
+    ap.add_argument("--calibration", type=Path, nargs="+",
                     help="KITTI-layout roots of synthetic frames (not the frames you evaluate on)")
-    ap.add_argument("--out", type=Path, required=True, help="folder for the quantised model set")
-    ap.add_argument("--frames", type=int, default=24, help="calibration frames, spread evenly over the roots")
+    ap.add_argument("--out", type=Path, help="folder for the quantised model set")
+    ap.add_argument("--frames", type=int, default=24, help="frames, spread evenly over the roots")
     ap.add_argument("--max-rows", type=int, default=512, help="agent observations kept for calibration")
     ap.add_argument("--graphs", default=",".join(QUANTIZED), help="comma-separated graphs to quantise")
+    ap.add_argument("--check", type=Path, metavar="QUANTIZED",
+                    help="quantise nothing: print how closely QUANTIZED's image features follow --models' on --data")
+    ap.add_argument("--data", type=Path, nargs="+", help="with --check: KITTI-layout roots of the frames")
     args = ap.parse_args(argv)
-    graphs = tuple(args.graphs.split(","))
-    if not set(graphs) <= set(QUANTIZED):
-        raise SystemExit(f"--graphs: choose among {','.join(QUANTIZED)}")
     try:
+        if args.check:
+            if not args.data:
+                raise SystemExit("cmr.quantize: --check needs --data")
+            print(json.dumps(feature_agreement(args.models, args.check, _frames(args.data, args.frames)), indent=2))
+            return
+        if not (args.calibration and args.out):
+            raise SystemExit("cmr.quantize: --calibration and --out are required (or --check)")
+        graphs = tuple(args.graphs.split(","))
+        if not set(graphs) <= set(QUANTIZED):
+            raise SystemExit(f"--graphs: choose among {','.join(QUANTIZED)}")
         check_float_set(args.models, graphs)
-        frames = [f for root in args.calibration for f in list_frames(find_sequences(root))]
-        if not frames:
-            raise ValueError("no frames under --calibration")
-        pick = np.linspace(0, len(frames) - 1, min(args.frames, len(frames))).round().astype(int)
-        doc = quantize_set(args.models, args.out, [frames[i] for i in pick], graphs, max_rows=args.max_rows)
+        doc = quantize_set(args.models, args.out, _frames(args.calibration, args.frames), graphs, max_rows=args.max_rows)
     except (ValueError, OSError) as e:  # DataError is a ValueError
         raise SystemExit(f"cmr.quantize: {e}") from None
     print(json.dumps(doc["provenance"]["quantized"], indent=2))

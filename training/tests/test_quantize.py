@@ -14,7 +14,7 @@ import pytest
 from cmr.data import find_sequences, list_frames
 from cmr.export import export_models
 from cmr.import_onnx import dequantized, import_models
-from cmr.quantize import QUANTIZED, RECIPES, calibration_inputs, quantize_set
+from cmr.quantize import QUANTIZED, RECIPES, calibration_inputs, feature_agreement, quantize_set
 from test_import_onnx import randomised
 
 
@@ -107,3 +107,15 @@ def test_a_quantised_set_imports_with_its_dequantised_weights(sets):
     step = want.abs().flatten(1).max(dim=1).values / 127.0  # per output channel
     assert not got.equal(want)
     assert ((got - want).abs().flatten(1).max(dim=1).values <= step * 0.5 + 1e-7).all()
+
+
+def test_feature_agreement_measures_the_int8_encoder_against_the_float_one(sets):
+    float_dir, int8_dir, frames = sets
+    same = feature_agreement(float_dir, float_dir, frames)
+    assert same["frames"] == 2 and same["cells"] == 2 * 40 * 128
+    assert same["min"] > 0.99999
+    int8 = feature_agreement(float_dir, int8_dir, frames)
+    assert 0.9 < int8["mean"] < 1.0 - 1e-6  # quantised: close, but not the float graph
+    assert int8["min"] <= int8["p01"] <= int8["mean"]
+    with pytest.raises(ValueError, match="no frames"):
+        feature_agreement(float_dir, int8_dir, [])
