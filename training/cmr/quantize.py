@@ -37,6 +37,7 @@ import numpy as np
 import onnx
 import torch
 
+from .bench import session
 from .data import find_sequences, list_frames, make_sample
 from .episodes import embed, multi_start
 from .export import atomic_write_bytes, git_commit
@@ -198,24 +199,20 @@ def feature_agreement(float_dir: Path, quantized_dir: Path, frames: list) -> dic
     cell (64 channels; [1, 64, 40, 128] per frame) the cosine of the two feature vectors, pooled over
     every cell of every frame. Returns {frames, cells, mean, p01 (1st percentile), min}; both sets
     must share the image contract (ValueError otherwise). ONNX Runtime on the CPU, one thread."""
-    import onnxruntime as ort
-
+    if not frames:
+        raise ValueError("no frames to check")
     docs = [json.loads((Path(d) / "manifest.json").read_text()) for d in (float_dir, quantized_dir)]
     if docs[0]["image"] != docs[1]["image"]:
         raise ValueError(f"{float_dir} and {quantized_dir} differ in their image contract")
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = 1
-    sessions = [ort.InferenceSession(str(Path(d) / doc["graphs"]["image_encoder"]["file"]), options,
-                                     providers=["CPUExecutionProvider"]) for d, doc in zip((float_dir, quantized_dir), docs)]
+    sessions = [session(Path(d) / doc["graphs"]["image_encoder"]["file"], threads=1)
+                for d, doc in zip((float_dir, quantized_dir), docs)]
     cosines = []
     for i, frame in enumerate(frames):
         image = make_sample(frame, np.random.default_rng([0, i]), train=False).image[None].astype(np.float32)
         a, b = (s.run(None, {s.get_inputs()[0].name: image})[0][0] for s in sessions)  # [C, H, W]
         dot = (a * b).sum(0)
         cosines.append((dot / np.maximum(np.linalg.norm(a, axis=0) * np.linalg.norm(b, axis=0), 1e-12)).ravel())
-    c = np.concatenate(cosines) if cosines else np.zeros(0)
-    if c.size == 0:
-        raise ValueError("no frames to check")
+    c = np.concatenate(cosines)
     return dict(frames=len(frames), cells=int(c.size), mean=float(c.mean()), p01=float(np.percentile(c, 1)),
                 min=float(c.min()))
 
