@@ -23,6 +23,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v12 scripts/train-v7.sh start-v12
 #                                # run v12 (issue 29): the shipped v11 trained on with half the
 #                                # samples mirrored, both stages; across sessions
+#   RUN=~/.cache/cmr-agent/runs/v13 scripts/train-v7.sh start-v13
+#                                # run v13 (issue 29): v11's encoders trained on with hard
+#                                # negatives in the ranking term, stage 1 only (v11's agent kept)
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -218,6 +221,22 @@ start_v12() {
     expert_mix_start=0.2 keep_agent_every=500
 }
 
+# Run v13: the shipped v11's encoders trained on with hard negatives in the ranking term (of 32
+# protocol-like poses per sample, the 2 that score best join its 8 perturbations: the wrong poses
+# the search answers with), 6,000 stage-1 steps at a fifth of v7's learning rate; no stage 2: the
+# checkpoints carry v11's agent (run v12 measured its stage-1 encoders with v11's agent at 134 of
+# 192, level, and a continued stage 2 below it). A copy of every 1,500th step in $RUN/snap/.
+start_v13() {
+  local init=$HOME/.cache/cmr-agent/runs/v11-shipped.pt
+  if [ ! -f "$init" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]; then
+    mkdir -p "$(dirname "$init")"
+    git -C "$ROOT" show e0ba91f:training/checkpoints/v11.pt > "$init.tmp" && mv "$init.tmp" "$init"
+  fi
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 \
+    backbone_lr_scale=0.1 init_from="$init" embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 \
+    embed_steps=6000 keep_embed_every=1500 embed_eval_every=1500 rank_hard_pool=32 rank_hard=2 agent_iters=0
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -271,6 +290,7 @@ case "${1:-}" in
   start-v10) start_v10 ;;
   start-v11) start_v11 ;;
   start-v12) start_v12 ;;
+  start-v13) start_v13 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac

@@ -91,6 +91,12 @@ class Config:
     # direction (map_z frame) -- the real-frame failures are flipped headings and metres backwards.
     rank_far: float = 0.0
     rank_far_shift_m: float = 6.0
+    # Hard negatives, off: `rank_hard_pool` poses drawn per sample as the paper's protocol draws its
+    # starts (any heading about the camera centre, a ground shift within +-10 m; registered ones
+    # redrawn), scored without gradient, and the `rank_hard` best-scoring of them added to the
+    # perturbed poses -- the wrong poses the search would answer with (the street seen backwards).
+    rank_hard_pool: int = 0
+    rank_hard: int = 0
     # stage 2: agent
     agent_iters: int = 2000
     agent_envs: int = 8
@@ -410,11 +416,15 @@ class Run:
         up to `rank_far_shift_m` in any direction)."""
         from .state import alignment
         cfg, dev = self.cfg, self.device
-        b, p = len(samples), cfg.rank_poses
-        moved = [pose for s in samples for pose in self.rank_perturbations(s.truth, rng)]
-        truth = torch.as_tensor(np.stack([s.truth for s in samples]), dtype=torch.float32, device=dev)
-        moved = torch.as_tensor(np.stack(moved), dtype=torch.float32, device=dev)
+        b = len(samples)
+        moved = [[*self.rank_perturbations(s.truth, rng)] for s in samples]
         k = torch.as_tensor(np.stack([s.intrinsics for s in samples]), dtype=torch.float32, device=dev)
+        if cfg.rank_hard > 0:
+            for i, s in enumerate(samples):
+                moved[i] += self.hard_negatives(s.truth, points[i], k[i], pf[i], imf[i], rng)
+        p = len(moved[0])
+        truth = torch.as_tensor(np.stack([s.truth for s in samples]), dtype=torch.float32, device=dev)
+        moved = torch.as_tensor(np.stack([m for ms in moved for m in ms]), dtype=torch.float32, device=dev)
         rep = lambda t: t.repeat_interleave(p, dim=0)  # noqa: E731
         good = alignment(truth, points, k, pf, imf)  # [B]
         bad = alignment(moved, rep(points), rep(k), rep(pf), rep(imf)).view(b, p)
@@ -437,6 +447,32 @@ class Run:
             shift[rng.choice([0, 2])] = rng.uniform(0.3, 3.0) * rng.choice([-1.0, 1.0])
             moved.append(g.apply_action(truth, camera_centre, yaw_deg, shift[0], shift[2]))
         return moved
+
+    def protocol_poses(self, truth: np.ndarray, count: int, rng) -> list[np.ndarray]:
+        """`count` camera_from_map poses [4, 4] drawn like the protocol's starts around `truth`: a
+        turn of -180..180 deg about map z through the camera centre and a ground shift of -10..10 m
+        on each axis, none of them registered (protocol A: within 10 deg / 5 m; such draws are
+        drawn again)."""
+        centre = g.invert(truth)[:3, 3]
+        poses = []
+        while len(poses) < count:
+            tx, tz = rng.uniform(-10.0, 10.0, 2)
+            pose = g.apply_action(truth, centre, rng.uniform(-180.0, 180.0), tx, tz, frame=g.MAP_Z)
+            if not g.registered(pose, truth):
+                poses.append(pose)
+        return poses
+
+    @torch.no_grad()
+    def hard_negatives(self, truth, points, k, pf, imf, rng) -> list[np.ndarray]:
+        """The `rank_hard` best-scoring (`state.alignment`, no gradient) of `rank_hard_pool`
+        `protocol_poses` of one sample (points [N, 3], k [4], pf [N, C], imf [C, H, W])."""
+        from .state import alignment
+        cfg, n = self.cfg, self.cfg.rank_hard_pool
+        pool = self.protocol_poses(truth, n, rng)
+        poses = torch.as_tensor(np.stack(pool), dtype=torch.float32, device=self.device)
+        score = alignment(poses, points.expand(n, *points.shape), k.expand(n, *k.shape),
+                          pf.expand(n, *pf.shape), imf.expand(n, *imf.shape))
+        return [pool[j] for j in torch.topk(score, min(cfg.rank_hard, n)).indices.tolist()]
 
     def embed_param_groups(self) -> list[dict]:
         """Stage 1's parameters; a pretrained backbone's in a group of their own whose learning rate

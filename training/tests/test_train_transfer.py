@@ -167,6 +167,35 @@ def test_rank_loss_prefers_the_truth_and_reaches_both_encoders(tmp_path, tiny_da
         assert grads and any(g.abs().sum() > 0 for g in grads), name
 
 
+def test_hard_negatives_are_the_best_scoring_wrong_protocol_poses(tmp_path, tiny_dataset):
+    """`rank_hard`: of `rank_hard_pool` protocol-like poses (none registered), the best-scoring by
+    `state.alignment` join the ranking term's perturbed poses, which still trains both encoders."""
+    from cmr.state import alignment
+    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=2, rank_hard_pool=12, rank_hard=3)
+    sample = run.samples(1, 0, 1, 2048)[0]
+    pool = run.protocol_poses(sample.truth, 200, np.random.default_rng(1))
+    assert len(pool) == 200 and not any(g.registered(p, sample.truth) for p in pool)
+    centre = g.invert(sample.truth)[:3, 3]
+    assert max(np.linalg.norm(g.invert(p)[:3, 3] - centre) for p in pool) <= 10.0 * math.sqrt(2) + 1e-6
+    torch.manual_seed(0)
+    points = torch.as_tensor(sample.points[:, :3], dtype=torch.float32)
+    pf = torch.nn.functional.normalize(torch.randn(len(points), 64), dim=1)
+    imf = torch.nn.functional.normalize(torch.randn(64, 40, 128), dim=0)
+    k = torch.as_tensor(sample.intrinsics, dtype=torch.float32)
+    hard = run.hard_negatives(sample.truth, points, k, pf, imf, np.random.default_rng(2))
+    drawn = run.protocol_poses(sample.truth, 12, np.random.default_rng(2))
+    score = lambda poses: alignment(torch.as_tensor(np.stack(poses), dtype=torch.float32),  # noqa: E731
+                                    points.expand(len(poses), -1, -1), k.expand(len(poses), -1),
+                                    pf.expand(len(poses), -1, -1), imf.expand(len(poses), -1, -1, -1))
+    want = sorted(score(drawn).tolist(), reverse=True)[:3]
+    assert np.allclose(score(hard).tolist(), want)
+    loss, stats = run.embed_losses(run.samples(1, 0, 2, 2048))
+    assert stats["rank"] > 0
+    loss.backward()
+    for name in ("point_encoder", "image_encoder"):
+        assert any(q.grad is not None and q.grad.abs().sum() > 0 for q in run.models[name].parameters()), name
+
+
 def test_same_padding_is_tensorflows_and_keeps_shapes_static():
     from cmr.models import SamePad
     for k in (3, 5):
