@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use anyhow::Result;
 
-use crate::geometry::{Intrinsics, Pose};
+use crate::geometry::{Intrinsics, Pose, PoseError};
 use crate::maps::PreparedMap;
 use crate::model::{Backend, Signals, Verdict};
 
@@ -155,6 +155,8 @@ impl Localization {
             ((alignment - runner_up) as f64, agreeing as f64 / others.len() as f64)
         };
         let start_mean = first.iter().map(|h| h.start_alignment as f64).sum::<f64>() / first.len().max(1) as f64;
+        let visited = self.hypotheses.iter().flat_map(|h| std::iter::once(h.start).chain(h.steps.iter().map(|s| s.camera_from_map)));
+        let (near, all) = visited.fold((0usize, 0usize), |(near, all), p| (near + PoseError::between(&p, &answer).is_registered() as usize, all + 1));
         let converged = self.converged();
         Signals {
             alignment: alignment as f64,
@@ -168,6 +170,7 @@ impl Localization {
             in_view: self.confidence.in_view as f64,
             log2_starts: (first.len().max(1) as f64).log2(),
             bounded: if self.prior_bound.is_some() { 1.0 } else { 0.0 },
+            visit_share: near as f64 / all.max(1) as f64,
         }
     }
 
@@ -255,6 +258,9 @@ mod tests {
         assert!((s.agreement - 1.0 / 3.0).abs() < 1e-12, "{}", s.agreement);
         assert_eq!((s.frustum_iou, s.policy_certainty, s.in_view), (0.25, 0.5, 0.125));
         assert_eq!((s.converged, s.steps_fraction, s.log2_starts), (1.0, 0.0, 2.0));
+        // Four poses visited (the starts), two within 10° / 5 m of the answer: itself and the one
+        // half a duplicate radius away.
+        assert_eq!(s.visit_share, 0.5);
         let single = localization(vec![hypothesis(0.0, 0.5)], 0).signals();
         assert_eq!((single.alignment_margin, single.agreement, single.log2_starts), (0.0, 0.0, 0.0));
     }
@@ -285,5 +291,7 @@ mod tests {
         assert!((s.agreement - 1.0 / 3.0).abs() < 1e-12, "{}", s.agreement);
         assert_eq!((s.converged, s.steps_fraction), (0.0, 0.0));
         assert!((s.alignment_gain - (0.875 - (0.875 + 0.75 + 0.5) / 3.0)).abs() < 1e-12);
+        // Visited: the prior (the first start), its step far away, the near start, the far one.
+        assert_eq!(s.visit_share, 0.5);
     }
 }

@@ -23,7 +23,7 @@ use utoipa::ToSchema;
 
 /// The signals a calibrator may read, by name (the manifest's `calibrator.features`, Python's
 /// `cmr.calibrate.SIGNALS`). What each one means is on the fields of [`Signals`].
-pub const SIGNAL_NAMES: [&str; 11] = [
+pub const SIGNAL_NAMES: [&str; 12] = [
     "alignment",
     "alignment_gain",
     "alignment_margin",
@@ -35,6 +35,7 @@ pub const SIGNAL_NAMES: [&str; 11] = [
     "in_view",
     "log2_starts",
     "bounded",
+    "visit_share",
 ];
 
 /// The only calibrator kind this build applies.
@@ -75,6 +76,13 @@ pub struct Signals {
     /// visited pose inside it answers), else 0. Absent in records written before it: 0.
     #[serde(default)]
     pub bounded: f64,
+    /// Share of every pose the search visited (each hypothesis's start and steps, both rounds)
+    /// that is registered relative to the answer (`geometry::PoseError::is_registered`: within 10°
+    /// and 5 m of it), in [0, 1]: where the trajectories gather. Absent in records written before
+    /// it (model sets up to v11's first calibrator): 0, and `cmr.calibrate` refuses to fit on such
+    /// records.
+    #[serde(default)]
+    pub visit_share: f64,
 }
 
 impl Signals {
@@ -92,6 +100,7 @@ impl Signals {
             "in_view" => self.in_view,
             "log2_starts" => self.log2_starts,
             "bounded" => self.bounded,
+            "visit_share" => self.visit_share,
             _ => return None,
         })
     }
@@ -240,6 +249,7 @@ mod tests {
             in_view: 0.2,
             log2_starts: 2.0,
             bounded: 0.0,
+            visit_share: 0.25,
         }
     }
 

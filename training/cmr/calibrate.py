@@ -46,7 +46,7 @@ from .files import atomic_write_bytes, git_commit
 
 # model::calibrator::SIGNAL_NAMES, in its order.
 SIGNALS = ("alignment", "alignment_gain", "alignment_margin", "agreement", "frustum_iou", "policy_certainty", "converged",
-           "steps_fraction", "in_view", "log2_starts", "bounded")
+           "steps_fraction", "in_view", "log2_starts", "bounded", "visit_share")
 # Signals that records written before them lack, with the value they stood for then (Rust's
 # `#[serde(default)]` on the same fields): no bound was stated before `bounded` existed.
 SIGNAL_DEFAULTS = {"bounded": 0.0}
@@ -67,7 +67,8 @@ def load_cases(paths: list[Path], drives: dict[str, str] | None = None) -> dict:
     Returns {"x": [n, len(SIGNALS)] float64, "y": [n] bool, "file": [n] int (index into paths),
     "group": [n] str (data folder + drive or sequence), "method": [n] str}.
     Raises ValueError when a file has no agent record with signals (an eval older than the
-    calibrator, or a run with --reference-only)."""
+    calibrator, or a run with --reference-only) or records lacking one of SIGNALS that has no
+    historical default (an eval older than that signal)."""
     rows = {"x": [], "y": [], "file": [], "group": [], "method": []}
     for i, path in enumerate(paths):
         records = json.loads(Path(path).read_text())
@@ -80,6 +81,9 @@ def load_cases(paths: list[Path], drives: dict[str, str] | None = None) -> dict:
         by_drive = drives is not None and sequences <= set(drives)
         for r in kept:
             signals = {**SIGNAL_DEFAULTS, **r["notes"]["signals"]}
+            missing = [name for name in SIGNALS if name not in signals]
+            if missing:
+                raise ValueError(f"{path}: records without the signals {missing} (an eval older than them: run it again)")
             rows["x"].append([float(signals[name]) for name in SIGNALS])
             rows["y"].append(registered(r["errors"][-1]))
             rows["file"].append(i)

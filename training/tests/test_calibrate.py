@@ -114,3 +114,19 @@ def test_folds_keep_groups_whole():
     for name in set(groups):
         assert len(set(folds[groups == name])) == 1
     assert set(folds) == {0, 1, 2}
+
+
+def test_records_older_than_a_signal_are_refused_not_filled_in(tmp_path):
+    """A cases.json written before `visit_share` existed cannot be fitted on (0 would be a guess);
+    one written before `bounded` can (no bound could be stated then)."""
+    path = _cases_json(tmp_path / "a", np.random.default_rng(6), 10, "synth")
+    records = json.loads(path.read_text())
+    for r in records:
+        r.get("notes", {}).get("signals", {}).pop("bounded", None)
+    path.write_text(json.dumps(records))
+    assert c.load_cases([path])["x"][:, c.SIGNALS.index("bounded")].tolist() == [0.0] * 20
+    for r in records:
+        r.get("notes", {}).get("signals", {}).pop("visit_share", None)
+    path.write_text(json.dumps(records))
+    with pytest.raises(ValueError, match="visit_share"):
+        c.load_cases([path])
