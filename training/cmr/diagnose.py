@@ -52,9 +52,7 @@ def global_poses(truth: np.ndarray, rng: np.random.Generator, count: int) -> tup
     sweep = [g.apply_action(truth, centre, yaw, 0.0, 0.0, frame=g.MAP_Z) for yaw in SWEEP_DEG]
     drawn, far = [], []
     for _ in range(count):
-        yaw = rng.uniform(-180.0, 180.0)
-        tx, tz = rng.uniform(-10.0, 10.0, 2)
-        pose = g.apply_action(truth, centre, yaw, tx, tz, frame=g.MAP_Z)
+        pose = g.protocol_pose(truth, rng)
         drawn.append(pose)
         far.append(not g.registered(pose, truth))
     return sweep + drawn, np.asarray(far)

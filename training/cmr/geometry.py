@@ -269,6 +269,16 @@ def pose_error(estimate: np.ndarray, truth: np.ndarray) -> dict:
                 rre_geodesic_deg=math.degrees(math.acos(cos)))
 
 
+def protocol_pose(truth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One camera_from_map pose [4, 4] drawn around `truth` like the paper protocol's starts, as
+    `cmr.diagnose` and the ranking term's hard negatives draw them: a turn uniform in -180..180 deg
+    about map z through the camera centre, then a ground shift uniform in -10..10 m on each axis of
+    the map_z action frame (`apply_action`)."""
+    yaw = rng.uniform(-180.0, 180.0)
+    tx, tz = rng.uniform(-10.0, 10.0, 2)
+    return apply_action(truth, invert(truth)[:3, 3], yaw, tx, tz, frame=MAP_Z)
+
+
 def registered(estimate: np.ndarray, truth: np.ndarray) -> bool:
     """Protocol A's success test for one camera_from_map pose: RTE < 5 m and RRE (Euler sum) < 10 deg."""
     e = pose_error(estimate, truth)

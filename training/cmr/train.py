@@ -413,7 +413,8 @@ class Run:
         embeddings). A perturbation shifts the camera 0.3-3 m along its own x or z axis and, half
         of the time, turns it about its own y axis by 2-30 deg either way; a `rank_far` share of
         them is wide instead (30-180 deg about map z through the camera centre, a ground shift of
-        up to `rank_far_shift_m` in any direction)."""
+        up to `rank_far_shift_m` in any direction). With `rank_hard`, each sample's
+        `hard_negatives` join them."""
         from .state import alignment
         cfg, dev = self.cfg, self.device
         b = len(samples)
@@ -449,15 +450,11 @@ class Run:
         return moved
 
     def protocol_poses(self, truth: np.ndarray, count: int, rng) -> list[np.ndarray]:
-        """`count` camera_from_map poses [4, 4] drawn like the protocol's starts around `truth`: a
-        turn of -180..180 deg about map z through the camera centre and a ground shift of -10..10 m
-        on each axis, none of them registered (protocol A: within 10 deg / 5 m; such draws are
-        drawn again)."""
-        centre = g.invert(truth)[:3, 3]
+        """`count` camera_from_map poses [4, 4] drawn around `truth` by `geometry.protocol_pose`,
+        none of them registered (protocol A: within 10 deg / 5 m; such draws are drawn again)."""
         poses = []
         while len(poses) < count:
-            tx, tz = rng.uniform(-10.0, 10.0, 2)
-            pose = g.apply_action(truth, centre, rng.uniform(-180.0, 180.0), tx, tz, frame=g.MAP_Z)
+            pose = g.protocol_pose(truth, rng)
             if not g.registered(pose, truth):
                 poses.append(pose)
         return poses
