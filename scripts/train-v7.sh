@@ -204,19 +204,26 @@ start_v11() {
     backbone_lr_scale=0.1 init_agent_from="$(v7_float)" keep_agent_every=500
 }
 
+# The shipped v11's checkpoint (stage-2 iteration 2,000, kept in git at commit e0ba91f), copied
+# once to runs/v11-shipped.pt: where runs v12 and v13 start from. Like v7_float, only made for a
+# fresh start (a run that resumes already holds what it took from it).
+v11_shipped() {
+  local init=$HOME/.cache/cmr-agent/runs/v11-shipped.pt
+  if [ ! -f "$init" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]; then
+    mkdir -p "$(dirname "$init")"
+    git -C "$ROOT" show e0ba91f:training/checkpoints/v11.pt > "$init.tmp" && mv "$init.tmp" "$init"
+  fi
+  echo "$init"
+}
+
 # Run v12: the shipped v11 (stage-2 iteration 2,000; its checkpoint, kept in git at commit e0ba91f
 # and copied once to runs/v11-shipped.pt) trained on with half the samples mirrored (v10's
 # augmentation, which v11 did not have): 8,000 more stage-1 steps at a fifth of v7's learning
 # rate, then 1,500 stage-2 iterations from v11's agent at a third of its rate; a copy of every
 # 2,000th stage-1 step and every 500th stage-2 iteration in $RUN/snap/. `save` at every stop.
 start_v12() {
-  local init=$HOME/.cache/cmr-agent/runs/v11-shipped.pt
-  if [ ! -f "$init" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]; then
-    mkdir -p "$(dirname "$init")"
-    git -C "$ROOT" show e0ba91f:training/checkpoints/v11.pt > "$init.tmp" && mv "$init.tmp" "$init"
-  fi
   launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 \
-    backbone_lr_scale=0.1 init_from="$init" mirror_p=0.5 embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 \
+    backbone_lr_scale=0.1 init_from="$(v11_shipped)" mirror_p=0.5 embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 \
     embed_steps=8000 keep_embed_every=2000 agent_iters=1500 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 \
     expert_mix_start=0.2 keep_agent_every=500
 }
@@ -227,13 +234,8 @@ start_v12() {
 # checkpoints carry v11's agent (run v12 measured its stage-1 encoders with v11's agent at 134 of
 # 192, level, and a continued stage 2 below it). A copy of every 1,500th step in $RUN/snap/.
 start_v13() {
-  local init=$HOME/.cache/cmr-agent/runs/v11-shipped.pt
-  if [ ! -f "$init" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]; then
-    mkdir -p "$(dirname "$init")"
-    git -C "$ROOT" show e0ba91f:training/checkpoints/v11.pt > "$init.tmp" && mv "$init.tmp" "$init"
-  fi
   launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 \
-    backbone_lr_scale=0.1 init_from="$init" embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 \
+    backbone_lr_scale=0.1 init_from="$(v11_shipped)" embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 \
     embed_steps=6000 keep_embed_every=1500 embed_eval_every=1500 rank_hard_pool=32 rank_hard=2 agent_iters=0
 }
 

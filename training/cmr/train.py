@@ -418,7 +418,7 @@ class Run:
         from .state import alignment
         cfg, dev = self.cfg, self.device
         b = len(samples)
-        moved = [[*self.rank_perturbations(s.truth, rng)] for s in samples]
+        moved = [self.rank_perturbations(s.truth, rng) for s in samples]
         k = torch.as_tensor(np.stack([s.intrinsics for s in samples]), dtype=torch.float32, device=dev)
         if cfg.rank_hard > 0:
             for i, s in enumerate(samples):
