@@ -26,6 +26,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v13 scripts/train-v7.sh start-v13
 #                                # run v13 (issue 29): v11's encoders trained on with hard
 #                                # negatives in the ranking term, stage 1 only (v11's agent kept)
+#   RUN=~/.cache/cmr-agent/runs/v14 scripts/train-v7.sh start-v14
+#                                # run v14 (issue 29): v11 with the image encoder's stride-32
+#                                # stages added, stage 1 only (v11's agent kept)
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -239,6 +242,17 @@ start_v13() {
     embed_steps=6000 keep_embed_every=1500 embed_eval_every=1500 rank_hard_pool=32 rank_hard=2 agent_iters=0
 }
 
+# Run v14: the shipped v11 with a deeper image encoder: EfficientNet-Lite0's stride-32 stages
+# (ImageNet weights, at the backbone's tenth of the rate) join the decoder through a 1x1 lateral
+# layer whose input weights start at zero, so step 0 computes exactly v11
+# (`LiteImageEncoder.load_shallow`); 6,000 stage-1 steps at a fifth of v7's learning rate, no
+# stage 2 (v11's agent, as in v13). A copy of every 1,500th step in $RUN/snap/.
+start_v14() {
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0_s32 \
+    backbone_lr_scale=0.1 init_from="$(v11_shipped)" embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 \
+    embed_steps=6000 keep_embed_every=1500 embed_eval_every=1500 agent_iters=0
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -293,6 +307,7 @@ case "${1:-}" in
   start-v11) start_v11 ;;
   start-v12) start_v12 ;;
   start-v13) start_v13 ;;
+  start-v14) start_v14 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac

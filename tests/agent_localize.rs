@@ -79,7 +79,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 
     // Four starts: the first is the single trajectory above (same rows, batched with three more),
     // the others start from the prior turned about the pivot, and the answer is the best score.
-    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false };
+    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0 };
     let multi = agent::localize(&mut backend, &map, &tensor, crop_k, prior, four).unwrap();
     assert_eq!(multi.hypotheses.len(), 4);
     let first = &multi.hypotheses[0];
@@ -195,7 +195,7 @@ fn batched_workers_match_the_synchronous_loop() {
             // Searches of 1 to 3 starts (one narrowed): the 8-row batch holds some, the rest wait.
             let narrow_after = (i == 4).then_some(1);
             let merge_duplicates = i == 5;
-            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None, refine: i % 3 == 1, polish: i % 2 == 1 })
+            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None, refine: i % 3 == 1, polish: i % 2 == 1, prior_margin: if i % 4 == 0 { 0.03 } else { 0.0 } })
         })
         .collect();
     let expected: Vec<_> = cases

@@ -71,7 +71,7 @@ fn eval_config(data: &Path, perturbations: &Path, out: &Path, models: &Path) -> 
         iterations: 10,
         hypotheses: 4,
         // The server's defaults, so both run the same search.
-        tuning: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true, refine: true, polish: true },
+        tuning: SearchTuning::default(),
         prior_bound: None,
         seed: 0,
         frame_stride: 1,

@@ -21,7 +21,7 @@ use crate::model::{Backend, Signals, Verdict};
 pub use batch::{Batch, Start, StepError};
 pub use episode::{Confidence, Episode, ImageEvidence, Step};
 pub use input::prepare_image;
-pub use search::{DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, outscores, start_yaw_offsets};
+pub use search::{AnswerRules, DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, outscores, start_yaw_offsets};
 pub use state::{Form2d, ImageGrid, ScatterScratch, Shifts, StateLayout};
 
 /// Milliseconds spent per phase of one localization.
@@ -53,10 +53,9 @@ pub struct Localization {
     /// The search's answer is the prior itself, unmoved: it outscored every final pose
     /// (`SearchConfig::keep_prior`); the polish may still move it (`polish`).
     pub kept_prior: bool,
-    /// Whether the prior competed with the answers (`SearchConfig::keep_prior`, or a bound).
-    pub prior_competes: bool,
-    /// The request's bound on the prior's error (`SearchConfig::prior_bound`).
-    pub prior_bound: Option<search::PriorBound>,
+    /// How the poses competed for the answer (`SearchConfig::answer_rules`: the request's bound
+    /// on the prior's error, whether the prior competed, the prior's margin).
+    pub rules: search::AnswerRules,
     /// Of the answer (the chosen hypothesis's final pose, or the prior).
     pub confidence: Confidence,
     /// The request's policy steps per hypothesis.
@@ -106,7 +105,7 @@ impl Localization {
         if iterations >= self.max_iterations {
             return self.camera_from_map();
         }
-        match search::search_answer(&self.hypotheses, &self.prior, self.prior_bound, self.prior_competes, iterations, false) {
+        match search::search_answer(&self.hypotheses, &self.prior, self.rules, iterations, false) {
             None => self.prior,
             Some((h, k)) => self.hypotheses[h].pose_after(k).0,
         }
@@ -169,7 +168,7 @@ impl Localization {
             steps_fraction: self.answer_steps().len() as f64 / self.max_iterations.max(1) as f64,
             in_view: self.confidence.in_view as f64,
             log2_starts: (first.len().max(1) as f64).log2(),
-            bounded: if self.prior_bound.is_some() { 1.0 } else { 0.0 },
+            bounded: if self.rules.bound.is_some() { 1.0 } else { 0.0 },
             visit_share: near as f64 / all.max(1) as f64,
         }
     }
@@ -234,8 +233,7 @@ mod tests {
             chosen,
             answer_steps,
             kept_prior: false,
-            prior_competes: false,
-            prior_bound: None,
+            rules: Default::default(),
             confidence,
             max_iterations: 10,
             timings: Timings::default(),
@@ -283,7 +281,7 @@ mod tests {
             alignment: 0.25,
         });
         let mut loc = localization(vec![first, hypothesis(near, 0.75), hypothesis(-far, 0.5)], 0);
-        (loc.kept_prior, loc.prior_competes, loc.confidence.alignment) = (true, true, 0.875);
+        (loc.kept_prior, loc.rules.prior_competes, loc.confidence.alignment) = (true, true, 0.875);
         assert_eq!(loc.camera_from_map(), Pose::identity());
         let s = loc.signals();
         assert_eq!((s.alignment, s.alignment_margin), (0.875, 0.125));

@@ -27,6 +27,14 @@
 //! removes the street seen backwards that makes "best visited pose" fail without one
 //! (docs/evaluation.md, "A bounded prior").
 //!
+//! Without a bound, a prior still says something: a fleet's odometry or GNSS puts it within some
+//! 30° / 5 m of the truth, and the search's commonest real-image mistake is a pose far from it
+//! (the street seen backwards). With `prior_margin` (the default), a pose within [`PRIOR_NEAR`] of
+//! the prior competes with that much added to its alignment score: a pose away from the prior
+//! answers only when it outscores every pose near it by more than the margin, so strong evidence
+//! still moves a wrong prior, and a random start (the paper's protocol) loses next to nothing
+//! (docs/evaluation.md, "A margin for the prior").
+//!
 //! With `refine` (the default; multi-start searches without a prior bound), once the first round is done a second,
 //! short one runs: [`REFINE_STARTS`] starts within [`REFINE_BOUND`] of the first round's answer
 //! and as many around that answer turned by 180° (the street seen the other way, the first
@@ -86,6 +94,29 @@ pub fn offset_between(a: &Pose, b: &Pose) -> (f64, f64) {
 /// What [`PriorBound::contains`] adds to both limits (degrees, metres).
 pub const BOUND_SLACK: f64 = 1e-6;
 
+/// Where a pose agrees with the prior for `prior_margin`: within 40° and 10 m of it, what a
+/// fleet-grade prior (30° / 5 m off) and a registered answer (10° / 5 m off) allow together.
+pub const PRIOR_NEAR: PriorBound = PriorBound { rotation_deg: 40.0, translation_m: 10.0 };
+
+/// How the poses of a search compete for its answer, besides the prior they are judged against.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct AnswerRules {
+    /// The request's bound: the best pose *visited* inside it answers ([`answer_at`]).
+    pub bound: Option<PriorBound>,
+    /// The prior competes with the answers (and wins a draw).
+    pub prior_competes: bool,
+    /// Without a bound: added to the alignment score of every pose within [`PRIOR_NEAR`] of the
+    /// prior (the prior included) when the answer is chosen (0 = off).
+    pub prior_margin: f32,
+}
+
+impl AnswerRules {
+    /// The score `pose` competes with: `alignment`, plus the margin when it applies.
+    pub fn score(&self, prior: &Pose, pose: &Pose, alignment: f32) -> f32 {
+        if self.prior_margin > 0.0 && self.bound.is_none() && PRIOR_NEAR.contains(prior, pose) { alignment + self.prior_margin } else { alignment }
+    }
+}
+
 /// How far one request searches.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SearchConfig {
@@ -110,6 +141,10 @@ pub struct SearchConfig {
     /// ignored by a single start without a bound (`track`'s small searches, the paper's
     /// trajectory).
     pub polish: bool,
+    /// Without a bound, what a pose that agrees with the prior (within [`PRIOR_NEAR`] of it)
+    /// adds to its alignment score when the search chooses its answer: a pose away from the
+    /// prior must outscore the best one near it by more than this (0 = off; the module's docs).
+    pub prior_margin: f32,
 }
 
 impl SearchConfig {
@@ -134,7 +169,13 @@ impl SearchConfig {
 
     /// The paper's procedure: one trajectory from the prior, answered with its last pose.
     pub fn single(max_iterations: usize) -> Self {
-        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false }
+        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0 }
+    }
+
+    /// How its poses compete for the answer: the prior competes with `keep_prior` or a bound; the
+    /// margin applies without a bound.
+    pub fn answer_rules(&self) -> AnswerRules {
+        AnswerRules { bound: self.prior_bound, prior_competes: self.keep_prior || self.prior_bound.is_some(), prior_margin: self.prior_margin }
     }
 }
 
@@ -153,7 +194,7 @@ pub const REFINE_ROWS: usize = REFINE_STARTS * REFINE_TURNS_DEG.len();
 /// The search settings besides the number of starts: one set of flags for `serve`, `localize`
 /// and `eval`, so that all three run the same search. Defaults chosen on the validation set
 /// (docs/evaluation.md, "Multi-start search").
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::Args)]
+#[derive(Debug, Clone, Copy, PartialEq, clap::Args)]
 pub struct SearchTuning {
     /// Once every start has taken this many steps, only the best-scoring one goes on (0 = all
     /// run to the end). Cuts the search's cost at some accuracy.
@@ -184,6 +225,34 @@ pub struct SearchTuning {
     /// "A continuous polish").
     #[arg(long, env = "CMR_POLISH", default_value_t = true, action = clap::ArgAction::Set)]
     pub polish: bool,
+    /// Without a `prior_bound`, a pose within 40° / 10 m of the prior competes for the answer
+    /// with this much added to its alignment score, so a pose far from the prior must outscore
+    /// the poses near it by more than this (0 = off). The default was chosen on the held-out
+    /// real-train drives (docs/evaluation.md, "A margin for the prior"): from fleet-grade priors
+    /// it keeps answers that the street seen backwards would otherwise take.
+    #[arg(long, env = "CMR_PRIOR_MARGIN", default_value_t = DEFAULT_PRIOR_MARGIN, value_parser = parse_margin)]
+    pub prior_margin: f32,
+}
+
+/// `--prior-margin`'s default (alignment-score units).
+pub const DEFAULT_PRIOR_MARGIN: f32 = 0.025;
+
+/// A margin: a finite number from 0 to 1 (the alignment score is a mean cosine, within ±1).
+fn parse_margin(s: &str) -> Result<f32, String> {
+    let v: f32 = s.parse().map_err(|e| format!("{e}"))?;
+    if v.is_finite() && (0.0..=1.0).contains(&v) { Ok(v) } else { Err(format!("{v} is not within 0..=1")) }
+}
+
+impl Default for SearchTuning {
+    /// The flags' defaults (what `serve`, `localize` and `eval` run with no search flag given).
+    fn default() -> Self {
+        #[derive(clap::Parser)]
+        struct Flags {
+            #[command(flatten)]
+            tuning: SearchTuning,
+        }
+        <Flags as clap::Parser>::parse_from(["defaults"]).tuning
+    }
 }
 
 impl SearchTuning {
@@ -197,6 +266,7 @@ impl SearchTuning {
             prior_bound: None,
             refine: self.refine,
             polish: self.polish,
+            prior_margin: self.prior_margin,
         }
     }
 }
@@ -251,15 +321,16 @@ pub fn bounded_start_yaw_offsets(hypotheses: usize, bound_deg: f64) -> Vec<f64> 
 /// (hypothesis, steps taken to reach the pose; 0 = its start).
 ///
 /// Without a bound: the best-scoring final pose over the hypotheses (the first one on ties),
-/// or the prior when `prior_competes` and it scores strictly higher. With a bound: the
-/// best-scoring pose visited within the bound of `prior` (each hypothesis's start and every
-/// step up to `iterations`), the prior first so that it wins a draw; NaN scores never win.
-pub fn answer_at(hypotheses: &[Hypothesis], prior: &Pose, bound: Option<PriorBound>, prior_competes: bool, iterations: usize) -> Option<(usize, usize)> {
-    let Some(bound) = bound else {
-        let finals: Vec<f32> = hypotheses.iter().map(|h| h.pose_after(iterations).1).collect();
+/// or the prior when `rules.prior_competes` and it scores strictly higher; scores are
+/// [`AnswerRules::score`]'s (the prior's margin included). With a bound: the best-scoring pose
+/// visited within the bound of `prior` (each hypothesis's start and every step up to
+/// `iterations`), the prior first so that it wins a draw; NaN scores never win.
+pub fn answer_at(hypotheses: &[Hypothesis], prior: &Pose, rules: AnswerRules, iterations: usize) -> Option<(usize, usize)> {
+    let Some(bound) = rules.bound else {
+        let finals: Vec<f32> = hypotheses.iter().map(|h| h.pose_after(iterations)).map(|(pose, a)| rules.score(prior, &pose, a)).collect();
         let best = best_of(finals.iter().copied());
-        let prior_alignment = hypotheses.first().map_or(f32::NAN, |h| h.start_alignment);
-        if prior_competes && outscores(prior_alignment, finals[best]) {
+        let prior_score = hypotheses.first().map_or(f32::NAN, |h| rules.score(prior, prior, h.start_alignment));
+        if rules.prior_competes && outscores(prior_score, finals[best]) {
             return None;
         }
         return Some((best, iterations.min(hypotheses[best].steps.len())));
@@ -339,14 +410,18 @@ pub fn best_of(scores: impl IntoIterator<Item = f32>) -> usize {
 /// The answer of a whole search after `iterations` steps: the first round's ([`answer_at`] over
 /// the hypotheses that are not `refinement` ones), then, when `with_refinement`, each refinement
 /// group's ([`REFINE_STARTS`] consecutive hypotheses; [`answer_at`] within [`REFINE_BOUND`] of
-/// the group's first start, which competes) when it scores strictly higher. `None`: the prior.
-pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, bound: Option<PriorBound>, prior_competes: bool, iterations: usize, with_refinement: bool) -> Option<(usize, usize)> {
+/// the group's first start, which competes) when it scores strictly higher, by
+/// [`AnswerRules::score`] against the request's prior. `None`: the prior.
+pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, rules: AnswerRules, iterations: usize, with_refinement: bool) -> Option<(usize, usize)> {
     let first = first_round_len(hypotheses);
     let score = |a: Option<(usize, usize)>| match a {
-        None => hypotheses.first().map_or(f32::NAN, |h| h.start_alignment),
-        Some((h, k)) => hypotheses[h].pose_after(k).1,
+        None => hypotheses.first().map_or(f32::NAN, |h| rules.score(prior, prior, h.start_alignment)),
+        Some((h, k)) => {
+            let (pose, alignment) = hypotheses[h].pose_after(k);
+            rules.score(prior, &pose, alignment)
+        }
     };
-    let mut best = answer_at(&hypotheses[..first], prior, bound, prior_competes, iterations);
+    let mut best = answer_at(&hypotheses[..first], prior, rules, iterations);
     if !with_refinement {
         return best;
     }
@@ -354,7 +429,8 @@ pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, bound: Option<Prio
     for (g, group) in hypotheses[first..].chunks(REFINE_STARTS).enumerate() {
         let offset = first + g * REFINE_STARTS;
         let base = group[0].start;
-        let answer = match answer_at(group, &base, Some(REFINE_BOUND), true, REFINE_ITERATIONS) {
+        let group_rules = AnswerRules { bound: Some(REFINE_BOUND), prior_competes: true, prior_margin: 0.0 };
+        let answer = match answer_at(group, &base, group_rules, REFINE_ITERATIONS) {
             None => (offset, 0),
             Some((h, k)) => (offset + h, k),
         };
@@ -386,8 +462,7 @@ pub struct Search {
     /// Steps after which only the best-scoring hypothesis goes on; `None` once done (or never).
     narrow_after: Option<usize>,
     merge_duplicates: bool,
-    keep_prior: bool,
-    prior_bound: Option<PriorBound>,
+    rules: AnswerRules,
     polish: bool,
 }
 
@@ -422,15 +497,9 @@ impl Search {
             max_iterations,
             narrow_after,
             merge_duplicates: config.merge_duplicates,
-            keep_prior: config.keep_prior,
-            prior_bound: config.prior_bound,
+            rules: config.answer_rules(),
             polish: config.polishes(),
         }
-    }
-
-    /// The prior competes with the answers: `keep_prior`, or always within a bound.
-    fn prior_competes(&self) -> bool {
-        self.keep_prior || self.prior_bound.is_some()
     }
 
     /// Call after every batched step: stops duplicates and narrows, as configured, and starts the
@@ -490,7 +559,7 @@ impl Search {
             episode.settle(map, layout, scratch);
         }
         let hypotheses: Vec<Hypothesis> = self.episodes.iter().zip(&self.offsets).map(|(e, &o)| hypothesis_of(e, o, false, e.steps.clone())).collect();
-        let answer = match answer_at(&hypotheses, &self.prior, self.prior_bound, self.prior_competes(), self.max_iterations) {
+        let answer = match answer_at(&hypotheses, &self.prior, self.rules, self.max_iterations) {
             None => self.prior,
             Some((h, k)) => hypotheses[h].pose_after(k).0,
         };
@@ -530,7 +599,6 @@ impl Search {
         for episode in &mut self.episodes {
             episode.settle(map, layout, scratch);
         }
-        let prior_competes = self.prior_competes();
         let first_round = self.first_round;
         let hypotheses: Vec<Hypothesis> = self
             .episodes
@@ -542,7 +610,7 @@ impl Search {
                 hypothesis_of(e, offset, h >= first_round, steps)
             })
             .collect();
-        let (chosen, answer_steps, kept_prior) = match search_answer(&hypotheses, &self.prior, self.prior_bound, prior_competes, self.max_iterations, true) {
+        let (chosen, answer_steps, kept_prior) = match search_answer(&hypotheses, &self.prior, self.rules, self.max_iterations, true) {
             None => (0, 0, true),
             Some((h, k)) => (h, k, false),
         };
@@ -555,7 +623,7 @@ impl Search {
         let polish = self.polish.then(|| {
             let started = std::time::Instant::now();
             let e = &self.evidence;
-            let bound = self.prior_bound.map(|b| (&self.prior, b));
+            let bound = self.rules.bound.map(|b| (&self.prior, b));
             let p = polish::polish(self.frame, pose, alignment, bound, |p| {
                 state::alignment(layout, &map.points, &map.features, &e.image_features.channel_major, &e.intrinsics, p, scratch)
             });
@@ -569,8 +637,7 @@ impl Search {
             chosen,
             answer_steps,
             kept_prior,
-            prior_competes,
-            prior_bound: self.prior_bound,
+            rules: self.rules,
             confidence,
             max_iterations: self.max_iterations,
             timings,
@@ -603,7 +670,7 @@ mod tests {
         use nalgebra::Vector3;
         let map = PreparedMap { points: vec![[0.0, 0.0, 5.0]], features: vec![0.0; 64], pivot: Point3::new(0.0, 0.0, 5.0), source_points: 1 };
         let evidence = ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 } };
-        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false, prior_bound: None, refine: false, polish: false };
+        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0 };
         let mut search = Search::new(evidence, &map, Pose::identity(), config, ActionFrame::CameraY);
         let shifted = |dx: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(dx * DUPLICATE_RTE_M, 0.0, 0.0));
         // 0 and 1 meet (half the radius apart); 2 is within the radius of 1 but 1.2 radii from 0;
@@ -683,16 +750,16 @@ mod tests {
             hypothesis(prior, 0.5, vec![step(2.0, 0.8), step(4.0, 0.6)]),
             hypothesis(shifted(9.0), 0.1, vec![step(12.0, 0.9)]),
         ];
-        assert_eq!(answer_at(&hs, &prior, None, false, 2), Some((1, 1)));
-        assert_eq!(answer_at(&hs, &prior, None, true, 2), Some((1, 1)));
+        assert_eq!(answer_at(&hs, &prior, AnswerRules { bound: None, prior_competes: false, prior_margin: 0.0 }, 2), Some((1, 1)));
+        assert_eq!(answer_at(&hs, &prior, AnswerRules { bound: None, prior_competes: true, prior_margin: 0.0 }, 2), Some((1, 1)));
         let bound = Some(PriorBound { rotation_deg: 30.0, translation_m: 5.0 });
-        assert_eq!(answer_at(&hs, &prior, bound, true, 2), Some((0, 1)));
-        assert_eq!(answer_at(&hs, &prior, bound, true, 0), None, "after no steps only the starts compete");
+        assert_eq!(answer_at(&hs, &prior, AnswerRules { bound: bound, prior_competes: true, prior_margin: 0.0 }, 2), Some((0, 1)));
+        assert_eq!(answer_at(&hs, &prior, AnswerRules { bound: bound, prior_competes: true, prior_margin: 0.0 }, 0), None, "after no steps only the starts compete");
         let wide = Some(PriorBound { rotation_deg: 30.0, translation_m: 20.0 });
-        assert_eq!(answer_at(&hs, &prior, wide, true, 2), Some((1, 1)));
+        assert_eq!(answer_at(&hs, &prior, AnswerRules { bound: wide, prior_competes: true, prior_margin: 0.0 }, 2), Some((1, 1)));
         // A draw with the prior keeps the prior; a NaN never wins.
         let draw = vec![hypothesis(prior, 0.8, vec![step(2.0, 0.8), step(3.0, f32::NAN)])];
-        assert_eq!(answer_at(&draw, &prior, bound, true, 2), None);
+        assert_eq!(answer_at(&draw, &prior, AnswerRules { bound: bound, prior_competes: true, prior_margin: 0.0 }, 2), None);
     }
 
     /// The refinement groups answer within their bound around their first start, and win only
@@ -703,6 +770,7 @@ mod tests {
         let step = step_to;
         let h = |start: f64, start_alignment: f32, steps: Vec<Step>, refinement: bool| trajectory(shifted(start), start_alignment, steps, refinement);
         let prior = shifted(0.0);
+        let rules = AnswerRules { bound: None, prior_competes: true, prior_margin: 0.0 };
         // First round: one start ending at 10 m, 0.5. Refinement: a group around 10 m whose
         // second start passes 0.7 at 12 m and ends 20 m away (outside the bound) at 0.9; a group
         // around the flip that only scores 0.4.
@@ -711,11 +779,44 @@ mod tests {
         hs.push(h(10.0, 0.45, vec![step(12.0, 0.7), step(30.0, 0.9)], true));
         hs.extend((0..REFINE_STARTS - 2).map(|_| h(10.0, 0.3, vec![], true)));
         hs.extend((0..REFINE_STARTS).map(|_| h(10.0, 0.4, vec![], true)));
-        assert_eq!(search_answer(&hs, &prior, None, true, 1, false), Some((0, 1)));
-        assert_eq!(search_answer(&hs, &prior, None, true, 1, true), Some((2, 1)));
+        assert_eq!(search_answer(&hs, &prior, rules, 1, false), Some((0, 1)));
+        assert_eq!(search_answer(&hs, &prior, rules, 1, true), Some((2, 1)));
         // A draw keeps the first round's answer.
         hs[2].steps[0].alignment = 0.5;
-        assert_eq!(search_answer(&hs, &prior, None, true, 1, true), Some((0, 1)));
+        assert_eq!(search_answer(&hs, &prior, rules, 1, true), Some((0, 1)));
+    }
+
+    /// Without a bound, poses within PRIOR_NEAR of the prior compete with the margin added: a far
+    /// pose answers only when it outscores them by more than the margin; a bound ignores it.
+    #[test]
+    fn the_prior_margin_keeps_near_poses_unless_far_ones_clearly_win() {
+        let prior = Pose::identity();
+        let hypothesis = |start, start_alignment, steps| trajectory(start, start_alignment, steps, false);
+        // Start 0 ends 3 m from the prior at 0.60; start 1 ends 20 m away at 0.62.
+        let hs = vec![hypothesis(prior, 0.5, vec![step_to(3.0, 0.60)]), hypothesis(shifted(15.0), 0.1, vec![step_to(20.0, 0.62)])];
+        let rules = |prior_margin, prior_competes| AnswerRules { bound: None, prior_competes, prior_margin };
+        assert_eq!(answer_at(&hs, &prior, rules(0.0, true), 1), Some((1, 1)), "no margin: the best score");
+        assert_eq!(answer_at(&hs, &prior, rules(0.03, true), 1), Some((0, 1)), "0.62 does not beat 0.60 + 0.03");
+        assert_eq!(answer_at(&hs, &prior, rules(0.01, true), 1), Some((1, 1)), "0.62 beats 0.60 + 0.01");
+        // The prior itself is near: with the margin it still wins only by scoring higher than the near poses.
+        let kept = vec![hypothesis(prior, 0.61, vec![step_to(3.0, 0.60)]), hs[1].clone()];
+        assert_eq!(answer_at(&kept, &prior, rules(0.03, true), 1), None);
+        assert_eq!(answer_at(&kept, &prior, rules(0.03, false), 1), Some((0, 1)));
+        // A bound decides by itself.
+        let bounded = AnswerRules { bound: Some(PriorBound { rotation_deg: 30.0, translation_m: 25.0 }), prior_competes: true, prior_margin: 0.03 };
+        assert_eq!(answer_at(&hs, &prior, bounded, 1), Some((1, 1)));
+        // In the whole search, a refinement group far from the prior needs the margin too.
+        let mut search = vec![hypothesis(prior, 0.5, vec![step_to(3.0, 0.60)])];
+        search.extend((0..REFINE_STARTS).map(|k| trajectory(shifted(20.0), if k == 0 { 0.62 } else { 0.1 }, vec![], true)));
+        search.extend((0..REFINE_STARTS).map(|_| trajectory(shifted(3.0), 0.1, vec![], true)));
+        assert_eq!(search_answer(&search, &prior, rules(0.0, true), 1, true), Some((1, 0)));
+        assert_eq!(search_answer(&search, &prior, rules(0.03, true), 1, true), Some((0, 1)));
+    }
+
+    #[test]
+    fn the_tuning_defaults_are_the_flags_defaults() {
+        let t = SearchTuning::default();
+        assert_eq!((t.narrow_after, t.merge_duplicates, t.keep_prior, t.refine, t.polish, t.prior_margin), (0, true, true, true, true, DEFAULT_PRIOR_MARGIN));
     }
 
     #[test]

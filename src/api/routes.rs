@@ -79,6 +79,7 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             keep_prior: c.search.keep_prior,
             refine: c.search.refine,
             polish: c.search.polish,
+            prior_margin: c.search.prior_margin,
             queue_capacity: serve.queue_capacity,
             max_batch: c.max_batch,
             request_timeout_ms: c.request_timeout_ms,

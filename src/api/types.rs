@@ -482,6 +482,9 @@ pub struct Limits {
     pub refine: bool,
     /// Whether the answer is polished on the alignment score (`--polish`).
     pub polish: bool,
+    /// What a pose within 40° / 10 m of a stated prior adds to its alignment score when an
+    /// unbounded search chooses its answer (`--prior-margin`; 0 = off).
+    pub prior_margin: f32,
     pub queue_capacity: usize,
     pub max_batch: usize,
     pub request_timeout_ms: u64,

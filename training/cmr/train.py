@@ -293,11 +293,17 @@ class Run:
         state = torch.load(path, map_location=self.device, weights_only=False)
         arch = arch_of(state.get("meta", {}).get("config", {}))
         mine = dict(norm=self.cfg.norm, image_edges=self.cfg.image_edges, image_backbone=self.cfg.image_backbone)
-        if arch != mine:
+        # A shallow EfficientNet-Lite0 encoder may grow its stride-32 stages: pretrained, their
+        # branch into the decoder starting at zero (`LiteImageEncoder.load_shallow`).
+        deepen = arch == {**mine, "image_backbone": "efficientnet_lite0"} and mine["image_backbone"] == "efficientnet_lite0_s32"
+        if arch != mine and not deepen:
             wanted = " ".join(f"{k}={v}" for k, v in arch.items())
             raise SystemExit(f"{path} was trained with {wanted}; pass --set {wanted}")
         for k, m in self.models.items():
-            if k != "agent":
+            if k == "image_encoder" and deepen:
+                print(f"deepened image encoder: {load_lite0(m)} pretrained tensors, "
+                      f"{m.load_shallow(state['models'][k])} from {path}", flush=True)
+            elif k != "agent":
                 m.load_state_dict(state["models"][k])
         self._set_agent(state)
         print(f"initialised from {path} (embed step {state['embed_step']}, agent iteration {state['agent_iter']})",
