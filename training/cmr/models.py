@@ -285,9 +285,8 @@ class LiteImageEncoder(nn.Module):
         for key, value in state.items():
             if key not in mine:
                 raise ValueError(f"{key}: not in this encoder (is the checkpoint a LiteImageEncoder's?)")
-            if key == "lateral16.0.weight" and value.shape[1] < mine[key].shape[1]:
-                extra = mine[key].shape[1] - value.shape[1]
-                value = torch.cat([value, value.new_zeros(value.shape[0], extra, *value.shape[2:])], 1)
+            if key == "lateral16.0.weight" and self.deep and value.shape[1] + 64 == mine[key].shape[1]:
+                value = torch.cat([value, value.new_zeros(value.shape[0], 64, *value.shape[2:])], 1)
             if value.shape != mine[key].shape:
                 raise ValueError(f"{key}: shape {tuple(value.shape)}, expected {tuple(mine[key].shape)}")
             copied[key] = value

@@ -233,6 +233,40 @@ def test_pretrained_backbone_loads_every_tensor_keeps_its_statistics_and_the_con
         assert np.abs(sess.run(None, {"image": image.numpy()})[0] - enc(image).numpy()).max() < 1e-4
 
 
+def test_the_deep_encoder_starts_as_the_shallow_one_and_exports(tmp_path):
+    from cmr.flops import count
+    from cmr.models import LITE0_BLOCKS, LITE0_BLOCKS_S32, LiteImageEncoder, lite0_weights_path, load_lite0
+    import onnx
+    torch.manual_seed(0)
+    shallow = LiteImageEncoder(norm="group")
+    for p in shallow.parameters():  # not the lateral layers' default init: any weights
+        p.data.normal_(0, 0.05)
+    deep = LiteImageEncoder(norm="group", deep=True)
+    pretrained = load_lite0(deep)
+    assert pretrained == 6 + sum((3 if e != 1 else 2) * 6 for e, *_ in LITE0_BLOCKS + LITE0_BLOCKS_S32)
+    assert deep.load_shallow(shallow.state_dict()) == len(shallow.state_dict())
+    want = torch.load(lite0_weights_path(), map_location="cpu", weights_only=True)
+    assert torch.equal(deep.blocks[15].project[1].weight, want["_blocks.15._project_conv.weight"])
+    assert torch.equal(deep.blocks[10].project[1].weight, shallow.blocks[10].project[1].weight)
+    image = torch.randn(1, 3, 160, 512)
+    with torch.no_grad():
+        assert torch.equal(deep.eval()(image), shallow.eval()(image))
+    # the zero weights are trainable: one step moves them, and the output with them
+    deep.train()
+    (deep(image) * torch.randn(1, 64, 40, 128)).sum().backward()
+    assert deep.lateral16[0].weight.grad[:, 112:].abs().sum() > 0
+    with pytest.raises(ValueError, match="shape"):
+        LiteImageEncoder(norm="batch", deep=True).load_shallow({"lateral16.0.weight": torch.zeros(64, 100, 1, 1)})
+    deep.eval()
+    doc = export_models({"image_encoder": deep}, tmp_path, dict(data="test"))
+    graph = onnx.load(str(tmp_path / doc["graphs"]["image_encoder"]["file"]))
+    flops, unresolved = count(graph, {})
+    assert not unresolved and 1.0e9 < flops < 1.4e9, flops
+    sess = ort.InferenceSession(str(tmp_path / doc["graphs"]["image_encoder"]["file"]), providers=["CPUExecutionProvider"])
+    with torch.no_grad():
+        assert np.abs(sess.run(None, {"image": image.numpy()})[0] - deep(image).numpy()).max() < 1e-4
+
+
 def test_a_pretrained_backbone_run_trains_its_backbone_slower_and_resumes(tmp_path, tiny_dataset):
     from cmr.models import load_lite0
     run = small_run(tmp_path, tiny_dataset, norm="group", image_backbone="efficientnet_lite0", backbone_lr_scale=0.1)
