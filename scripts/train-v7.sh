@@ -29,6 +29,8 @@
 #   RUN=~/.cache/cmr-agent/runs/v14 scripts/train-v7.sh start-v14
 #                                # run v14 (issue 29): v11 with the image encoder's stride-32
 #                                # stages added, stage 1 only (v11's agent kept)
+#   RUN=~/.cache/cmr-agent/runs/v14a scripts/train-v7.sh start-v14a
+#                                # run v14a (issue 29): stage 2 of v11's agent on v14's encoders
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -253,6 +255,23 @@ start_v14() {
     embed_steps=6000 keep_embed_every=1500 embed_eval_every=1500 agent_iters=0
 }
 
+# Run v14a: stage 2 on v14's encoders. v14's stage 1 (step 6,000) judged better than v11 on the
+# held-out drives by cmr.diagnose (truth beats all protocol-like poses in 6 of 12 frames against 5)
+# but registered fewer cases with v11's agent; so v11's agent (which v14's checkpoint carries) is
+# trained on those encoders, stage 1 skipped: 1,500 iterations at v12's stage-2 settings, a copy of
+# every 500th in $RUN/snap/. The encoders' optimiser never steps, so a checkpoint is ~24 MB and
+# `save` commits it whole. The start copies v14's snapshot once to runs/v14-e06000.pt (a resume
+# needs neither: it holds what it took).
+start_v14a() {
+  local init=$HOME/.cache/cmr-agent/runs/v14-e06000.pt
+  if [ ! -f "$init" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]; then
+    cp "$HOME/.cache/cmr-agent/runs/v14/snap/embed_006000.pt" "$init.tmp" && mv "$init.tmp" "$init"
+  fi
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0_s32 \
+    init_from="$init" embed_steps=0 agent_iters=1500 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 \
+    expert_mix_start=0.2 keep_agent_every=500
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -308,6 +327,7 @@ case "${1:-}" in
   start-v12) start_v12 ;;
   start-v13) start_v13 ;;
   start-v14) start_v14 ;;
+  start-v14a) start_v14a ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
