@@ -110,13 +110,19 @@ resume_saved() {
   fi
 }
 
+# Whether a run's start file `$1` has to be made: it is missing and the run starts afresh (a run
+# that resumes, from its last.pt or its committed checkpoint, already holds what it took from it).
+needs_init() {
+  [ ! -f "$1" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]
+}
+
 # The shipped model's float weights as a checkpoint (v7's iteration-1,500 export, the ONNX files
 # `models/` was quantised from), made once: where the runs after v7 start from. A run that resumes
 # (its last.pt or committed checkpoint exists) already holds what it took from them, so the file is
 # only made for a fresh start; a machine that lost the float export cannot start one afresh.
 v7_float() {
   local init=$HOME/.cache/cmr-agent/runs/v7-float-import.pt
-  if [ ! -f "$init" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]; then
+  if needs_init "$init"; then
     (cd "$ROOT/training" && "$PY" -m cmr.import_onnx "$HOME/.cache/cmr-agent/runs/v7/judge/s2k15/float" --out "$init" >&2)
   fi
   echo "$init"
@@ -214,7 +220,7 @@ start_v11() {
 # fresh start (a run that resumes already holds what it took from it).
 v11_shipped() {
   local init=$HOME/.cache/cmr-agent/runs/v11-shipped.pt
-  if [ ! -f "$init" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]; then
+  if needs_init "$init"; then
     mkdir -p "$(dirname "$init")"
     git -C "$ROOT" show e0ba91f:training/checkpoints/v11.pt > "$init.tmp" && mv "$init.tmp" "$init"
   fi
@@ -264,7 +270,7 @@ start_v14() {
 # needs neither: it holds what it took).
 start_v14a() {
   local init=$HOME/.cache/cmr-agent/runs/v14-e06000.pt
-  if [ ! -f "$init" ] && [ ! -f "$RUN/last.pt" ] && [ ! -f "$SAVED" ]; then
+  if needs_init "$init"; then
     cp "$HOME/.cache/cmr-agent/runs/v14/snap/embed_006000.pt" "$init.tmp" && mv "$init.tmp" "$init"
   fi
   launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0_s32 \

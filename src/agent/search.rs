@@ -750,16 +750,17 @@ mod tests {
             hypothesis(prior, 0.5, vec![step(2.0, 0.8), step(4.0, 0.6)]),
             hypothesis(shifted(9.0), 0.1, vec![step(12.0, 0.9)]),
         ];
-        assert_eq!(answer_at(&hs, &prior, AnswerRules { bound: None, prior_competes: false, prior_margin: 0.0 }, 2), Some((1, 1)));
-        assert_eq!(answer_at(&hs, &prior, AnswerRules { bound: None, prior_competes: true, prior_margin: 0.0 }, 2), Some((1, 1)));
+        let rules = |bound, prior_competes| AnswerRules { bound, prior_competes, prior_margin: 0.0 };
+        assert_eq!(answer_at(&hs, &prior, rules(None, false), 2), Some((1, 1)));
+        assert_eq!(answer_at(&hs, &prior, rules(None, true), 2), Some((1, 1)));
         let bound = Some(PriorBound { rotation_deg: 30.0, translation_m: 5.0 });
-        assert_eq!(answer_at(&hs, &prior, AnswerRules { bound, prior_competes: true, prior_margin: 0.0 }, 2), Some((0, 1)));
-        assert_eq!(answer_at(&hs, &prior, AnswerRules { bound, prior_competes: true, prior_margin: 0.0 }, 0), None, "after no steps only the starts compete");
+        assert_eq!(answer_at(&hs, &prior, rules(bound, true), 2), Some((0, 1)));
+        assert_eq!(answer_at(&hs, &prior, rules(bound, true), 0), None, "after no steps only the starts compete");
         let wide = Some(PriorBound { rotation_deg: 30.0, translation_m: 20.0 });
-        assert_eq!(answer_at(&hs, &prior, AnswerRules { bound: wide, prior_competes: true, prior_margin: 0.0 }, 2), Some((1, 1)));
+        assert_eq!(answer_at(&hs, &prior, rules(wide, true), 2), Some((1, 1)));
         // A draw with the prior keeps the prior; a NaN never wins.
         let draw = vec![hypothesis(prior, 0.8, vec![step(2.0, 0.8), step(3.0, f32::NAN)])];
-        assert_eq!(answer_at(&draw, &prior, AnswerRules { bound, prior_competes: true, prior_margin: 0.0 }, 2), None);
+        assert_eq!(answer_at(&draw, &prior, rules(bound, true), 2), None);
     }
 
     /// The refinement groups answer within their bound around their first start, and win only
