@@ -31,6 +31,9 @@
 #                                # stages added, stage 1 only (v11's agent kept)
 #   RUN=~/.cache/cmr-agent/runs/v14a scripts/train-v7.sh start-v14a
 #                                # run v14a (issue 29): stage 2 of v11's agent on v14's encoders
+#   RUN=~/.cache/cmr-agent/runs/v15 scripts/train-v7.sh start-v15
+#                                # run v15 (issue 29): v11 with a second, 0.4 m grid in the point
+#                                # encoder, both stages (v11's agent trained on)
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -278,6 +281,19 @@ start_v14a() {
     expert_mix_start=0.2 keep_agent_every=500
 }
 
+# Run v15: the shipped v11 with a finer point encoder: a second BEV grid of 0.4 m cells (two 3x3
+# layers, gathered back to each point beside the 0.8 m context) whose way into the head starts at
+# zero, so step 0 computes exactly v11 (`PointEncoder.load_coarse`). The point encoder runs once
+# per map region, so the request's FLOPs do not change. 6,000 stage-1 steps at v14's settings,
+# then 1,500 stage-2 iterations of v11's agent on the final encoders at v14a's; a copy of every
+# 1,500th step and every 500th iteration in $RUN/snap/. `save` at every stop.
+start_v15() {
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 point_encoder=pillars_fine \
+    backbone_lr_scale=0.1 init_from="$(v11_shipped)" embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 \
+    embed_steps=6000 keep_embed_every=1500 embed_eval_every=1500 agent_iters=1500 agent_lr=1e-4 agent_lr_min=1e-5 \
+    bc_only_iters=0 expert_mix_start=0.2 keep_agent_every=500
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -334,6 +350,7 @@ case "${1:-}" in
   start-v13) start_v13 ;;
   start-v14) start_v14 ;;
   start-v14a) start_v14a ;;
+  start-v15) start_v15 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac

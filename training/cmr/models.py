@@ -55,6 +55,9 @@ def point_mlp(cin: int, cout: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(cin, cout), nn.ReLU(inplace=True))
 
 
+FINE_WIDTH = 32  # channels of PointEncoder's fine grid
+
+
 @dataclass(frozen=True)
 class PillarGrid:
     """The bird's-eye-view grid the point encoder scatters into, centred on the cloud's mean."""
@@ -62,27 +65,51 @@ class PillarGrid:
     cell_m: float = 0.8
 
 
+POINT_ENCODERS = ("pillars", "pillars_fine")
+
+
 class PointEncoder(nn.Module):
     """Per-point MLP plus a BEV pillar context: scatter-max into a ground grid, a small 2D CNN,
     gather back. The cloud arrives randomly yawed and shifted, so local context must come from the
-    neighbourhood rather than from absolute coordinates; centring on the mean removes the shift."""
+    neighbourhood rather than from absolute coordinates; centring on the mean removes the shift.
 
-    def __init__(self, grid: PillarGrid = PillarGrid(), width: int = 32, norm: str = "batch"):
+    `fine` ("pillars_fine"): a second grid of 0.4 m cells over the same extent, two 3x3 layers on
+    it and gathered back to each point beside the coarse context: the shape of poles, trunks, kerbs
+    and facade edges that a 0.8 m pillar max-pools away. It runs once per map region, never per
+    request. `load_coarse` starts it from a coarse encoder with the head's weights for it zero."""
+
+    def __init__(self, grid: PillarGrid = PillarGrid(), width: int = 32, norm: str = "batch", fine: bool = False):
         super().__init__()
         self.grid = grid
         self.local = nn.Sequential(point_mlp(4, width), point_mlp(width, width))
         self.bev = nn.Sequential(conv_bn(width, 48, stride=2, norm=norm), conv_bn(48, 48, norm=norm),
                                  conv_bn(48, 48, norm=norm))
         self.bev_out = conv_bn(48 + width, 48, k=1, norm=norm)
-        self.head = nn.Sequential(point_mlp(width + 48, 64), nn.Linear(64, FEATURE_DIM))
+        self.fine_grid = PillarGrid(cells=grid.cells * 2, cell_m=grid.cell_m / 2) if fine else None
+        self.fine = nn.Sequential(conv_bn(width, FINE_WIDTH, norm=norm), conv_bn(FINE_WIDTH, FINE_WIDTH, norm=norm)) if fine else None
+        self.head = nn.Sequential(point_mlp(width + 48 + (FINE_WIDTH if fine else 0), 64), nn.Linear(64, FEATURE_DIM))
 
-    def cell_index(self, centred: torch.Tensor) -> torch.Tensor:
-        g = self.grid
+    @staticmethod
+    def cell_index(centred: torch.Tensor, g: PillarGrid) -> torch.Tensor:
         ij = torch.floor(centred[..., :2] / g.cell_m + g.cells / 2).clamp(0, g.cells - 1)
         return (ij[..., 1] * g.cells + ij[..., 0]).long()  # [B, N], row = y, col = x
 
+    @staticmethod
+    def scatter_max(local: torch.Tensor, idx: torch.Tensor, g: PillarGrid) -> torch.Tensor:
+        """[B, C, N] per-point features (>= 0) max-pooled into [B, C, cells, cells]."""
+        b, c, n = local.shape
+        # Zeros built from `local` so the exported graph keeps a static rank for the grid.
+        grid = (local[:, :, :1] * 0.0).expand(b, c, g.cells * g.cells)
+        grid = grid.scatter_reduce(2, idx.unsqueeze(1).expand(b, c, n), local, reduce="amax", include_self=True)
+        return grid.view(b, c, g.cells, g.cells)
+
+    @staticmethod
+    def gather(grid: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        """[B, C, H, W] read back at each point's cell: [B, C, N]."""
+        flat = grid.flatten(2)
+        return flat.gather(2, idx.unsqueeze(1).expand(flat.shape[0], flat.shape[1], idx.shape[1]))
+
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        b, n, _ = points.shape
         centred = points - points.mean(dim=1, keepdim=True)
         g = self.grid
         # Height and the in-cell offset are yaw-agnostic local cues; the CNN supplies the layout.
@@ -90,18 +117,35 @@ class PointEncoder(nn.Module):
         radius = torch.sqrt((centred[..., :2] ** 2).sum(-1, keepdim=True)) / 40.0
         x = torch.cat([centred[..., 2:3] / 3.0, offset, radius], dim=-1)  # [B, N, 4]
         local = self.local(x).transpose(1, 2)  # [B, C, N], >= 0 after ReLU
-        c = local.shape[1]
-        idx = self.cell_index(centred).unsqueeze(1).expand(b, c, n)
-        # Zeros built from `local` so the exported graph keeps a static rank for the grid.
-        grid = (local[:, :, :1] * 0.0).expand(b, c, g.cells * g.cells)
-        grid = grid.scatter_reduce(2, idx, local, reduce="amax", include_self=True)
-        grid = grid.view(b, c, g.cells, g.cells)
+        idx = self.cell_index(centred, g)
+        grid = self.scatter_max(local, idx, g)
         ctx = self.bev(grid)
         ctx = F.interpolate(ctx, scale_factor=2.0, mode="nearest")
-        ctx = self.bev_out(torch.cat([ctx, grid], dim=1)).flatten(2)
-        gathered = ctx.gather(2, idx[:, :1].expand(b, ctx.shape[1], n))
-        out = self.head(torch.cat([local, gathered], dim=1).transpose(1, 2))
+        ctx = self.bev_out(torch.cat([ctx, grid], dim=1))
+        parts = [local, self.gather(ctx, idx)]
+        if self.fine is not None:
+            fine_idx = self.cell_index(centred, self.fine_grid)
+            parts.append(self.gather(self.fine(self.scatter_max(local, fine_idx, self.fine_grid)), fine_idx))
+        out = self.head(torch.cat(parts, dim=1).transpose(1, 2))
         return l2_normalise(out, dim=-1)
+
+    def load_coarse(self, state: dict[str, torch.Tensor]) -> int:
+        """A fine encoder from a coarse one's `state_dict`: every tensor they share, the head's first
+        layer's weights for the fine branch's channels zero (so the output is the coarse encoder's);
+        the fine layers keep their initialisation. Returns the number of tensors copied; raises
+        ValueError on a name this encoder lacks or any other shape that differs."""
+        mine = self.state_dict()
+        copied = {}
+        for key, value in state.items():
+            if key not in mine:
+                raise ValueError(f"{key}: not in this encoder (is the checkpoint a PointEncoder's?)")
+            if key == "head.0.0.weight" and self.fine is not None and value.shape[1] + FINE_WIDTH == mine[key].shape[1]:
+                value = torch.cat([value, value.new_zeros(value.shape[0], FINE_WIDTH)], 1)
+            if value.shape != mine[key].shape:
+                raise ValueError(f"{key}: shape {tuple(value.shape)}, expected {tuple(mine[key].shape)}")
+            copied[key] = value
+        self.load_state_dict(copied, strict=False)
+        return len(copied)
 
 
 class ImageEncoder(nn.Module):
@@ -476,12 +520,13 @@ class Agent(nn.Module):
         return self.decide(self.correlate(state_2d), state_3d)
 
 
-def build_all(norm: str = "batch", image_edges: bool = False, image_backbone: str = "scratch") -> dict[str, nn.Module]:
+def build_all(norm: str = "batch", image_edges: bool = False, image_backbone: str = "scratch",
+              point_encoder: str = "pillars") -> dict[str, nn.Module]:
     """`norm`: the encoders' normalisation (`NORMS`); `image_edges`: `ImageEncoder(edges=...)`;
     `image_backbone` (`IMAGE_BACKBONES`): "scratch" (`ImageEncoder`), "efficientnet_lite0" or
     "efficientnet_lite0_s32" (`LiteImageEncoder`, shallow or deep, its decoder normalised by `norm`;
-    untrained until `load_lite0`). A checkpoint
-    records all three in its config (`arch_of`)."""
+    untrained until `load_lite0`); `point_encoder` (`POINT_ENCODERS`): "pillars" or "pillars_fine"
+    (`PointEncoder(fine=...)`). A checkpoint records all four in its config (`arch_of`)."""
     if image_backbone == "scratch":
         image_encoder = ImageEncoder(norm=norm, edges=image_edges)
     elif image_backbone in ("efficientnet_lite0", "efficientnet_lite0_s32"):
@@ -490,13 +535,16 @@ def build_all(norm: str = "batch", image_edges: bool = False, image_backbone: st
         image_encoder = LiteImageEncoder(norm=norm, deep=image_backbone.endswith("_s32"))
     else:
         raise ValueError(f"unknown image_backbone {image_backbone!r}; expected one of {IMAGE_BACKBONES}")
-    return dict(point_encoder=PointEncoder(norm=norm), image_encoder=image_encoder, frustum_head=FrustumHead(), agent=Agent())
+    if point_encoder not in POINT_ENCODERS:
+        raise ValueError(f"unknown point_encoder {point_encoder!r}; expected one of {POINT_ENCODERS}")
+    return dict(point_encoder=PointEncoder(norm=norm, fine=point_encoder == "pillars_fine"), image_encoder=image_encoder,
+                frustum_head=FrustumHead(), agent=Agent())
 
 
 def arch_of(config: dict) -> dict:
     """`build_all`'s arguments from a checkpoint's config (older checkpoints: the v3 architecture)."""
     return dict(norm=config.get("norm", "batch"), image_edges=bool(config.get("image_edges", False)),
-                image_backbone=config.get("image_backbone", "scratch"))
+                image_backbone=config.get("image_backbone", "scratch"), point_encoder=config.get("point_encoder", "pillars"))
 
 
 def parameter_counts(models: dict[str, nn.Module]) -> dict[str, int]:

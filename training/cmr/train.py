@@ -73,6 +73,9 @@ class Config:
     # "efficientnet_lite0" (ImageNet-pretrained backbone, loaded at the start of a run that is not
     # initialised from a checkpoint), whose pretrained weights learn at backbone_lr_scale x the rate.
     image_backbone: str = "scratch"
+    # The point encoder (models.POINT_ENCODERS): "pillars" (every model up to v14) or
+    # "pillars_fine" (a second, 0.4 m grid; from a "pillars" checkpoint it starts at zero).
+    point_encoder: str = "pillars"
     backbone_lr_scale: float = 0.1
     circle_points: int = 512
     circle_radius_cells: float = 1.0
@@ -214,7 +217,7 @@ class Run:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
         torch.manual_seed(cfg.seed)
-        self.models = {k: m.to(self.device) for k, m in build_all(cfg.norm, cfg.image_edges, cfg.image_backbone).items()}
+        self.models = {k: m.to(self.device) for k, m in build_all(cfg.norm, cfg.image_edges, cfg.image_backbone, cfg.point_encoder).items()}
         if cfg.image_backbone != "scratch" and not cfg.init_from:
             print(f"image backbone {cfg.image_backbone}: {load_lite0(self.models['image_encoder'])} pretrained tensors",
                   flush=True)
@@ -292,17 +295,22 @@ class Run:
     def _init_from(self, path: Path) -> None:
         state = torch.load(path, map_location=self.device, weights_only=False)
         arch = arch_of(state.get("meta", {}).get("config", {}))
-        mine = dict(norm=self.cfg.norm, image_edges=self.cfg.image_edges, image_backbone=self.cfg.image_backbone)
-        # A shallow EfficientNet-Lite0 encoder may grow its stride-32 stages: pretrained, their
-        # branch into the decoder starting at zero (`LiteImageEncoder.load_shallow`).
-        deepen = arch == {**mine, "image_backbone": "efficientnet_lite0"} and mine["image_backbone"] == "efficientnet_lite0_s32"
-        if arch != mine and not deepen:
+        mine = dict(norm=self.cfg.norm, image_edges=self.cfg.image_edges, image_backbone=self.cfg.image_backbone,
+                    point_encoder=self.cfg.point_encoder)
+        # Encoders may grow from a checkpoint's, starting as it: a shallow EfficientNet-Lite0 encoder
+        # its stride-32 stages (`LiteImageEncoder.load_shallow`), a pillar encoder its fine grid
+        # (`PointEncoder.load_coarse`); each new branch's way into the output starts at zero.
+        grows = dict(image_backbone=("efficientnet_lite0", "efficientnet_lite0_s32"), point_encoder=("pillars", "pillars_fine"))
+        grown = {k for k, (old, new) in grows.items() if arch[k] == old and mine[k] == new}
+        if {k: v for k, v in arch.items() if k not in grown} != {k: v for k, v in mine.items() if k not in grown}:
             wanted = " ".join(f"{k}={v}" for k, v in arch.items())
             raise SystemExit(f"{path} was trained with {wanted}; pass --set {wanted}")
         for k, m in self.models.items():
-            if k == "image_encoder" and deepen:
+            if k == "image_encoder" and "image_backbone" in grown:
                 print(f"deepened image encoder: {load_lite0(m)} pretrained tensors, "
                       f"{m.load_shallow(state['models'][k])} from {path}", flush=True)
+            elif k == "point_encoder" and "point_encoder" in grown:
+                print(f"point encoder with a fine grid: {m.load_coarse(state['models'][k])} tensors from {path}", flush=True)
             elif k != "agent":
                 m.load_state_dict(state["models"][k])
         self._set_agent(state)
@@ -685,7 +693,7 @@ class Run:
 
 
 def adopt_init_architecture(cfg: Config, given: set[str]) -> Config:
-    """With `init_from`, the architecture (`norm`, `image_edges`, `image_backbone`) is the checkpoint's unless given
+    """With `init_from`, the architecture (`norm`, `image_edges`, `image_backbone`, `point_encoder`) is the checkpoint's unless given
     explicitly: a fine-tune of `models/` (v3: BatchNorm, v7: GroupNorm) needs no flag for it. A
     value given that contradicts the checkpoint stops the run in `Run._init_from`."""
     if not cfg.init_from or not Path(cfg.init_from).exists():
