@@ -7,7 +7,7 @@
 //! (after a deliberate change) with `REGENERATE_FIXTURES=1 cargo test --test calibration_fixture`.
 
 use cmr_agent::eval::calibration::{CalibrationReport, Judged};
-use cmr_agent::model::calibrator::{Calibrator, LOGISTIC, SIGNAL_NAMES, Signals};
+use cmr_agent::model::calibrator::{Calibration, Calibrator, LOGISTIC, SIGNAL_NAMES, Signals};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
@@ -29,6 +29,8 @@ fn calibrator() -> Calibrator {
         // Tight enough that some of the random signals below are cut.
         clip: Some(1.5),
         threshold: 0.7,
+        // Below `threshold`, so some bounded cases are localized that an unbounded one would not be.
+        bounded_threshold: Some(0.45),
         provenance: json!({"command": "tests/calibration_fixture.rs"}),
     }
 }
@@ -53,10 +55,12 @@ fn random_signals(rng: &mut ChaCha8Rng) -> Signals {
 fn compute() -> Value {
     let mut rng = ChaCha8Rng::seed_from_u64(30);
     let c = calibrator();
+    let verdicts = Calibration::new(Some(&c), None);
     let cases: Vec<Value> = (0..24)
         .map(|_| {
             let s = random_signals(&mut rng);
-            json!({"signals": s, "p_registered": c.probability(&s).unwrap()})
+            let v = verdicts.judge(&s);
+            json!({"signals": s, "p_registered": c.probability(&s).unwrap(), "localized": v.localized})
         })
         .collect();
     // A scored set: p with ties and both outcomes.

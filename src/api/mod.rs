@@ -109,7 +109,11 @@ pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
     let lifecycle = Arc::new(Lifecycle::default());
     let localizer = Localizer::new(maps.clone(), scheduler.clone(), lifecycle.clone(), models.manifest.clone(), engine.localizer());
     match localizer.calibration.threshold() {
-        Some(t) => tracing::info!(threshold = t, "answers are localized when p_registered >= threshold"),
+        Some(t) => tracing::info!(
+            threshold = t,
+            bounded_threshold = localizer.calibration.bounded_threshold(),
+            "answers are localized when p_registered >= threshold (bounded_threshold for requests with a prior_bound)"
+        ),
         None => tracing::warn!("the model set has no calibrator: every answer is p_registered null, localized false"),
     }
     Ok(Arc::new(AppState { config, models, localizer, maps, scheduler, lifecycle, metrics: metrics_handle() }))

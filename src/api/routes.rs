@@ -90,6 +90,7 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             default_radius_m: c.default_radius_m,
         },
         localized_threshold: st.localizer.calibration.threshold(),
+        localized_threshold_bounded: st.localizer.calibration.bounded_threshold(),
         workers: serve.workers(),
         onnxruntime_library: crate::model::runtime::loaded_library().map(|p| p.display().to_string()),
     })

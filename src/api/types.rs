@@ -99,10 +99,11 @@ pub struct ConfidenceBody {
     /// before it) or a signal it reads is not finite.
     #[schema(required = true, minimum = 0.0, maximum = 1.0)]
     pub p_registered: Option<f64>,
-    /// `p_registered` ≥ the threshold in force (`localized_threshold` of `/v1/info`: the
-    /// manifest's, chosen on calibration data for a precision of at least 95 %, or `serve
-    /// --localized-threshold`). False whenever `p_registered` is null. Act on the pose only when
-    /// true; otherwise treat it as unknown.
+    /// `p_registered` ≥ the threshold in force (`localized_threshold` of `/v1/info`, or
+    /// `localized_threshold_bounded` when the request stated a `prior_bound`: the manifest's,
+    /// each chosen on calibration data for a precision of at least 95 %, or `serve
+    /// --localized-threshold` for both). False whenever `p_registered` is null. Act on the pose
+    /// only when true; otherwise treat it as unknown.
     pub localized: bool,
     /// What the calibrator reads (each field documented in the schema).
     pub signals: crate::model::Signals,
@@ -511,6 +512,11 @@ pub struct Info {
     /// the model set has no calibrator (then no answer is localized).
     #[schema(required = true, minimum = 0.0)]
     pub localized_threshold: Option<f64>,
+    /// The same for a request that states a `prior_bound` (its answers are right more often at
+    /// the same probability, so the model set may set a lower bar for them); null without a
+    /// calibrator.
+    #[schema(required = true, minimum = 0.0)]
+    pub localized_threshold_bounded: Option<f64>,
     pub workers: usize,
     pub onnxruntime_library: Option<String>,
 }

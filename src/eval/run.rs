@@ -9,7 +9,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use crate::agent::SearchConfig;
 use crate::agent::SearchTuning;
 use crate::geometry::{ActionFrame, ActionSet, Pose, PoseError};
-use crate::model::{BackendOptions, ModelSet};
+use crate::model::{BackendOptions, Calibration, ModelSet};
 
 use super::data::Dataset;
 use super::calibration::CalibrationReport;
@@ -150,9 +150,9 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
     let (mut num_points, mut actions) = (config.num_points, ActionSet::default());
     let mut learned_index = None;
     let mut provenance = serde_json::Value::Null;
-    let mut threshold = None;
+    let mut calibration = None;
     if let Some(set) = &models {
-        threshold = set.manifest.calibrator.as_ref().map(|c| c.threshold);
+        calibration = set.manifest.calibrator.as_ref().map(|c| Calibration::new(Some(c), None));
         num_points = set.manifest.points.num_points;
         provenance = set.manifest.provenance.clone();
         actions = set.manifest.action_set();
@@ -183,12 +183,16 @@ pub fn run(config: &EvalConfig) -> Result<EvalReport> {
         (!times.is_empty()).then(|| MeanStd::of(times))
     });
     let parameters = Learned::parameters(&graph_parameters);
-    // The verdict's figures for each agent method (none without a calibrator).
-    let calibration = threshold
-        .map(|t| {
-            [AGENT, AGENT_SINGLE_START]
+    // The verdict's figures for each agent method (none without a calibrator), at the threshold
+    // each met: the bounded one for the served search of a bounded run (the single start is
+    // never bounded: `SearchConfig::single`).
+    let bounded = config.search().prior_bound.is_some();
+    let calibration = calibration
+        .map(|c| {
+            [(AGENT, bounded), (AGENT_SINGLE_START, false)]
                 .into_iter()
-                .filter_map(|m| {
+                .filter_map(|(m, bounded)| {
+                    let t = if bounded { c.bounded_threshold() } else { c.threshold() }?;
                     let judged = CalibrationReport::judged(&records, m);
                     (!judged.is_empty()).then(|| CalibrationReport::of(m, t, &judged))
                 })

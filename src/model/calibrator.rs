@@ -129,6 +129,11 @@ pub struct Calibrator {
     /// `localized` = p_registered ≥ this, in [0, 1]; chosen on the calibration data for the
     /// precision of `localized` (see `provenance`). `serve --localized-threshold` overrides it.
     pub threshold: f64,
+    /// The same for a request that stated a prior bound (signal `bounded` = 1), chosen on such
+    /// answers alone: they are right far more often than unbounded ones at the same p, so one
+    /// threshold for both would vouch for few of them. Absent (calibrators before it): `threshold`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub bounded_threshold: Option<f64>,
     /// Data, command, date and the fit's figures (free-form, written by `cmr.calibrate`).
     #[serde(default)]
     pub provenance: serde_json::Value,
@@ -173,6 +178,9 @@ impl Calibrator {
         if !(0.0..=1.0).contains(&self.threshold) {
             return Err(format!("calibrator.threshold {} is outside [0, 1]", self.threshold));
         }
+        if let Some(t) = self.bounded_threshold.filter(|t| !(0.0..=1.0).contains(t)) {
+            return Err(format!("calibrator.bounded_threshold {t} is outside [0, 1]"));
+        }
         Ok(())
     }
 
@@ -201,24 +209,31 @@ pub struct Verdict {
     pub localized: bool,
 }
 
-/// A model set's calibrator with the threshold in force (the manifest's, or an override).
+/// A model set's calibrator with the thresholds in force (the manifest's, or an override).
 #[derive(Debug, Clone, Default)]
 pub struct Calibration {
     calibrator: Option<Calibrator>,
     threshold: f64,
+    bounded_threshold: f64,
 }
 
 impl Calibration {
-    /// The manifest's calibrator (none: every verdict uncalibrated) with its threshold, or
-    /// `threshold` instead when given (a value above 1 never calls an answer localized).
+    /// The manifest's calibrator (none: every verdict uncalibrated) with its thresholds, or
+    /// `threshold` instead of both when given (a value above 1 never calls an answer localized).
     pub fn new(calibrator: Option<&Calibrator>, threshold: Option<f64>) -> Self {
-        let threshold = threshold.or(calibrator.map(|c| c.threshold)).unwrap_or(1.0);
-        Self { calibrator: calibrator.cloned(), threshold }
+        let unbounded = threshold.or(calibrator.map(|c| c.threshold)).unwrap_or(1.0);
+        let bounded = threshold.or(calibrator.and_then(|c| c.bounded_threshold)).unwrap_or(unbounded);
+        Self { calibrator: calibrator.cloned(), threshold: unbounded, bounded_threshold: bounded }
     }
 
-    /// The threshold in force; `None` without a calibrator.
+    /// The threshold in force for requests without a prior bound; `None` without a calibrator.
     pub fn threshold(&self) -> Option<f64> {
         self.calibrator.as_ref().map(|_| self.threshold)
+    }
+
+    /// The threshold in force for requests that state a prior bound; `None` without a calibrator.
+    pub fn bounded_threshold(&self) -> Option<f64> {
+        self.calibrator.as_ref().map(|_| self.bounded_threshold)
     }
 
     pub fn is_calibrated(&self) -> bool {
@@ -228,7 +243,8 @@ impl Calibration {
     /// The verdict on one localization's signals.
     pub fn judge(&self, signals: &Signals) -> Verdict {
         let p = self.calibrator.as_ref().and_then(|c| c.probability(signals));
-        Verdict { p_registered: p, localized: p.is_some_and(|p| p >= self.threshold) }
+        let threshold = if signals.bounded > 0.5 { self.bounded_threshold } else { self.threshold };
+        Verdict { p_registered: p, localized: p.is_some_and(|p| p >= threshold) }
     }
 }
 
@@ -264,6 +280,7 @@ mod tests {
             bias: 0.25,
             clip: None,
             threshold: 0.7,
+            bounded_threshold: None,
             provenance: serde_json::Value::Null,
         }
     }
@@ -309,6 +326,31 @@ mod tests {
     }
 
     #[test]
+    fn a_bounded_request_meets_its_own_threshold() {
+        let c = Calibrator { bounded_threshold: Some(0.9), ..calibrator() };
+        let p = c.probability(&signals()).unwrap();
+        let bounded = Signals { bounded: 1.0, ..signals() };
+        let p_bounded = c.probability(&bounded).unwrap();
+        assert_eq!(p, p_bounded, "the test calibrator does not read `bounded`");
+        let cal = Calibration::new(Some(&c), None);
+        assert!(cal.judge(&signals()).localized, "unbounded: p {p} >= 0.7");
+        assert!(!cal.judge(&bounded).localized, "bounded: p {p} < 0.9");
+        assert_eq!((cal.threshold(), cal.bounded_threshold()), (Some(0.7), Some(0.9)));
+        let easier = Calibration::new(Some(&Calibrator { bounded_threshold: Some(0.6), threshold: 0.95, ..calibrator() }), None);
+        assert!(easier.judge(&bounded).localized && !easier.judge(&signals()).localized);
+        // Without the field, bounded requests use `threshold`; an override replaces both.
+        assert_eq!(Calibration::new(Some(&calibrator()), None).bounded_threshold(), Some(0.7));
+        let overridden = Calibration::new(Some(&c), Some(0.5));
+        assert_eq!((overridden.threshold(), overridden.bounded_threshold()), (Some(0.5), Some(0.5)));
+        assert!(overridden.judge(&bounded).localized);
+        // The field round-trips through the manifest's JSON and is left out when absent.
+        let json = serde_json::to_value(&c).unwrap();
+        assert_eq!(json["bounded_threshold"], 0.9);
+        assert_eq!(serde_json::from_value::<Calibrator>(json).unwrap(), c);
+        assert!(serde_json::to_value(calibrator()).unwrap().get("bounded_threshold").is_none());
+    }
+
+    #[test]
     fn without_a_calibrator_nothing_is_vouched_for() {
         let none = Calibration::new(None, Some(0.0));
         assert_eq!(none.judge(&signals()), Verdict { p_registered: None, localized: false });
@@ -327,6 +369,7 @@ mod tests {
             (Box::new(|c| c.std[0] = 0.0), "std must be positive"),
             (Box::new(|c| c.mean[0] = f64::INFINITY), "calibrator.mean"),
             (Box::new(|c| c.threshold = 1.5), "threshold"),
+            (Box::new(|c| c.bounded_threshold = Some(-0.1)), "calibrator.bounded_threshold"),
             (Box::new(|c| c.clip = Some(0.0)), "calibrator.clip"),
             (Box::new(|c| c.features.clear()), "empty"),
         ];

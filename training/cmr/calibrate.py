@@ -26,7 +26,10 @@ probability too.
 
 Threshold: the smallest t such that, on every cases file separately, the out-of-fold precision of
 "p >= t" is at least the target at t and at every higher threshold (a file with nothing localized
-counts as meeting it); 1.0 (hardly ever localized) when no such t exists. Folds (5) never split a
+counts as meeting it); 1.0 (hardly ever localized) when no such t exists. Two thresholds, each
+chosen that way on its own answers: `threshold` on those of requests without a prior bound, and
+`bounded_threshold` on those of requests that stated one (signal `bounded`), which are right far
+more often at the same p (docs/evaluation.md, "A threshold for bounded requests"). Folds (5) never split a
 group: a drive (`--drives`, e.g. `real_split`'s rigs.json, for real frames whose drives share
 scenes) or a synthetic sequence, across all the files of one data folder.
 """
@@ -133,6 +136,14 @@ def probability(calibrator: dict, signals: np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-(calibrator["bias"] + z @ np.asarray(calibrator["weights"]))))
 
 
+def thresholds(calibrator: dict, signals: np.ndarray) -> np.ndarray:
+    """The threshold each row of signals [n, len(SIGNALS)] must meet to be `localized`: the twin of
+    Rust's `Calibration::judge` (`bounded_threshold` for a bounded request when the section has
+    one, else `threshold`)."""
+    bounded = signals[:, SIGNALS.index("bounded")] > 0.5
+    return np.where(bounded, calibrator.get("bounded_threshold", calibrator["threshold"]), calibrator["threshold"])
+
+
 def brier(p: np.ndarray, y: np.ndarray) -> float:
     """Mean (p - y)^2: eval::calibration::brier."""
     return float(np.mean((p - y.astype(np.float64)) ** 2))
@@ -169,14 +180,16 @@ def reliability_bins(p: np.ndarray, y: np.ndarray) -> list[dict]:
     return bins
 
 
-def scores(p: np.ndarray, y: np.ndarray, threshold: float) -> dict:
-    """The figures of eval::calibration::CalibrationReport (without method and bins) for p [n], y [n] bool."""
+def scores(p: np.ndarray, y: np.ndarray, threshold: float | np.ndarray) -> dict:
+    """The figures of eval::calibration::CalibrationReport (without method and bins) for p [n], y [n]
+    bool, at one threshold or one per row (`thresholds`; reported as the sorted distinct values)."""
     n = len(p)
     localized = p >= threshold
     rate = float(y.mean()) if n else 0.0
     bins = reliability_bins(p, y)
+    distinct = sorted({float(t) for t in np.broadcast_to(threshold, p.shape)})
     return dict(
-        threshold=threshold, cases=n, registered=int(y.sum()), localized=int(localized.sum()),
+        threshold=distinct[0] if len(distinct) == 1 else distinct, cases=n, registered=int(y.sum()), localized=int(localized.sum()),
         localized_registered=int((localized & y).sum()),
         precision=float((localized & y).sum() / localized.sum()) if localized.any() else None,
         recall=float((localized & y).sum() / y.sum()) if y.any() else None,
@@ -234,12 +247,22 @@ def fit(rows: dict, features: tuple[str, ...] = SIGNALS, l2: float = 1.0, k: int
             oof[held] = probability(train(~held), rows["x"][held])
     candidates = np.unique(np.concatenate([oof, [1.0]]))
     files = sorted(set(rows["file"].tolist()))
-    threshold = max(smallest_safe_threshold(oof[rows["file"] == i], y[rows["file"] == i], candidates, target_precision)
-                    for i in files)
+    bounded = rows["x"][:, SIGNALS.index("bounded")] > 0.5
+
+    def safe(kind: np.ndarray) -> float:
+        """The threshold every file's answers of this kind meet."""
+        return max((smallest_safe_threshold(oof[(rows["file"] == i) & kind], y[(rows["file"] == i) & kind], candidates,
+                                            target_precision) for i in files if ((rows["file"] == i) & kind).any()),
+                   default=1.0)
+
     calibrator = train(np.ones(len(y), bool))
-    calibrator["threshold"] = threshold
-    report = dict(p=oof, threshold=threshold, pooled=scores(oof, y, threshold),
-                  per_file={int(i): scores(oof[rows["file"] == i], y[rows["file"] == i], threshold) for i in files})
+    calibrator["threshold"] = safe(~bounded)
+    if bounded.any():
+        calibrator["bounded_threshold"] = safe(bounded)
+    t = thresholds(calibrator, rows["x"])
+    report = dict(p=oof, threshold=calibrator["threshold"], bounded_threshold=calibrator.get("bounded_threshold"),
+                  pooled=scores(oof, y, t),
+                  per_file={int(i): scores(oof[rows["file"] == i], y[rows["file"] == i], t[rows["file"] == i]) for i in files})
     return calibrator, report
 
 

@@ -25,6 +25,16 @@ def test_probability_matches_rust():
     assert np.mean((expected > 0.05) & (expected < 0.95)) > 0.75  # the cases span the curve, not its flat ends
 
 
+def test_localized_matches_rust():
+    """Each case meets its own threshold: `bounded_threshold` for a bounded request."""
+    cal = FIXTURE["calibrator"]
+    signals = np.array([[case["signals"][name] for name in c.SIGNALS] for case in FIXTURE["cases"]])
+    localized = c.probability(cal, signals) >= c.thresholds(cal, signals)
+    assert localized.tolist() == [case["localized"] for case in FIXTURE["cases"]]
+    p, bounded = c.probability(cal, signals), signals[:, c.SIGNALS.index("bounded")] > 0.5
+    assert (bounded & (p >= cal["bounded_threshold"]) & (p < cal["threshold"])).any(), "the fixture exercises the bounded threshold"
+
+
 def test_scores_match_rust():
     s = FIXTURE["scored"]
     p, y = np.array(s["p"]), np.array(s["registered"], dtype=bool)
@@ -106,6 +116,37 @@ def test_the_command_writes_only_the_calibrator(tmp_path):
     for scores in oof["per_file"].values():
         assert scores["precision"] is None or scores["precision"] >= 0.95
     assert [d["records"] for d in cal["provenance"]["data"]] == [300, 300, 300]
+
+
+def test_bounded_requests_get_their_own_threshold():
+    """Answers of bounded requests are right more often at the same p: their threshold is chosen on
+    them alone, each kind keeps the target precision out of fold in every file, and `thresholds`
+    (the twin of Rust's `Calibration::judge`) gives each row its own."""
+    rng = np.random.default_rng(11)
+    n = 1200
+    bounded = rng.uniform(size=n) < 0.5
+    good = rng.uniform(size=n) < np.where(bounded, 0.7, 0.3)
+    x = rng.uniform(size=(n, len(c.SIGNALS)))
+    x[:, c.SIGNALS.index("bounded")] = bounded
+    # unbounded answers: a noisy score; bounded ones: the same score, cleanly separated
+    x[:, c.SIGNALS.index("alignment")] = np.where(good, 0.6, 0.4) + rng.normal(0, np.where(bounded, 0.05, 0.12))
+    rows = dict(x=x, y=good, file=np.arange(n) % 2, group=np.array([f"g{i % 40}" for i in range(n)]),
+                method=np.array(["cmr-agent"] * n))
+    cal, report = c.fit(rows, features=("alignment", "bounded"))
+    assert 0.0 < cal["bounded_threshold"] < cal["threshold"] <= 1.0, cal
+    t = c.thresholds(cal, x)
+    assert np.array_equal(t, np.where(bounded, cal["bounded_threshold"], cal["threshold"]))
+    localized = report["p"] >= t
+    for f in (0, 1):
+        for kind in (bounded, ~bounded):
+            m = (rows["file"] == f) & kind & localized
+            assert m.sum() > 0 and good[m].mean() >= 0.95
+    # bounded answers localized at their own threshold that the single one would not vouch for
+    assert (localized & bounded & (report["p"] < cal["threshold"])).sum() > 20
+    assert report["pooled"]["threshold"] == sorted([cal["bounded_threshold"], cal["threshold"]])
+    # a section without the field: every row meets `threshold`
+    plain = {k: v for k, v in cal.items() if k != "bounded_threshold"}
+    assert np.all(c.thresholds(plain, x) == cal["threshold"])
 
 
 def test_folds_keep_groups_whole():
