@@ -3,7 +3,7 @@
 # in the paper's protocol and from fleet-grade priors, with keep-prior off and on, and the fleet
 # priors again stated as a bound (--prior-bound 30,5: the request's prior_bound, whose answers the
 # `bounded` signal tells apart), then `python -m cmr.calibrate` writes `calibrator` into
-# MODELS/manifest.json.
+# MODELS/manifest.json, with one threshold for unbounded requests and one for bounded ones.
 #
 #   scripts/fit-calibrator.sh MODELS REAL
 #
