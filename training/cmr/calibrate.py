@@ -251,9 +251,8 @@ def fit(rows: dict, features: tuple[str, ...] = SIGNALS, l2: float = 1.0, k: int
 
     def safe(kind: np.ndarray) -> float:
         """The threshold every file's answers of this kind meet."""
-        return max((smallest_safe_threshold(oof[(rows["file"] == i) & kind], y[(rows["file"] == i) & kind], candidates,
-                                            target_precision) for i in files if ((rows["file"] == i) & kind).any()),
-                   default=1.0)
+        masks = [m for m in ((rows["file"] == i) & kind for i in files) if m.any()]
+        return max((smallest_safe_threshold(oof[m], y[m], candidates, target_precision) for m in masks), default=1.0)
 
     calibrator = train(np.ones(len(y), bool))
     calibrator["threshold"] = safe(~bounded)

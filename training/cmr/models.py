@@ -55,6 +55,26 @@ def point_mlp(cin: int, cout: int) -> nn.Sequential:
     return nn.Sequential(nn.Linear(cin, cout), nn.ReLU(inplace=True))
 
 
+def load_grown(module: nn.Module, state: dict[str, torch.Tensor], widened: str, extra: int) -> int:
+    """Loads a smaller module's `state_dict` into `module`, which grew a branch: every tensor they
+    share, and the weight `widened` (the first layer that reads the new branch) given `extra` zero
+    input channels, so `module` computes what the smaller one did; the new branch keeps what it
+    holds. Returns the number of tensors copied; raises ValueError on a name `module` lacks or any
+    other shape that differs."""
+    mine = module.state_dict()
+    copied = {}
+    for key, value in state.items():
+        if key not in mine:
+            raise ValueError(f"{key}: not in this encoder (is the checkpoint a {type(module).__name__}'s?)")
+        if key == widened and value.shape[1] + extra == mine[key].shape[1]:
+            value = torch.cat([value, value.new_zeros(value.shape[0], extra, *value.shape[2:])], 1)
+        if value.shape != mine[key].shape:
+            raise ValueError(f"{key}: shape {tuple(value.shape)}, expected {tuple(mine[key].shape)}")
+        copied[key] = value
+    module.load_state_dict(copied, strict=False)
+    return len(copied)
+
+
 FINE_WIDTH = 32  # channels of PointEncoder's fine grid
 
 
@@ -130,22 +150,10 @@ class PointEncoder(nn.Module):
         return l2_normalise(out, dim=-1)
 
     def load_coarse(self, state: dict[str, torch.Tensor]) -> int:
-        """A fine encoder from a coarse one's `state_dict`: every tensor they share, the head's first
-        layer's weights for the fine branch's channels zero (so the output is the coarse encoder's);
-        the fine layers keep their initialisation. Returns the number of tensors copied; raises
-        ValueError on a name this encoder lacks or any other shape that differs."""
-        mine = self.state_dict()
-        copied = {}
-        for key, value in state.items():
-            if key not in mine:
-                raise ValueError(f"{key}: not in this encoder (is the checkpoint a PointEncoder's?)")
-            if key == "head.0.0.weight" and self.fine is not None and value.shape[1] + FINE_WIDTH == mine[key].shape[1]:
-                value = torch.cat([value, value.new_zeros(value.shape[0], FINE_WIDTH)], 1)
-            if value.shape != mine[key].shape:
-                raise ValueError(f"{key}: shape {tuple(value.shape)}, expected {tuple(mine[key].shape)}")
-            copied[key] = value
-        self.load_state_dict(copied, strict=False)
-        return len(copied)
+        """A fine encoder from a coarse one's `state_dict` (`load_grown`): the head's first layer's
+        weights for the fine branch's channels zero, so the output is the coarse encoder's; the
+        fine layers keep their initialisation."""
+        return load_grown(self, state, "head.0.0.weight" if self.fine is not None else "", FINE_WIDTH)
 
 
 class ImageEncoder(nn.Module):
@@ -319,23 +327,10 @@ class LiteImageEncoder(nn.Module):
         return l2_normalise(self.out(x), dim=1)
 
     def load_shallow(self, state: dict[str, torch.Tensor]) -> int:
-        """A deep encoder from a shallow one's `state_dict`: every tensor they share; the stride-16
-        lateral layer's weights for the stride-32 branch's 64 input channels zero, so the output is
-        the shallow encoder's. The stride-32 blocks keep what they hold (`load_lite0` first).
-        Returns the number of tensors copied; raises ValueError on a name it lacks or any other
-        shape that differs."""
-        mine = self.state_dict()
-        copied = {}
-        for key, value in state.items():
-            if key not in mine:
-                raise ValueError(f"{key}: not in this encoder (is the checkpoint a LiteImageEncoder's?)")
-            if key == "lateral16.0.weight" and self.deep and value.shape[1] + 64 == mine[key].shape[1]:
-                value = torch.cat([value, value.new_zeros(value.shape[0], 64, *value.shape[2:])], 1)
-            if value.shape != mine[key].shape:
-                raise ValueError(f"{key}: shape {tuple(value.shape)}, expected {tuple(mine[key].shape)}")
-            copied[key] = value
-        self.load_state_dict(copied, strict=False)
-        return len(copied)
+        """A deep encoder from a shallow one's `state_dict` (`load_grown`): the stride-16 lateral
+        layer's weights for the stride-32 branch's 64 input channels zero, so the output is the
+        shallow encoder's. The stride-32 blocks keep what they hold (`load_lite0` first)."""
+        return load_grown(self, state, "lateral16.0.weight" if self.deep else "", 64)
 
 
 def lite0_weights_path() -> Path:

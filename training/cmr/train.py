@@ -217,7 +217,7 @@ class Run:
         self.dir.mkdir(parents=True, exist_ok=True)
         self.device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
         torch.manual_seed(cfg.seed)
-        self.models = {k: m.to(self.device) for k, m in build_all(cfg.norm, cfg.image_edges, cfg.image_backbone, cfg.point_encoder).items()}
+        self.models = {k: m.to(self.device) for k, m in build_all(**arch_of(dataclasses.asdict(cfg))).items()}
         if cfg.image_backbone != "scratch" and not cfg.init_from:
             print(f"image backbone {cfg.image_backbone}: {load_lite0(self.models['image_encoder'])} pretrained tensors",
                   flush=True)
@@ -295,8 +295,7 @@ class Run:
     def _init_from(self, path: Path) -> None:
         state = torch.load(path, map_location=self.device, weights_only=False)
         arch = arch_of(state.get("meta", {}).get("config", {}))
-        mine = dict(norm=self.cfg.norm, image_edges=self.cfg.image_edges, image_backbone=self.cfg.image_backbone,
-                    point_encoder=self.cfg.point_encoder)
+        mine = arch_of(dataclasses.asdict(self.cfg))
         # Encoders may grow from a checkpoint's, starting as it: a shallow EfficientNet-Lite0 encoder
         # its stride-32 stages (`LiteImageEncoder.load_shallow`), a pillar encoder its fine grid
         # (`PointEncoder.load_coarse`); each new branch's way into the output starts at zero.
