@@ -7,20 +7,31 @@
 #   scripts/finetune-rig.sh train   # import the shipped set, stage 1 then stage 2 (niced, foreground)
 #   scripts/finetune-rig.sh eval    # export; `cmr-agent eval` of shipped and fine-tuned on the same cases
 #
-# Default: nuScenes, train on scene-0523 (27 frames), held out scene-0916 (28 frames), both from
-# ../shared/real-train (sequences 022-048 and 049-076, see `cmr.real_split`'s rigs.json).
-# Environment: TRAIN_SEQS / HELD_SEQS (sequence ids, space-separated), NAME (default ft-nuscenes),
-# WORK (default ~/.cache/cmr-agent/runs/$NAME), EMBED_STEPS (1000), AGENT_ITERS (200), NICE (5),
-# REAL (default ../shared/real-train), CASES (default docs/eval/$NAME-held-perturbations.json).
+# RIG picks the drives from ../shared/real-train (`cmr.real_split`'s rigs.json); both held-out
+# drives are `cmr.real_split`'s validation drives, which no shipped model since v7 has read:
+#   ddad (default)  train on scene_02 (sequences 082-090, 9 frames), held out scene_01 (079-081, 3 frames)
+#   aimotive        train on keyframes 33643-33679 (091-103, 13 frames), held out 33682-33691 (104-107, 4)
+# Environment: RIG, or TRAIN_SEQS / HELD_SEQS (sequence ids, space-separated) for your own drive,
+# NAME (default ft-$RIG), WORK (default ~/.cache/cmr-agent/runs/$NAME), MODELS (the set to start
+# from, default models/), EMBED_STEPS (600), AGENT_ITERS (300), NICE (5), REAL (default
+# ../shared/real-train), CASES (default docs/eval/$NAME-held-perturbations.json; drawn on first use).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
-NAME=${NAME:-ft-nuscenes}
+RIG=${RIG:-ddad}
+case $RIG in
+  ddad) train_default=$(seq -f %03g 82 90); held_default=$(seq -f %03g 79 81) ;;
+  aimotive) train_default=$(seq -f %03g 91 103); held_default=$(seq -f %03g 104 107) ;;
+  *) train_default=""; held_default="" ;;
+esac
+NAME=${NAME:-ft-$RIG}
 WORK=${WORK:-$HOME/.cache/cmr-agent/runs/$NAME}
+MODELS=$(readlink -f "${MODELS:-$ROOT/models}")
 REAL=$(readlink -f "${REAL:-$ROOT/../shared/real-train}")
-TRAIN_SEQS=${TRAIN_SEQS:-$(seq -f %03g 22 48)}
-HELD_SEQS=${HELD_SEQS:-$(seq -f %03g 49 76)}
-EMBED_STEPS=${EMBED_STEPS:-1000}
-AGENT_ITERS=${AGENT_ITERS:-200}
+TRAIN_SEQS=${TRAIN_SEQS:-$train_default}
+HELD_SEQS=${HELD_SEQS:-$held_default}
+[ -n "$TRAIN_SEQS" ] && [ -n "$HELD_SEQS" ] || { echo "RIG=$RIG is not a preset: set TRAIN_SEQS and HELD_SEQS" >&2; exit 2; }
+EMBED_STEPS=${EMBED_STEPS:-600}
+AGENT_ITERS=${AGENT_ITERS:-300}
 NICE=${NICE:-5}
 CASES=${CASES:-$ROOT/docs/eval/$NAME-held-perturbations.json}
 PY=$ROOT/.venv/bin/python
@@ -33,19 +44,24 @@ data() {
   echo "train: $(ls "$WORK/train" | wc -l) frames, held out: $(ls "$WORK/held" | wc -l) frames, in $WORK"
 }
 
-# Stage 1 with the shipped BatchNorm statistics frozen and the ranking term (the alignment score
-# must rank the true pose above perturbed ones), then stage 2 in the shipped action frame. The
-# held-out drive is the validation set; training never reads it.
+# The shipped set's weights (`cmr.import_onnx`: what a user of `models/` has), then stage 1 at a
+# fifth of the shipped run's learning rate with its ranking term and transfer augmentations, then
+# stage 2 at a sixth of its rate with fleet-like starts for a third of the episodes, in the
+# shipped action frame and normalisation. The held-out drive is the validation set only (training's
+# own figure); training never reads it.
 train() {
   cd "$ROOT/training"
-  [ -f "$WORK/shipped.pt" ] || "$PY" -m cmr.import_onnx ../models --out "$WORK/shipped.pt"
+  [ -f "$WORK/shipped.pt" ] || "$PY" -m cmr.import_onnx "$MODELS" --out "$WORK/shipped.pt"
+  # the architecture follows the checkpoint (`cmr.train`); the action frame is read from it too
+  local frame
+  frame=$("$PY" -c "import torch,sys; print(torch.load(sys.argv[1], map_location='cpu', weights_only=False)['meta']['config'].get('action_frame', 'camera_y'))" "$WORK/shipped.pt")
   nice -n "$NICE" "$PY" -m cmr.train --data "$WORK/train" --val-data "$WORK/held" --out "$WORK/run" --set \
-    init_from="$WORK/shipped.pt" embed_frozen_bn=true embed_steps="$EMBED_STEPS" embed_lr=5e-4 \
-    embed_schedule=cosine embed_warmup=100 embed_lr_min=2e-5 embed_grad_clip=5 rank_weight=2 rank_poses=8 \
-    photometric=heavy lidar_aug=true embed_eval_every=250 \
-    agent_iters="$AGENT_ITERS" agent_lr=2e-4 agent_lr_min=2e-5 agent_ema=0.995 bc_only_iters=100 \
-    expert_mix_start=0.3 expert_mix_iters=100 pool_size=24 update_epochs=2 eval_every=50 eval_frames=12 \
-    checkpoint_every=25 log_every=20 threads=2 loader_workers=1
+    action_frame="$frame" init_from="$WORK/shipped.pt" embed_steps="$EMBED_STEPS" embed_lr=2e-4 backbone_lr_scale=0.1 \
+    embed_schedule=cosine embed_warmup=50 embed_lr_min=1e-5 embed_grad_clip=5 rank_weight=2 rank_poses=8 rank_far=0.5 \
+    photometric=heavy scale_max=1.5 lidar_aug=true embed_eval_every=300 \
+    agent_iters="$AGENT_ITERS" agent_lr=5e-5 agent_lr_min=1e-5 agent_ema=0.995 bc_only_iters=0 \
+    expert_mix_start=0.2 expert_mix_iters=100 near_start_p=0.3 pool_size=24 update_epochs=2 eval_every=100 eval_frames=12 \
+    checkpoint_every=50 log_every=20 threads=2 loader_workers=1
 }
 
 # Exported and quantised as the shipped set is (int8 Conv layers, calibrated on the rig's training
@@ -65,7 +81,7 @@ evaluate() {
         held-fleet) cases=${CASES%-perturbations.json}-fleet-perturbations.json ;;
         *) cases=$WORK/$part-$regime-perturbations.json ;;
       esac
-      for m in shipped:models tuned:"$WORK/models"; do
+      for m in shipped:"$MODELS" tuned:"$WORK/models"; do
         nice -n "$NICE" "$BIN" eval --data "$WORK/$part" --models "${m#*:}" --out "$WORK/eval-${m%%:*}-$part-$regime" \
           --perturbations "$cases" --cases-per-frame 8 --priors $regime --seed 33 --quiet >/dev/null
         echo "== ${m%%:*} model, $part frames, $regime priors ($(basename "$cases"))"

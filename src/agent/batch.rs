@@ -103,8 +103,9 @@ impl<T: Send> Batch<T> {
         }
     }
 
-    /// One batched policy call for every running hypothesis of every request; returns the rows
-    /// stepped (0 when nothing was left to step).
+    /// One step of every running hypothesis of every request: one batched policy call for those
+    /// that need the policy, a replayed step for those that repeat a cycle (`Search::replay`);
+    /// returns the policy rows (0 when no hypothesis needed the policy).
     pub fn step(&mut self, backend: &mut dyn Backend) -> usize {
         let (l2, l3) = (self.layout.state_2d_len(), self.layout.state_3d_len());
         // Rows whose pose is unusable fail their request here, before any state is built.
@@ -113,6 +114,10 @@ impl<T: Send> Batch<T> {
                 r.failed = Some(StepError::NonFinite(format!("hypothesis {h} reached a pose that is not finite or beyond the coordinate bound")));
             }
         }
+        // Hypotheses that repeat a cycle take their step without the policy.
+        for r in self.running.iter_mut().filter(|r| r.failed.is_none()) {
+            r.search.replay();
+        }
         let rows: Vec<(usize, usize)> = self
             .running
             .iter()
@@ -120,35 +125,34 @@ impl<T: Send> Batch<T> {
             .filter(|(_, r)| r.failed.is_none())
             .flat_map(|(i, r)| r.search.running().map(move |h| (i, h)))
             .collect();
-        if rows.is_empty() {
-            return 0;
-        }
-        self.state_2d.resize(rows.len() * l2, 0.0);
-        self.state_3d.resize(rows.len() * l3, 0.0);
-        self.build_states(&rows);
-        let output = match backend.agent_step(&self.state_2d, &self.state_3d, rows.len()) {
-            Ok(output) => output,
-            Err(e) => {
-                let e = StepError::Inference(format!("{e:#}"));
-                tracing::error!("policy call failed for {} rows: {e}", rows.len());
-                for &(i, _) in &rows {
-                    self.running[i].failed = Some(e.clone());
+        if !rows.is_empty() {
+            self.state_2d.resize(rows.len() * l2, 0.0);
+            self.state_3d.resize(rows.len() * l3, 0.0);
+            self.build_states(&rows);
+            let output = match backend.agent_step(&self.state_2d, &self.state_3d, rows.len()) {
+                Ok(output) => output,
+                Err(e) => {
+                    let e = StepError::Inference(format!("{e:#}"));
+                    tracing::error!("policy call failed for {} rows: {e}", rows.len());
+                    for &(i, _) in &rows {
+                        self.running[i].failed = Some(e.clone());
+                    }
+                    return rows.len();
                 }
-                return rows.len();
+            };
+            let per = 3 * self.actions.num_actions();
+            for (slot, &(i, h)) in rows.iter().enumerate() {
+                let r = &mut self.running[i];
+                if r.failed.is_some() {
+                    continue;
+                }
+                let logits = &output.policy_logits[slot * per..(slot + 1) * per];
+                if !(logits.iter().all(|v| v.is_finite()) && output.value[slot].is_finite()) {
+                    r.failed = Some(StepError::NonFinite(format!("the policy answered non-finite values for hypothesis {h}")));
+                    continue;
+                }
+                r.search.episodes[h].advance(&r.map, &self.actions, logits, output.value[slot]);
             }
-        };
-        let per = 3 * self.actions.num_actions();
-        for (slot, &(i, h)) in rows.iter().enumerate() {
-            let r = &mut self.running[i];
-            if r.failed.is_some() {
-                continue;
-            }
-            let logits = &output.policy_logits[slot * per..(slot + 1) * per];
-            if !(logits.iter().all(|v| v.is_finite()) && output.value[slot].is_finite()) {
-                r.failed = Some(StepError::NonFinite(format!("the policy answered non-finite values for hypothesis {h}")));
-                continue;
-            }
-            r.search.episodes[h].advance(&r.map, &self.actions, logits, output.value[slot]);
         }
         let scratch = first_scratch(&mut self.scratch);
         for r in self.running.iter_mut().filter(|r| r.failed.is_none()) {

@@ -24,6 +24,9 @@ pub struct Step {
     /// Alignment score of `camera_from_map` (see `state::alignment`). It is read off the next
     /// observation, so it is NaN until that observation is built or the episode is settled.
     pub alignment: f32,
+    /// Copied from the step taken at the same pose earlier in a cycle ([`Episode::replay`])
+    /// instead of asked of the policy: it cost no policy row.
+    pub repeated: bool,
 }
 
 /// How sure the result is, from two independent signals.
@@ -66,7 +69,22 @@ pub struct Episode {
     pub dropped: bool,
     /// Alignment score of `start` (known once the first observation is built).
     pub start_alignment: f32,
+    /// Set once the trajectory comes back to a pose it visited: see [`Episode::replay`].
+    cycle: Option<Cycle>,
 }
+
+/// Where a trajectory's cycle lies: the pose after step `from` (0: the start) is the first pose
+/// of the cycle, and `period` steps bring the trajectory back to it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Cycle {
+    from: usize,
+    period: usize,
+}
+
+/// Two poses whose entries differ by no more than this are one pose for [`Episode::replay`]: the
+/// rounding of a step and its exact inverse (about 1e-14 on real frames' cycles), far below
+/// anything that moves a point across a feature cell.
+pub const SAME_POSE_TOLERANCE: f64 = 1e-12;
 
 impl Episode {
     pub fn new(evidence: Arc<ImageEvidence>, start: Pose, max_iterations: usize) -> Self {
@@ -79,7 +97,63 @@ impl Episode {
             converged: false,
             dropped: false,
             start_alignment: f32::NAN,
+            cycle: None,
         }
+    }
+
+    /// Whether the next step must be asked of the policy: the episode goes on and has not come
+    /// back to a pose it visited (then [`Episode::replay`] takes the step instead).
+    pub fn needs_policy(&self) -> bool {
+        !self.is_done() && self.cycle.is_none()
+    }
+
+    /// Whether the episode goes on by [`Episode::replay`] alone.
+    pub fn is_replaying(&self) -> bool {
+        !self.is_done() && self.cycle.is_some()
+    }
+
+    /// The pose after `k` steps (0: the start) and its alignment score.
+    fn pose_at(&self, k: usize) -> (Pose, f32) {
+        match k {
+            0 => (self.start, self.start_alignment),
+            k => (self.steps[k - 1].camera_from_map, self.steps[k - 1].alignment),
+        }
+    }
+
+    /// Takes the next step of a trajectory that came back to a pose it had visited, without the
+    /// policy. The observation is a function of the pose alone and the policy of the observation
+    /// (its argmax per DoF), so from there on the trajectory repeats the same cycle of steps to
+    /// the end of its budget: on real frames two in five steps are such repeats, nearly all of a
+    /// cycle of two (a large turn and its inverse, docs/evaluation.md, "Cycles"). Each repeated
+    /// step is a copy of the one taken at the same pose before, so the trajectory, the answer
+    /// and every signal are the ones the policy rows would give, and the search still advances
+    /// all hypotheses in step (duplicates and the refinement round see the same poses at the
+    /// same iterations). Panics when the episode is not [`Episode::is_replaying`].
+    pub fn replay(&mut self) {
+        let cycle = self.cycle.filter(|_| !self.is_done()).expect("a replaying episode");
+        let taken = self.steps.len();
+        let source = cycle.from + (taken - cycle.from) % cycle.period;
+        let mut step = self.steps[source].clone();
+        step.iteration = taken + 1;
+        step.repeated = true;
+        self.pose = step.camera_from_map;
+        self.steps.push(step);
+    }
+
+    /// After a step: whether its pose is one the trajectory visited before (the step just taken
+    /// is not the zero step). Then the pose takes that visit's alignment score, which its
+    /// observation would give, and the episode replays from here on.
+    fn find_cycle(&mut self) {
+        let now = self.steps.len();
+        let here = self.pose.matrix();
+        let Some(from) = (0..now).rev().find(|&k| {
+            let then = self.pose_at(k).0.matrix();
+            here.iter().zip(then.iter()).all(|(a, b)| (a - b).abs() <= SAME_POSE_TOLERANCE)
+        }) else {
+            return;
+        };
+        self.steps[now - 1].alignment = self.pose_at(from).1;
+        self.cycle = Some(Cycle { from, period: now - from });
     }
 
     /// Done when the agent chose all-zero steps, used its iteration budget or was dropped.
@@ -150,7 +224,11 @@ impl Episode {
             confidence,
             value,
             alignment,
+            repeated: false,
         });
+        if !self.converged {
+            self.find_cycle();
+        }
     }
 
     /// How sure an answer at `pose` (one this trajectory visited) is: the frustum head's
@@ -209,7 +287,104 @@ pub fn argmax(values: &[f32]) -> usize {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::agent::state::sigmoid;
+    use crate::model::{AgentOutput, Backend, FakeBackend, Manifest};
     use nalgebra::Point3;
+
+    /// The fake encoders, and a policy that shifts the camera sideways by 0.9 m towards the
+    /// state points' mean camera x (yaw and forward at zero): it settles into a cycle of two.
+    struct Centring(FakeBackend);
+
+    impl Backend for Centring {
+        fn manifest(&self) -> &Arc<Manifest> {
+            self.0.manifest()
+        }
+        fn encode_points(&mut self, points: &[[f32; 3]]) -> anyhow::Result<Vec<f32>> {
+            self.0.encode_points(points)
+        }
+        fn encode_image(&mut self, image: &[f32]) -> anyhow::Result<Vec<f32>> {
+            self.0.encode_image(image)
+        }
+        fn frustum_logits(&mut self, point_features: &[f32], image_features: &[f32]) -> anyhow::Result<Vec<f32>> {
+            self.0.frustum_logits(point_features, image_features)
+        }
+        fn agent_step(&mut self, _state_2d: &[f32], state_3d: &[f32], batch: usize) -> anyhow::Result<AgentOutput> {
+            self.0.rows += batch;
+            let a = self.manifest().num_actions();
+            let l3 = state_3d.len() / batch;
+            let mut policy_logits = vec![0f32; batch * 3 * a];
+            for b in 0..batch {
+                let x: f32 = state_3d[b * l3..(b + 1) * l3].chunks(5).map(|p| p[0]).sum();
+                let row = &mut policy_logits[b * 3 * a..(b + 1) * 3 * a];
+                row[a / 2] = 5.0;
+                row[a + if x > 0.0 { a / 2 - 3 } else { a / 2 + 3 }] = 5.0;
+                row[2 * a + a / 2] = 5.0;
+            }
+            Ok(AgentOutput { policy_logits, value: vec![0.0; batch] })
+        }
+    }
+
+    /// One policy step of `episode` with `backend`, as the batch loop takes it.
+    fn policy_step(episode: &mut Episode, backend: &mut Centring, map: &PreparedMap, layout: &StateLayout) {
+        let (mut s2, mut s3) = (vec![0f32; layout.state_2d_len()], vec![0f32; layout.state_3d_len()]);
+        episode.write_state(map, layout, &mut ScatterScratch::default(), &mut s2, &mut s3);
+        let out = backend.agent_step(&s2, &s3, 1).unwrap();
+        episode.advance(map, &backend.manifest().action_set(), &out.policy_logits, out.value[0]);
+    }
+
+    /// A trajectory that comes back to a pose it visited repeats its cycle without the policy:
+    /// the same steps (actions, poses, alignment scores, probabilities) as asking the policy
+    /// every time, for fewer policy rows.
+    #[test]
+    fn a_cycle_is_replayed_without_the_policy_and_matches_it() {
+        let manifest = Arc::new(Manifest::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model")).unwrap());
+        let mut backend = Centring(FakeBackend::new(manifest.clone()));
+        let cloud: Vec<[f32; 3]> = (0..5000).map(|i| [(i % 100) as f32 * 0.3 - 15.0, (i / 100) as f32 * 0.4 - 10.0, ((i * 7) % 13) as f32 * 0.2 - 1.7]).collect();
+        let map = crate::maps::prepare_map(&mut backend, &cloud).unwrap();
+        let layout = StateLayout::from_manifest(&manifest);
+        let image: Vec<f32> = (0..3 * layout.image_width as usize * layout.image_height as usize).map(|p| (p % 97) as f32 / 97.0).collect();
+        let image_features = backend.encode_image(&image).unwrap();
+        let state_features = &map.features[..manifest.points.num_state_points * manifest.features.dim];
+        let logits = backend.frustum_logits(state_features, &image_features).unwrap();
+        let evidence = Arc::new(ImageEvidence {
+            image_features: ImageGrid::new(&layout, image_features),
+            frustum_probs: logits.iter().map(|l| sigmoid(*l)).collect(),
+            intrinsics: Intrinsics { fx: 250.0, fy: 250.0, cx: 255.5, cy: 79.5 },
+        });
+        let rig = Pose::from_rt(nalgebra::Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0), nalgebra::Vector3::zeros());
+        let start = rig.compose(&Pose::ground_motion(0.1, 1.0, 3.2));
+        let iterations = 12;
+
+        let mut asked = Episode::new(evidence.clone(), start, iterations);
+        while !asked.is_done() {
+            policy_step(&mut asked, &mut backend, &map, &layout);
+        }
+        asked.settle(&map, &layout, &mut ScatterScratch::default());
+        let rows_asked = std::mem::take(&mut backend.0.rows);
+
+        let mut replayed = Episode::new(evidence, start, iterations);
+        while !replayed.is_done() {
+            if replayed.is_replaying() {
+                replayed.replay();
+            } else {
+                assert!(replayed.needs_policy());
+                policy_step(&mut replayed, &mut backend, &map, &layout);
+            }
+        }
+        replayed.settle(&map, &layout, &mut ScatterScratch::default());
+
+        let repeats = replayed.steps.iter().filter(|s| s.repeated).count();
+        assert!(repeats >= 4, "the policy should settle into a cycle early: {repeats} repeated steps");
+        assert_eq!((rows_asked, backend.0.rows), (iterations, iterations - repeats));
+        assert_eq!(replayed.steps.len(), asked.steps.len());
+        for (r, a) in replayed.steps.iter().zip(&asked.steps) {
+            assert_eq!((r.iteration, r.action, &r.probabilities), (a.iteration, a.action, &a.probabilities));
+            let moved = r.camera_from_map.matrix() - a.camera_from_map.matrix();
+            assert!(moved.amax() < 1e-9, "step {}: the poses differ by {}", r.iteration, moved.amax());
+            assert!((r.alignment - a.alignment).abs() < 1e-6, "step {}: {} vs {}", r.iteration, r.alignment, a.alignment);
+        }
+        assert!(!replayed.steps[..iterations - repeats].iter().any(|s| s.repeated), "only the steps after the cycle closed repeat");
+    }
 
     #[test]
     fn zero_action_converges_and_keeps_the_pose() {

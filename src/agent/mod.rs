@@ -279,6 +279,7 @@ mod tests {
             confidence: 0.5,
             value: 0.0,
             alignment: 0.25,
+            repeated: false,
         });
         let mut loc = localization(vec![first, hypothesis(near, 0.75), hypothesis(-far, 0.5)], 0);
         (loc.kept_prior, loc.rules.prior_competes, loc.confidence.alignment) = (true, true, 0.875);

@@ -586,9 +586,18 @@ impl Search {
         if self.refine_pending { running.max(REFINE_ROWS) } else { running }
     }
 
-    /// The hypotheses that still take steps.
+    /// The hypotheses whose next step is asked of the policy (one row each).
     pub fn running(&self) -> impl Iterator<Item = usize> + '_ {
-        (0..self.episodes.len()).filter(|&h| !self.episodes[h].is_done())
+        (0..self.episodes.len()).filter(|&h| self.episodes[h].needs_policy())
+    }
+
+    /// Takes the next step of every hypothesis that repeats a cycle (`Episode::replay`): call
+    /// once per batched step, before the policy's rows are advanced, so that every hypothesis
+    /// moves one step per iteration.
+    pub fn replay(&mut self) {
+        for episode in self.episodes.iter_mut().filter(|e| e.is_replaying()) {
+            episode.replay();
+        }
     }
 
     /// Scores every final pose, chooses the answer ([`search_answer`] after the last step: the
@@ -730,6 +739,7 @@ mod tests {
             confidence: 0.5,
             value: 0.0,
             alignment,
+            repeated: false,
         }
     }
 

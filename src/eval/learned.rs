@@ -92,8 +92,9 @@ impl Learned {
             // bound answered with a pose it passed).
             "answer_steps": loc.answer_steps().len(),
             "alignment": loc.hypotheses.iter().map(|h| h.alignment()).collect::<Vec<_>>(),
-            // Policy rows this case cost: steps over all hypotheses (the search's price).
-            "policy_rows": loc.hypotheses.iter().map(|h| h.steps.len()).sum::<usize>(),
+            // Policy rows this case cost: the steps over all hypotheses that asked the policy (a
+            // repeated step of a cycle costs none; the search's price).
+            "policy_rows": loc.hypotheses.iter().flat_map(|h| &h.steps).filter(|s| !s.repeated).count(),
             // The calibrated verdict (null / false without a calibrator) and what it read.
             "p_registered": loc.verdict.p_registered,
             "localized": loc.verdict.localized,
@@ -270,6 +271,7 @@ fn policy_step(mut record: serde_json::Value, step: &agent::Step) -> serde_json:
     record["policy_certainty"] = json!(step.confidence);
     record["probabilities"] = json!(step.probabilities);
     record["action_indices"] = json!(step.action.indices);
+    record["repeated"] = json!(step.repeated);
     record
 }
 
