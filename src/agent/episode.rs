@@ -293,24 +293,9 @@ mod tests {
 
     /// The fake encoders, and a policy that shifts the camera sideways by 0.9 m towards the
     /// state points' mean camera x (yaw and forward at zero): it settles into a cycle of two.
-    struct Centring(FakeBackend);
-
-    impl Backend for Centring {
-        fn manifest(&self) -> &Arc<Manifest> {
-            self.0.manifest()
-        }
-        fn encode_points(&mut self, points: &[[f32; 3]]) -> anyhow::Result<Vec<f32>> {
-            self.0.encode_points(points)
-        }
-        fn encode_image(&mut self, image: &[f32]) -> anyhow::Result<Vec<f32>> {
-            self.0.encode_image(image)
-        }
-        fn frustum_logits(&mut self, point_features: &[f32], image_features: &[f32]) -> anyhow::Result<Vec<f32>> {
-            self.0.frustum_logits(point_features, image_features)
-        }
-        fn agent_step(&mut self, _state_2d: &[f32], state_3d: &[f32], batch: usize) -> anyhow::Result<AgentOutput> {
-            self.0.rows += batch;
-            let a = self.manifest().num_actions();
+    fn centring(manifest: Arc<Manifest>) -> FakeBackend {
+        let a = manifest.num_actions();
+        let policy = Box::new(move |_: &[f32], state_3d: &[f32], batch: usize| {
             let l3 = state_3d.len() / batch;
             let mut policy_logits = vec![0f32; batch * 3 * a];
             for b in 0..batch {
@@ -320,12 +305,13 @@ mod tests {
                 row[a + if x > 0.0 { a / 2 - 3 } else { a / 2 + 3 }] = 5.0;
                 row[2 * a + a / 2] = 5.0;
             }
-            Ok(AgentOutput { policy_logits, value: vec![0.0; batch] })
-        }
+            Some(AgentOutput { policy_logits, value: vec![0.0; batch] })
+        });
+        FakeBackend::with_policy(manifest, policy)
     }
 
     /// One policy step of `episode` with `backend`, as the batch loop takes it.
-    fn policy_step(episode: &mut Episode, backend: &mut Centring, map: &PreparedMap, layout: &StateLayout) {
+    fn policy_step(episode: &mut Episode, backend: &mut FakeBackend, map: &PreparedMap, layout: &StateLayout) {
         let (mut s2, mut s3) = (vec![0f32; layout.state_2d_len()], vec![0f32; layout.state_3d_len()]);
         episode.write_state(map, layout, &mut ScatterScratch::default(), &mut s2, &mut s3);
         let out = backend.agent_step(&s2, &s3, 1).unwrap();
@@ -338,7 +324,7 @@ mod tests {
     #[test]
     fn a_cycle_is_replayed_without_the_policy_and_matches_it() {
         let manifest = Arc::new(Manifest::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model")).unwrap());
-        let mut backend = Centring(FakeBackend::new(manifest.clone()));
+        let mut backend = centring(manifest.clone());
         let cloud: Vec<[f32; 3]> = (0..5000).map(|i| [(i % 100) as f32 * 0.3 - 15.0, (i / 100) as f32 * 0.4 - 10.0, ((i * 7) % 13) as f32 * 0.2 - 1.7]).collect();
         let map = crate::maps::prepare_map(&mut backend, &cloud).unwrap();
         let layout = StateLayout::from_manifest(&manifest);
@@ -360,7 +346,7 @@ mod tests {
             policy_step(&mut asked, &mut backend, &map, &layout);
         }
         asked.settle(&map, &layout, &mut ScatterScratch::default());
-        let rows_asked = std::mem::take(&mut backend.0.rows);
+        let rows_asked = std::mem::take(&mut backend.rows);
 
         let mut replayed = Episode::new(evidence, start, iterations);
         while !replayed.is_done() {
@@ -375,7 +361,7 @@ mod tests {
 
         let repeats = replayed.steps.iter().filter(|s| s.repeated).count();
         assert!(repeats >= 4, "the policy should settle into a cycle early: {repeats} repeated steps");
-        assert_eq!((rows_asked, backend.0.rows), (iterations, iterations - repeats));
+        assert_eq!((rows_asked, backend.rows), (iterations, iterations - repeats));
         assert_eq!(replayed.steps.len(), asked.steps.len());
         for (r, a) in replayed.steps.iter().zip(&asked.steps) {
             assert_eq!((r.iteration, r.action, &r.probabilities), (a.iteration, a.action, &a.probabilities));

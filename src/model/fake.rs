@@ -17,14 +17,25 @@ pub struct FakeBackend {
     /// Policy calls made, and rows stepped (for batching tests).
     pub calls: usize,
     pub rows: usize,
+    policy: Option<PolicyHook>,
 }
+
+/// A test's own policy, or a watch on the calls: called with each policy call's `(state_2d,
+/// state_3d, batch)` after the inputs' shapes are checked; `Some` answers in place of the fake
+/// policy, `None` lets it answer.
+pub type PolicyHook = Box<dyn FnMut(&[f32], &[f32], usize) -> Option<AgentOutput> + Send>;
 
 impl FakeBackend {
     /// Image tensors whose first value exceeds this poison their agent rows (see module docs).
     pub const POISON: f32 = 100.0;
 
     pub fn new(manifest: Arc<Manifest>) -> Self {
-        Self { manifest, calls: 0, rows: 0 }
+        Self { manifest, calls: 0, rows: 0, policy: None }
+    }
+
+    /// The fake encoders with `hook` before (or in place of) the fake policy.
+    pub fn with_policy(manifest: Arc<Manifest>, hook: PolicyHook) -> Self {
+        Self { policy: Some(hook), ..Self::new(manifest) }
     }
 }
 
@@ -83,6 +94,9 @@ impl Backend for FakeBackend {
         }
         self.calls += 1;
         self.rows += batch;
+        if let Some(answer) = self.policy.as_mut().and_then(|hook| hook(state_2d, state_3d, batch)) {
+            return Ok(answer);
+        }
         let a = self.manifest.num_actions();
         let mut policy_logits = vec![0f32; batch * 3 * a];
         let mut value = vec![0f32; batch];

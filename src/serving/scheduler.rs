@@ -490,31 +490,16 @@ mod tests {
         assert!(scheduler.shutdown(Duration::from_secs(5)));
     }
 
-    /// A `FakeBackend` that counts its policy calls into a shared counter.
-    struct Counted(FakeBackend, Arc<AtomicUsize>);
-
-    impl Backend for Counted {
-        fn manifest(&self) -> &Arc<Manifest> {
-            self.0.manifest()
-        }
-        fn encode_points(&mut self, points: &[[f32; 3]]) -> anyhow::Result<Vec<f32>> {
-            self.0.encode_points(points)
-        }
-        fn encode_image(&mut self, image: &[f32]) -> anyhow::Result<Vec<f32>> {
-            self.0.encode_image(image)
-        }
-        fn frustum_logits(&mut self, point_features: &[f32], image_features: &[f32]) -> anyhow::Result<Vec<f32>> {
-            self.0.frustum_logits(point_features, image_features)
-        }
-        fn agent_step(&mut self, state_2d: &[f32], state_3d: &[f32], batch: usize) -> anyhow::Result<crate::model::AgentOutput> {
-            self.1.fetch_add(1, Ordering::SeqCst);
-            self.0.agent_step(state_2d, state_3d, batch)
-        }
-    }
-
     fn counted_factory(manifest: &Arc<Manifest>, calls: &Arc<AtomicUsize>) -> BackendFactory {
         let (m, calls) = (manifest.clone(), calls.clone());
-        Arc::new(move || Ok(Box::new(Counted(FakeBackend::new(m.clone()), calls.clone())) as Box<dyn Backend>))
+        Arc::new(move || {
+            let calls = calls.clone();
+            let count = Box::new(move |_: &[f32], _: &[f32], _: usize| {
+                calls.fetch_add(1, Ordering::SeqCst);
+                None
+            });
+            Ok(Box::new(FakeBackend::with_policy(m.clone(), count)) as Box<dyn Backend>)
+        })
     }
 
     /// A request alone runs on the lone sessions (all cores), with the answer it gets from the
