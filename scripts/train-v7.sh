@@ -34,6 +34,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v15 scripts/train-v7.sh start-v15
 #                                # run v15 (issue 29): v11 with a second, 0.4 m grid in the point
 #                                # encoder, both stages (v11's agent trained on)
+#   RUN=~/.cache/cmr-agent/runs/v16 scripts/train-v7.sh start-v16
+#                                # run v16 (issue 29): v11's agent trained on with half the rollout
+#                                # pool's image features made noisy (weak evidence), encoders kept
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -294,6 +297,15 @@ start_v15() {
     bc_only_iters=0 expert_mix_start=0.2 keep_agent_every=500
 }
 
+# Run v16: the shipped v11's agent trained on, its encoders kept, with half of the rollout pool's
+# image features made noisy (image_noise_p / image_noise_max: evidence as weak as real frames of
+# unseen drives give), 1,000 iterations at a twentieth of v7's stage-2 rate; a copy every 250th.
+start_v16() {
+  launch "$(train_roots)" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 init_from="$(v11_shipped)" \
+    embed_steps=0 agent_iters=1000 agent_lr=5e-5 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 \
+    image_noise_p=0.5 image_noise_max=0.35 checkpoint_every=50 keep_agent_every=250
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -351,6 +363,7 @@ case "${1:-}" in
   start-v14) start_v14 ;;
   start-v14a) start_v14a ;;
   start-v15) start_v15 ;;
+  start-v16) start_v16 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac

@@ -68,6 +68,27 @@ class Episodes:
 
 
 @torch.no_grad()
+def degrade_image_features(episodes: Episodes, share: float, sigma_max: float, rng: np.random.Generator) -> None:
+    """Weakens the image evidence of a `share` of the rows, in place: each chosen row's features
+    get Gaussian noise of a standard deviation drawn uniformly in [0, sigma_max] per component, and
+    every cell's vector is normalised again (the encoder's output is unit length). With D = 64
+    channels a unit feature keeps about 1 / sqrt(1 + 64 sigma^2) of itself along the truth: 0.35
+    gives a third, what the alignment signal keeps on real frames of drives training never read
+    against synthetic ones (training/README.md). The agent then learns to act on evidence as weak
+    as the held-out real frames give it. Draws from `rng` only (reproducible per iteration)."""
+    if share <= 0.0 or sigma_max <= 0.0:
+        return
+    feats = episodes.image_features
+    for row in range(len(episodes)):
+        if rng.random() >= share:
+            continue
+        sigma = float(rng.uniform(0.0, sigma_max))
+        noise = torch.from_numpy(rng.standard_normal(tuple(feats.shape[1:])).astype(np.float32)).to(feats.device)
+        noisy = feats[row] + sigma * noise
+        feats[row] = noisy / noisy.norm(dim=0, keepdim=True).clamp_min(1e-12)
+
+
+@torch.no_grad()
 def embed(models: dict, samples: list[Sample], device: torch.device, action_frame: str = g.CAMERA_Y) -> Episodes:
     points = torch.as_tensor(np.stack([s.points for s in samples]), device=device)
     images = torch.as_tensor(np.stack([s.image for s in samples]), device=device)

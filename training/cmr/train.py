@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from . import geometry as g
 from .augment import AugmentOptions
 from .data import find_sequences, list_frames, make_sample, split_frames
-from .episodes import embed, embed_many, gae, rollout
+from .episodes import degrade_image_features, embed, embed_many, gae, rollout
 from .export import atomic_write_bytes
 from .losses import circle_loss, weighted_bce
 from .models import STRIDE, arch_of, build_all, load_lite0
@@ -153,6 +153,11 @@ class Config:
     # Mirror augmentation (augment.AugmentOptions.mirror_p): this share of the samples flipped left
     # to right, image and map together.
     mirror_p: float = 0.0
+    # Stage 2 only, off: this share of the rollout pool's samples with their image features made
+    # noisy (episodes.degrade_image_features, per-component std up to image_noise_max), so the
+    # agent also learns on evidence as weak as real frames of unseen drives give it.
+    image_noise_p: float = 0.0
+    image_noise_max: float = 0.35
     # Start from another run's checkpoint (its weights only; optimisers and counters start fresh):
     # fine-tuning. Ignored when <out>/last.pt exists (resume wins).
     init_from: str = ""
@@ -615,6 +620,7 @@ class Run:
         # The pool is rebuilt deterministically on resume (seeded by iteration), then rolls.
         pool = embed_many(self.models, self.samples(4, self.agent_iter, cfg.pool_size, cfg.num_points), self.device,
                           action_frame=cfg.action_frame)
+        degrade_image_features(pool, cfg.image_noise_p, cfg.image_noise_max, np.random.default_rng([cfg.seed, 6, self.agent_iter]))
         started = time.time()
         while self.agent_iter < cfg.agent_iters and time.time() < deadline:
             if cfg.agent_seconds > 0 and time.time() - started >= cfg.agent_seconds:
@@ -623,8 +629,9 @@ class Run:
             t0 = time.time()
             it = self.agent_iter
             fresh = [(it * cfg.pool_refresh + j) % cfg.pool_size for j in range(cfg.pool_refresh)]
-            pool.replace(fresh, embed(self.models, self.samples(2, it, cfg.pool_refresh, cfg.num_points), self.device,
-                                      cfg.action_frame))
+            new = embed(self.models, self.samples(2, it, cfg.pool_refresh, cfg.num_points), self.device, cfg.action_frame)
+            degrade_image_features(new, cfg.image_noise_p, cfg.image_noise_max, np.random.default_rng([cfg.seed, 7, it]))
+            pool.replace(fresh, new)
             rows = sorted(set(fresh) | set(np.random.default_rng([cfg.seed, 5, it]).choice(
                 cfg.pool_size, cfg.agent_envs - len(fresh), replace=False).tolist()))
             eps = pool.subset(rows)

@@ -108,3 +108,45 @@ def test_averaged_agent_lags_the_live_one_and_is_what_ships(tmp_path, tiny_datas
     for k in moved:
         expected = avg[k].lerp(resumed["models"]["agent"][k], 0.5)
         assert torch.allclose(resumed["agent_ema"][k], expected), k
+
+
+def test_degraded_image_features_stay_unit_and_keep_about_a_third_of_themselves():
+    """`degrade_image_features` at the top noise keeps cells unit length and about 1 / sqrt(1 + 64
+    sigma^2) of their original direction; share 0 leaves every row untouched; draws are seeded."""
+    import numpy as np
+    import torch
+
+    from cmr.episodes import Episodes, degrade_image_features
+
+    def episodes(seed):
+        g = torch.Generator().manual_seed(seed)
+        f = torch.randn(4, 64, 5, 7, generator=g)
+        f = f / f.norm(dim=1, keepdim=True)
+        return Episodes(points=torch.zeros(4, 8, 3), point_features=torch.zeros(4, 8, 64), image_features=f,
+                        frustum_prob=torch.zeros(4, 8), intrinsics=torch.zeros(4, 4), truth=[None] * 4,
+                        initial=[None] * 4, pivots=[None] * 4, reward_points=[None] * 4)
+
+    clean = episodes(1)
+    untouched = episodes(1)
+    degrade_image_features(untouched, 0.0, 0.35, np.random.default_rng(0))
+    assert torch.equal(untouched.image_features, clean.image_features)
+
+    noisy = episodes(1)
+    degrade_image_features(noisy, 1.0, 0.35, np.random.default_rng(0))
+    assert torch.allclose(noisy.image_features.norm(dim=1), torch.ones(4, 5, 7), atol=1e-5)
+    kept = (noisy.image_features * clean.image_features).sum(dim=1).mean(dim=(1, 2))
+    assert (kept < 0.999).all() and (kept > 0.25).all(), kept  # sigma is drawn in [0, 0.35] per row
+    again = episodes(1)
+    degrade_image_features(again, 1.0, 0.35, np.random.default_rng(0))
+    assert torch.equal(again.image_features, noisy.image_features)
+
+    # A fixed sigma of 0.35 keeps about a third (the noise alone, no draw of sigma).
+    top = episodes(2)
+    degrade_image_features(top, 1.0, 1e-9, np.random.default_rng(0))  # ~no noise: unchanged direction
+    assert torch.allclose(top.image_features, episodes(2).image_features, atol=1e-6)
+    expected = 1.0 / np.sqrt(1.0 + 64 * 0.35 ** 2)
+    f = episodes(3).image_features[0]
+    n = torch.from_numpy(np.random.default_rng(5).standard_normal(tuple(f.shape)).astype(np.float32))
+    g = f + 0.35 * n
+    g = g / g.norm(dim=0, keepdim=True)
+    assert abs(float((g * f).sum(dim=0).mean()) - expected) < 0.05
