@@ -107,7 +107,6 @@ impl<T: Send> Batch<T> {
     /// that need the policy, a replayed step for those that repeat a cycle (`Search::replay`);
     /// returns the policy rows (0 when no hypothesis needed the policy).
     pub fn step(&mut self, backend: &mut dyn Backend) -> usize {
-        let (l2, l3) = (self.layout.state_2d_len(), self.layout.state_3d_len());
         // Rows whose pose is unusable fail their request here, before any state is built.
         for r in self.running.iter_mut().filter(|r| r.failed.is_none()) {
             if let Some(h) = r.search.running().find(|&h| !r.search.episodes[h].pose.is_sane()) {
@@ -126,39 +125,48 @@ impl<T: Send> Batch<T> {
             .flat_map(|(i, r)| r.search.running().map(move |h| (i, h)))
             .collect();
         if !rows.is_empty() {
-            self.state_2d.resize(rows.len() * l2, 0.0);
-            self.state_3d.resize(rows.len() * l3, 0.0);
-            self.build_states(&rows);
-            let output = match backend.agent_step(&self.state_2d, &self.state_3d, rows.len()) {
-                Ok(output) => output,
-                Err(e) => {
-                    let e = StepError::Inference(format!("{e:#}"));
-                    tracing::error!("policy call failed for {} rows: {e}", rows.len());
-                    for &(i, _) in &rows {
-                        self.running[i].failed = Some(e.clone());
-                    }
-                    return rows.len();
-                }
-            };
-            let per = 3 * self.actions.num_actions();
-            for (slot, &(i, h)) in rows.iter().enumerate() {
-                let r = &mut self.running[i];
-                if r.failed.is_some() {
-                    continue;
-                }
-                let logits = &output.policy_logits[slot * per..(slot + 1) * per];
-                if !(logits.iter().all(|v| v.is_finite()) && output.value[slot].is_finite()) {
-                    r.failed = Some(StepError::NonFinite(format!("the policy answered non-finite values for hypothesis {h}")));
-                    continue;
-                }
-                r.search.episodes[h].advance(&r.map, &self.actions, logits, output.value[slot]);
-            }
+            self.ask_policy(backend, &rows);
         }
+        // Every request still running ends its iteration here, those that only replayed too.
         let scratch = first_scratch(&mut self.scratch);
         for r in self.running.iter_mut().filter(|r| r.failed.is_none()) {
             r.search.after_step(&r.map, &self.layout, scratch);
         }
         rows.len()
+    }
+
+    /// One batched policy call for `rows` ((request, hypothesis), in slot order), each row's
+    /// hypothesis advanced by its answer. A failed call fails every request that had a row in
+    /// it; a non-finite answer fails its own request.
+    fn ask_policy(&mut self, backend: &mut dyn Backend, rows: &[(usize, usize)]) {
+        let (l2, l3) = (self.layout.state_2d_len(), self.layout.state_3d_len());
+        self.state_2d.resize(rows.len() * l2, 0.0);
+        self.state_3d.resize(rows.len() * l3, 0.0);
+        self.build_states(rows);
+        let output = match backend.agent_step(&self.state_2d, &self.state_3d, rows.len()) {
+            Ok(output) => output,
+            Err(e) => {
+                let e = StepError::Inference(format!("{e:#}"));
+                tracing::error!("policy call failed for {} rows: {e}", rows.len());
+                for &(i, _) in rows {
+                    self.running[i].failed = Some(e.clone());
+                }
+                return;
+            }
+        };
+        let per = 3 * self.actions.num_actions();
+        for (slot, &(i, h)) in rows.iter().enumerate() {
+            let r = &mut self.running[i];
+            if r.failed.is_some() {
+                continue;
+            }
+            let logits = &output.policy_logits[slot * per..(slot + 1) * per];
+            if !(logits.iter().all(|v| v.is_finite()) && output.value[slot].is_finite()) {
+                r.failed = Some(StepError::NonFinite(format!("the policy answered non-finite values for hypothesis {h}")));
+                continue;
+            }
+            r.search.episodes[h].advance(&r.map, &self.actions, logits, output.value[slot]);
+        }
     }
 
     /// Builds the observation of every row into the state buffers, rows in parallel (each with a

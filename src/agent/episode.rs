@@ -114,10 +114,7 @@ impl Episode {
 
     /// The pose after `k` steps (0: the start) and its alignment score.
     fn pose_at(&self, k: usize) -> (Pose, f32) {
-        match k {
-            0 => (self.start, self.start_alignment),
-            k => (self.steps[k - 1].camera_from_map, self.steps[k - 1].alignment),
-        }
+        pose_after(&self.start, self.start_alignment, &self.steps, k)
     }
 
     /// Takes the next step of a trajectory that came back to a pose it had visited, without the
@@ -264,6 +261,16 @@ pub fn frustum_overlap(points: &[[f32; 3]], frustum_probs: &[f32], k: &Intrinsic
     let iou = if either == 0 { 0.0 } else { both as f32 / either as f32 };
     let share = if total == 0 { 0.0 } else { seen as f32 / total as f32 };
     (iou, share)
+}
+
+/// Where a trajectory from `start` (scoring `start_alignment`) stands after `k` of its `steps`
+/// (0: the start; the last step's pose when it took fewer), and that pose's alignment score. One
+/// reading for an episode in progress and a finished [`super::Hypothesis`].
+pub fn pose_after(start: &Pose, start_alignment: f32, steps: &[Step], k: usize) -> (Pose, f32) {
+    match k.min(steps.len()) {
+        0 => (*start, start_alignment),
+        k => (steps[k - 1].camera_from_map, steps[k - 1].alignment),
+    }
 }
 
 pub fn softmax(logits: &[f32]) -> Vec<f32> {

@@ -373,10 +373,7 @@ pub struct Hypothesis {
 impl Hypothesis {
     /// The pose after `iterations` steps (the last one if the trajectory stopped earlier).
     pub fn pose_after(&self, iterations: usize) -> (Pose, f32) {
-        match iterations.min(self.steps.len()) {
-            0 => (self.start, self.start_alignment),
-            k => (self.steps[k - 1].camera_from_map, self.steps[k - 1].alignment),
-        }
+        super::episode::pose_after(&self.start, self.start_alignment, &self.steps, iterations)
     }
 
     pub fn camera_from_map(&self) -> Pose {
