@@ -37,6 +37,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v16 scripts/train-v7.sh start-v16
 #                                # run v16 (issue 29): v11's agent trained on with half the rollout
 #                                # pool's image features made noisy (weak evidence), encoders kept
+#   RUN=~/.cache/cmr-agent/runs/v17 scripts/train-v7.sh start-v17
+#                                # run v17 (issue 29): the shipped v11 with its image backbone
+#                                # swapped for ImageNet EfficientNet-Lite1's, both stages
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -306,6 +309,17 @@ start_v16() {
     image_noise_p=0.5 image_noise_max=0.35 checkpoint_every=50 keep_agent_every=250
 }
 
+# Run v17: the shipped v11 with its image encoder's backbone swapped for EfficientNet-Lite1's
+# ImageNet weights (15 blocks to stride 16 instead of Lite0's 11, the same widths), its decoder,
+# point encoder, frustum head and agent kept (`LiteImageEncoder.load_decoder`): 10,000 stage-1
+# steps at half of v7's rate, then v7's stage 2 (v11's recipe) for 2,000 iterations from v11's
+# agent; a copy of every 2,000th step and every 500th iteration in $RUN/snap/. `save` at every stop.
+start_v17() {
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite1 \
+    backbone_lr_scale=0.1 init_from="$(v11_shipped)" embed_lr=5e-4 embed_warmup=300 embed_lr_min=2e-5 \
+    embed_steps=10000 keep_embed_every=2000 embed_eval_every=2000 agent_iters=2000 keep_agent_every=500
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -364,6 +378,7 @@ case "${1:-}" in
   start-v14a) start_v14a ;;
   start-v15) start_v15 ;;
   start-v16) start_v16 ;;
+  start-v17) start_v17 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac

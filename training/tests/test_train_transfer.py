@@ -208,11 +208,11 @@ def test_same_padding_is_tensorflows_and_keeps_shapes_static():
 
 def test_pretrained_backbone_loads_every_tensor_keeps_its_statistics_and_the_contract(tmp_path):
     from cmr.flops import count
-    from cmr.models import LITE0_BLOCKS, LiteImageEncoder, lite0_weights_path, load_lite0
+    from cmr.models import LITE0_BLOCKS, LiteImageEncoder, lite_weights_path, load_pretrained
     import onnx
     enc = LiteImageEncoder(norm="group")
-    want = torch.load(lite0_weights_path(), map_location="cpu", weights_only=True)
-    copied = load_lite0(enc)
+    want = torch.load(lite_weights_path(), map_location="cpu", weights_only=True)
+    copied = load_pretrained(enc)
     # stem conv + BN (1 + 5), each block's convs (2 or 3) and BNs (5 each); block 0 has no expansion
     assert copied == 6 + sum((3 if e != 1 else 2) * 6 for e, *_ in LITE0_BLOCKS)
     assert torch.equal(enc.blocks[10].project[1].weight, want["_blocks.10._project_conv.weight"])
@@ -235,17 +235,17 @@ def test_pretrained_backbone_loads_every_tensor_keeps_its_statistics_and_the_con
 
 def test_the_deep_encoder_starts_as_the_shallow_one_and_exports(tmp_path):
     from cmr.flops import count
-    from cmr.models import LITE0_BLOCKS, LITE0_BLOCKS_S32, LiteImageEncoder, lite0_weights_path, load_lite0
+    from cmr.models import LITE0_BLOCKS, LITE0_BLOCKS_S32, LiteImageEncoder, lite_weights_path, load_pretrained
     import onnx
     torch.manual_seed(0)
     shallow = LiteImageEncoder(norm="group")
     for p in shallow.parameters():  # not the lateral layers' default init: any weights
         p.data.normal_(0, 0.05)
     deep = LiteImageEncoder(norm="group", deep=True)
-    pretrained = load_lite0(deep)
+    pretrained = load_pretrained(deep)
     assert pretrained == 6 + sum((3 if e != 1 else 2) * 6 for e, *_ in LITE0_BLOCKS + LITE0_BLOCKS_S32)
     assert deep.load_shallow(shallow.state_dict()) == len(shallow.state_dict())
-    want = torch.load(lite0_weights_path(), map_location="cpu", weights_only=True)
+    want = torch.load(lite_weights_path(), map_location="cpu", weights_only=True)
     assert torch.equal(deep.blocks[15].project[1].weight, want["_blocks.15._project_conv.weight"])
     assert torch.equal(deep.blocks[10].project[1].weight, shallow.blocks[10].project[1].weight)
     image = torch.randn(1, 3, 160, 512)
@@ -301,6 +301,30 @@ def test_the_fine_point_encoder_starts_as_the_coarse_one_and_exports(tmp_path):
         assert np.abs(sess.run(None, {"points": pts.numpy()})[0] - want.numpy()).max() < 1e-4
 
 
+def test_a_run_swaps_a_lite0_backbone_for_lite1_keeping_the_rest_of_the_model(tmp_path, tiny_dataset):
+    from cmr.models import LITE1_BLOCKS, lite_weights_path
+    lite0 = small_run(tmp_path / "lite0", tiny_dataset, norm="group", image_backbone="efficientnet_lite0")
+    for p in lite0.models["image_encoder"].parameters():  # a trained decoder: any weights
+        p.data.normal_(0, 0.05)
+    lite0.save("last.pt")
+    lite1 = small_run(tmp_path / "lite1", tiny_dataset, norm="group", image_backbone="efficientnet_lite1",
+                      init_from=str(lite0.dir / "last.pt"))
+    enc = lite1.models["image_encoder"]
+    assert len(enc.blocks) == len(LITE1_BLOCKS) == 15 and enc.variant == "efficientnet_lite1"
+    want = torch.load(lite_weights_path("efficientnet_lite1"), map_location="cpu", weights_only=True)
+    assert torch.equal(enc.blocks[14].project[1].weight, want["_blocks.14._project_conv.weight"])
+    old = lite0.models["image_encoder"].state_dict()
+    for k, v in enc.state_dict().items():
+        if not k.startswith(("stem.", "blocks.")):
+            assert torch.equal(v, old[k]), k
+    for k in ("point_encoder", "frustum_head", "agent"):
+        for name, v in lite1.models[k].state_dict().items():
+            assert torch.equal(v, lite0.models[k].state_dict()[name]), (k, name)
+    image = torch.randn(1, 3, 160, 512)
+    with torch.no_grad():
+        assert enc.eval()(image).shape == (1, 64, 40, 128)
+
+
 def test_a_run_grows_a_fine_point_grid_from_a_coarse_checkpoint(tmp_path, tiny_dataset):
     coarse = small_run(tmp_path / "coarse", tiny_dataset, norm="group")
     coarse.save("last.pt")
@@ -314,10 +338,10 @@ def test_a_run_grows_a_fine_point_grid_from_a_coarse_checkpoint(tmp_path, tiny_d
 
 
 def test_a_pretrained_backbone_run_trains_its_backbone_slower_and_resumes(tmp_path, tiny_dataset):
-    from cmr.models import load_lite0
+    from cmr.models import load_pretrained
     run = small_run(tmp_path, tiny_dataset, norm="group", image_backbone="efficientnet_lite0", backbone_lr_scale=0.1)
     fresh = build_all("group", image_backbone="efficientnet_lite0")["image_encoder"]
-    load_lite0(fresh)
+    load_pretrained(fresh)
     for k, v in fresh.state_dict().items():
         if k.startswith(("stem", "blocks")):
             assert torch.equal(v, run.models["image_encoder"].state_dict()[k])
