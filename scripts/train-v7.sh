@@ -312,12 +312,12 @@ start_v16() {
 # Run v17: the shipped v11 with its image encoder's backbone swapped for EfficientNet-Lite1's
 # ImageNet weights (15 blocks to stride 16 instead of Lite0's 11, the same widths), its decoder,
 # point encoder, frustum head and agent kept (`LiteImageEncoder.load_decoder`): 10,000 stage-1
-# steps at half of v7's rate, then v7's stage 2 (v11's recipe) for 2,000 iterations from v11's
+# steps at half of v7's rate, then v7's stage 2 (v11's recipe) for 1,500 iterations from v11's
 # agent; a copy of every 2,000th step and every 500th iteration in $RUN/snap/. `save` at every stop.
 start_v17() {
   launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite1 \
     backbone_lr_scale=0.1 init_from="$(v11_shipped)" embed_lr=5e-4 embed_warmup=300 embed_lr_min=2e-5 \
-    embed_steps=10000 keep_embed_every=2000 embed_eval_every=2000 agent_iters=2000 keep_agent_every=500
+    embed_steps=10000 keep_embed_every=2000 embed_eval_every=2000 agent_iters=1500 keep_agent_every=500
 }
 
 save() {
