@@ -40,7 +40,7 @@ def outputs(name: str, module: torch.nn.Module) -> list[torch.Tensor]:
 
 @pytest.mark.parametrize("norm,correlation,backbone", [("batch", True, "scratch"), ("batch", False, "scratch"),
                                                        ("group", True, "scratch"), ("group", True, "efficientnet_lite0"),
-                                                       ("group", True, "efficientnet_lite0_s32")])
+                                                       ("group", True, "efficientnet_lite0_s32"), ("group", True, "efficientnet_lite1")])
 def test_round_trip_reproduces_the_modules(tmp_path, norm, correlation, backbone):
     original = randomised(norm, backbone)
     export_models(original, tmp_path, dict(data="test", seeds={}), action_frame="map_z", correlation=correlation)
