@@ -354,14 +354,8 @@ class LiteImageEncoder(nn.Module):
         """The decoder (every tensor outside the stem and blocks) from another Lite encoder's
         `state_dict`, whose taps have these channels (Lite0's into Lite1's: a run that swaps the
         backbone keeps the rest of a trained model). Returns the tensors copied; raises ValueError
-        on a shape that differs."""
-        mine = self.state_dict()
-        decoder = {k: v for k, v in state.items() if not k.startswith(("stem.", "blocks.")) and k in mine}
-        for k, v in decoder.items():
-            if v.shape != mine[k].shape:
-                raise ValueError(f"{k}: shape {tuple(v.shape)}, expected {tuple(mine[k].shape)}")
-        self.load_state_dict(decoder, strict=False)
-        return len(decoder)
+        on a name this encoder lacks or a shape that differs (`load_grown`)."""
+        return load_grown(self, {k: v for k, v in state.items() if not k.startswith(("stem.", "blocks."))}, "", 0)
 
 
 def lite_weights_path(variant: str = "efficientnet_lite0") -> Path:
