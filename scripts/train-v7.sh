@@ -40,6 +40,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v17 scripts/train-v7.sh start-v17
 #                                # run v17 (issue 29): the shipped v11 with its image backbone
 #                                # swapped for ImageNet EfficientNet-Lite1's, both stages
+#   RUN=~/.cache/cmr-agent/runs/v18 scripts/train-v7.sh start-v18
+#                                # run v18 (issue 29): v11's whole recipe on EfficientNet-Lite1's
+#                                # ImageNet backbone, encoders from scratch; across sessions
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -320,6 +323,15 @@ start_v17() {
     embed_steps=10000 keep_embed_every=2000 embed_eval_every=2000 agent_iters=1500 keep_agent_every=500
 }
 
+# Run v18: v11's whole recipe (both stages, the encoders from scratch: 30,000 stage-1 steps, 3,000
+# stage-2 iterations) with EfficientNet-Lite1's ImageNet backbone in place of Lite0's, the agent
+# from the shipped v11's (v7's float export, v11's start, is gone with an earlier machine); a copy of
+# every 5,000th step and every 500th iteration in $RUN/snap/. Across sessions: `save` at every stop.
+start_v18() {
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite1 \
+    backbone_lr_scale=0.1 init_agent_from="$(v11_shipped)" keep_embed_every=5000 keep_agent_every=500
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -379,6 +391,7 @@ case "${1:-}" in
   start-v15) start_v15 ;;
   start-v16) start_v16 ;;
   start-v17) start_v17 ;;
+  start-v18) start_v18 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
