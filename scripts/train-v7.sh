@@ -42,7 +42,8 @@
 #                                # swapped for ImageNet EfficientNet-Lite1's, both stages
 #   RUN=~/.cache/cmr-agent/runs/v18 scripts/train-v7.sh start-v18
 #                                # run v18 (issue 29): v11's whole recipe on EfficientNet-Lite1's
-#                                # ImageNet backbone, encoders from scratch; across sessions
+#                                # ImageNet backbone, encoders from scratch, samples at one focal
+#                                # length (cmr.data.FOCAL_RANGE_PX); across sessions
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -324,7 +325,8 @@ start_v17() {
 }
 
 # Run v18: v11's whole recipe (both stages, the encoders from scratch: 30,000 stage-1 steps, 3,000
-# stage-2 iterations) with EfficientNet-Lite1's ImageNet backbone in place of Lite0's, the agent
+# stage-2 iterations) with EfficientNet-Lite1's ImageNet backbone in place of Lite0's and every sample
+# made at one focal length (cmr.data.FOCAL_RANGE_PX, the make_sample default since 2026-12-05), the agent
 # from the shipped v11's (v7's float export, v11's start, is gone with an earlier machine); a copy of
 # every 5,000th step and every 500th iteration in $RUN/snap/. Across sessions: `save` at every stop.
 start_v18() {

@@ -6,7 +6,7 @@
 //! `REGENERATE_FIXTURES=1 cargo test --test conventions_fixture`.
 
 use cmr_agent::geometry::actions::{apply_action, ground_heading, needed_motion};
-use cmr_agent::geometry::{ActionFrame, ActionSet, Intrinsics, PoseError, PreprocessPlan, Pose, ROTATION_TOLERANCE, check_rotation, p2p_distance, step_reward};
+use cmr_agent::geometry::{ActionFrame, ActionSet, Intrinsics, PoseError, PreprocessPlan, Pose, ROTATION_TOLERANCE, check_rotation, input_scale, p2p_distance, step_reward};
 use nalgebra::{Matrix3, Point3, Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -181,12 +181,18 @@ fn compute() -> Value {
         })
         .collect();
 
+    // Each size with the nominal scale alone (no focal range), then with a focal range for lenses
+    // inside it, longer (shrunk), wider (enlarged) and much wider (capped at its own resolution).
+    let range = Some([353.5456, 360.76885]);
+    let lenses = [(None, 718.856), (range, 718.856), (range, 2152.8), (range, 398.4), (range, 100.0)];
     let preprocess: Vec<Value> = [(1241u32, 376u32), (1242, 375), (640, 480), (512, 160), (3000, 900), (400, 100)]
         .iter()
-        .map(|&(w, h)| {
-            let plan = PreprocessPlan::centered(w, h, 0.5, 512, 160);
-            let src = Intrinsics { fx: 718.856, fy: 718.856, cx: w as f64 / 2.0 - 0.3, cy: h as f64 / 2.0 + 0.7 };
-            json!({"in_size": [w, h], "intrinsics": src, "plan": plan, "adjusted": plan.adjust(&src, w, h)})
+        .flat_map(|&(w, h)| lenses.iter().map(move |&(range, fx)| (w, h, range, fx)))
+        .map(|(w, h, focal_range_px, fx)| {
+            let scale = input_scale(0.5, focal_range_px, fx);
+            let plan = PreprocessPlan::centered(w, h, scale, 512, 160);
+            let src = Intrinsics { fx, fy: fx, cx: w as f64 / 2.0 - 0.3, cy: h as f64 / 2.0 + 0.7 };
+            json!({"in_size": [w, h], "nominal_scale": 0.5, "focal_range_px": focal_range_px, "intrinsics": src, "scale": scale, "plan": plan, "adjusted": plan.adjust(&src, w, h)})
         })
         .collect();
 

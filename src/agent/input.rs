@@ -5,7 +5,7 @@ use anyhow::{Result, bail};
 use fast_image_resize::{FilterType, ResizeAlg, ResizeOptions, Resizer};
 use image::RgbImage;
 
-use crate::geometry::{Intrinsics, PreprocessPlan};
+use crate::geometry::Intrinsics;
 use crate::model::Manifest;
 
 /// `image` resized to `width` x `height` with a bilinear (triangle) filter widened by the scale
@@ -18,8 +18,9 @@ pub fn resize(image: &RgbImage, width: u32, height: u32) -> Result<RgbImage> {
     Ok(out)
 }
 
-/// Resizes and centre-crops an image to the model input and normalises it to the contract's
-/// [3, H, W] tensor; returns the intrinsics of the crop.
+/// Resizes (`ImageSpec::plan`: by the model's scale for the image's focal length) and
+/// centre-crops an image to the model input and normalises it to the contract's [3, H, W] tensor;
+/// returns the intrinsics of the crop.
 pub fn prepare_image(image: &RgbImage, intrinsics: &Intrinsics, manifest: &Manifest) -> Result<(Vec<f32>, Intrinsics)> {
     intrinsics.validate().map_err(anyhow::Error::msg)?;
     let (w, h) = image.dimensions();
@@ -27,7 +28,7 @@ pub fn prepare_image(image: &RgbImage, intrinsics: &Intrinsics, manifest: &Manif
         bail!("image has zero width or height");
     }
     let spec = &manifest.image;
-    let plan = PreprocessPlan::centered(w, h, spec.nominal_scale, spec.width, spec.height);
+    let plan = spec.plan(w, h, intrinsics.fx);
     let resized = if (plan.resized_width, plan.resized_height) == (w, h) {
         image.clone()
     } else {

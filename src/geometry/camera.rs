@@ -64,8 +64,31 @@ impl Intrinsics {
     }
 }
 
+/// Most a model's focal range may enlarge an image beyond its nominal scale: to the image's own
+/// resolution (covering the input still may enlarge it further).
+pub const MAX_FOCAL_SCALE: f64 = 1.0;
+
+/// The factor an image whose focal length is `fx` (pixels, > 0) is resized by before the centre
+/// crop. A model set resizes every image by `nominal_scale`, or, when its manifest names the
+/// focal lengths it was trained at, `focal_range_px` = [lo, hi] (model-input pixels, lo <= hi),
+/// by the factor nearest `nominal_scale` that brings `fx` into that range: a camera already in it
+/// keeps the nominal scale, a longer lens is shrunk to `hi`, a wider one enlarged to `lo` (at
+/// most to its own resolution, [`MAX_FOCAL_SCALE`]). So a camera's pixels reach the model at
+/// about the angular size it learnt, whatever the lens and whatever resolution the image is sent
+/// at. `PreprocessPlan::centered` then raises the factor where the image would not cover the
+/// model input. Twin: `training/cmr/geometry.py::input_scale` (fixtures/conventions.json).
+pub fn input_scale(nominal_scale: f64, focal_range_px: Option<[f64; 2]>, fx: f64) -> f64 {
+    match focal_range_px {
+        None => nominal_scale,
+        Some([lo, hi]) => {
+            let s = nominal_scale.clamp(lo / fx, hi / fx);
+            if s > nominal_scale { s.min(MAX_FOCAL_SCALE.max(nominal_scale)) } else { s }
+        }
+    }
+}
+
 /// How an input image of any size becomes the model's `out_width` × `out_height` input:
-/// resize by `scale` (never below the model's nominal scale, and at least enough to cover the
+/// resize by the model's scale for it ([`input_scale`], raised to at least enough to cover the
 /// output), then crop the window at (`crop_x`, `crop_y`). The intrinsics follow the same steps.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct PreprocessPlan {
@@ -78,9 +101,10 @@ pub struct PreprocessPlan {
 }
 
 impl PreprocessPlan {
-    /// The centre-crop plan used at test time and by the server.
-    pub fn centered(in_width: u32, in_height: u32, nominal_scale: f64, out_width: u32, out_height: u32) -> Self {
-        let (rw, rh) = Self::resized_size(in_width, in_height, nominal_scale, out_width, out_height);
+    /// The centre-crop plan used at test time and by the server, for an image resized by `scale`
+    /// ([`input_scale`]) or more where that does not cover the output.
+    pub fn centered(in_width: u32, in_height: u32, scale: f64, out_width: u32, out_height: u32) -> Self {
+        let (rw, rh) = Self::resized_size(in_width, in_height, scale, out_width, out_height);
         Self {
             resized_width: rw,
             resized_height: rh,
@@ -91,9 +115,9 @@ impl PreprocessPlan {
         }
     }
 
-    /// The resized size: scale s = max(nominal, out_h / in_h, out_w / in_w), rounded to pixels.
-    pub fn resized_size(in_width: u32, in_height: u32, nominal_scale: f64, out_width: u32, out_height: u32) -> (u32, u32) {
-        let s = nominal_scale
+    /// The resized size: s = max(scale, out_h / in_h, out_w / in_w), rounded to pixels.
+    pub fn resized_size(in_width: u32, in_height: u32, scale: f64, out_width: u32, out_height: u32) -> (u32, u32) {
+        let s = scale
             .max(out_height as f64 / in_height as f64)
             .max(out_width as f64 / in_width as f64);
         let rw = ((in_width as f64 * s).round() as u32).max(out_width);
@@ -143,6 +167,43 @@ mod tests {
         let plan = PreprocessPlan::centered(1241, 376, 0.5, 512, 160);
         assert_eq!((plan.resized_width, plan.resized_height), (621, 188));
         assert_eq!((plan.crop_x, plan.crop_y), (54, 14));
+    }
+
+    /// The shipped model set's range (the KITTI rigs' focal lengths at the nominal scale).
+    const RANGE: Option<[f64; 2]> = Some([353.5456, 360.76885]);
+
+    /// The focal length a camera reaches the model input with.
+    fn input_fx(w: u32, h: u32, fx: f64, range: Option<[f64; 2]>) -> f64 {
+        let plan = PreprocessPlan::centered(w, h, input_scale(0.5, range, fx), 512, 160);
+        plan.adjust(&Intrinsics { fx, fy: fx, cx: w as f64 / 2.0, cy: h as f64 / 2.0 }, w, h).fx
+    }
+
+    #[test]
+    fn a_focal_range_keeps_the_cameras_inside_it_and_brings_the_others_in() {
+        // KITTI's colour camera and the synthetic rig are inside: the scale stays 0.5 exactly.
+        assert_eq!(input_scale(0.5, RANGE, 721.5377), 0.5);
+        assert_eq!(input_scale(0.5, RANGE, 718.856), 0.5);
+        assert_eq!(input_scale(0.5, None, 2152.8), 0.5);
+        // A longer lens is shrunk to the upper end, a wider one enlarged to the lower end...
+        assert!((input_fx(1920, 1200, 1000.0, None) - 500.0).abs() < 0.5);
+        assert!((input_fx(1920, 1200, 1000.0, RANGE) - 360.8).abs() < 0.5);
+        assert!((input_fx(1600, 900, 500.0, RANGE) - 353.5).abs() < 0.5);
+        // ... but never beyond the image's own resolution, and never below covering the input:
+        // a 1920-pixel-wide image with a 2152.8 px lens keeps its whole width (574 px).
+        assert_eq!(input_scale(0.5, RANGE, 100.0), MAX_FOCAL_SCALE);
+        assert!((input_fx(1920, 1200, 2152.8, RANGE) - 574.1).abs() < 0.5);
+    }
+
+    #[test]
+    fn with_a_focal_range_the_model_input_does_not_depend_on_the_resolution_sent() {
+        // One camera sent at 1920x1200, halved and doubled: the model reads about the same focal
+        // length (353.5-360.8 px); at the nominal scale it reads 500, 267 (raised to cover the
+        // input) and 1000.
+        let sizes = [(1920, 1200, 1000.0), (960, 600, 500.0), (3840, 2400, 2000.0)];
+        let with: Vec<f64> = sizes.iter().map(|&(w, h, fx)| input_fx(w, h, fx, RANGE)).collect();
+        assert!(with.iter().all(|f| (f / with[0] - 1.0).abs() < 0.025), "{with:?}");
+        let without: Vec<f64> = sizes.iter().map(|&(w, h, fx)| input_fx(w, h, fx, None)).collect();
+        assert!((without[2] / without[0] - 2.0).abs() < 0.01, "{without:?}");
     }
 
     #[test]

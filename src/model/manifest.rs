@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use crate::geometry::{ActionFrame, ActionSet};
+use crate::geometry::{ActionFrame, ActionSet, PreprocessPlan, input_scale};
 
 use super::calibrator::Calibrator;
 
@@ -46,9 +46,23 @@ pub struct Manifest {
 pub struct ImageSpec {
     pub width: u32,
     pub height: u32,
+    /// The resize factor of an image (before the crop), unless `focal_range_px` moves it.
     pub nominal_scale: f64,
+    /// [lo, hi]: the focal lengths (model-input pixels) the model was trained at; an image whose
+    /// focal length at `nominal_scale` lies outside is resized into the range
+    /// (`geometry::input_scale`). Absent in model sets before 2026-12-05: `nominal_scale` always.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub focal_range_px: Option<[f64; 2]>,
     pub mean: [f32; 3],
     pub std: [f32; 3],
+}
+
+impl ImageSpec {
+    /// How an image of `width` × `height` pixels with focal length `fx` (pixels, > 0) becomes the
+    /// model's input: `geometry::input_scale`, then `PreprocessPlan::centered`.
+    pub fn plan(&self, width: u32, height: u32, fx: f64) -> PreprocessPlan {
+        PreprocessPlan::centered(width, height, input_scale(self.nominal_scale, self.focal_range_px, fx), self.width, self.height)
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -250,6 +264,9 @@ impl Manifest {
         if !(img.nominal_scale > 0.0) || img.std.iter().any(|s| !(*s > 0.0)) {
             return Err("image.nominal_scale and image.std must be positive".into());
         }
+        if img.focal_range_px.is_some_and(|[lo, hi]| !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo <= hi)) {
+            return Err("image.focal_range_px must be [lo, hi] pixels with 0 < lo <= hi".into());
+        }
         let p = &self.points;
         if p.num_points == 0 || p.num_state_points == 0 || p.num_state_points > p.num_points {
             return Err("points.num_state_points must be in 1..=num_points".into());
@@ -441,6 +458,9 @@ mod tests {
             (Box::new(|v| v["actions"]["dofs"] = serde_json::json!(["tx_m", "yaw_deg", "tz_m"])), "actions.dofs"),
             (Box::new(|v| v["actions"]["frame"] = "camera_z".into()), "actions.frame"),
             (Box::new(|v| v["actions"]["frame"] = serde_json::json!(3)), "malformed"),
+            (Box::new(|v| v["image"]["focal_range_px"] = serde_json::json!([600.0, 300.0])), "focal_range_px"),
+            (Box::new(|v| v["image"]["focal_range_px"] = serde_json::json!([0.0, 300.0])), "focal_range_px"),
+            (Box::new(|v| v["image"]["focal_range_px"] = serde_json::json!([300.0])), "malformed"),
             (Box::new(|v| v["state_2d"] = serde_json::json!({"form": "pixels"})), "state_2d.form"),
             (Box::new(|v| v["state_2d"] = serde_json::json!({"form": "features", "row_shifts": [1]})), "takes no shifts"),
             (Box::new(|v| v["state_2d"] = serde_json::json!({"form": "correlation", "row_shifts": [], "column_shifts": [1]})), "at least one row shift"),

@@ -8,7 +8,7 @@ use std::io::Cursor;
 use base64::Engine;
 use image::{ImageFormat, ImageReader, RgbImage};
 
-use crate::geometry::{Intrinsics, PreprocessPlan};
+use crate::geometry::{Intrinsics, MAX_FOCAL_SCALE, PreprocessPlan};
 use crate::model::Manifest;
 
 use super::error::LocalizeError;
@@ -98,8 +98,11 @@ fn check_size(w: u32, h: u32, manifest: &Manifest, limits: ImageLimits) -> Resul
     if pixels > limits.max_pixels {
         return Err(LocalizeError::PayloadTooLarge(format!("image is {w}x{h} = {pixels} pixels; the limit is {}", limits.max_pixels)));
     }
+    // The largest resize any intrinsics can ask for (a focal range enlarges an image to at most
+    // geometry::MAX_FOCAL_SCALE), so the check holds before the intrinsics are read.
     let spec = &manifest.image;
-    let plan = PreprocessPlan::centered(w, h, spec.nominal_scale, spec.width, spec.height);
+    let scale = if spec.focal_range_px.is_some() { MAX_FOCAL_SCALE.max(spec.nominal_scale) } else { spec.nominal_scale };
+    let plan = PreprocessPlan::centered(w, h, scale, spec.width, spec.height);
     let resized = plan.resized_width as u64 * plan.resized_height as u64;
     if resized > limits.max_pixels {
         return Err(LocalizeError::Invalid(format!(

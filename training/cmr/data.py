@@ -38,6 +38,13 @@ from . import geometry as g
 
 OUT_W, OUT_H = 512, 160
 NOMINAL_SCALE = 0.5
+# The focal lengths (model-input pixels) every camera is brought to (`geometry.input_scale`): the
+# KITTI rigs' at NOMINAL_SCALE (odometry 707.0912 and colour 721.5377 px, halved), where most training
+# frames are (the synthetic rig's 718.856 too). Another lens, or a KITTI image sent at another
+# resolution, is resized to the nearer end instead of by NOMINAL_SCALE, so the model reads pixels of
+# one angular size whatever the camera (docs/evaluation.md, "One focal length"). Exported
+# manifests carry it as `image.focal_range_px`, which the server applies alike.
+FOCAL_RANGE_PX = (353.5456, 360.76885)
 IMAGE_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGE_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
 
@@ -247,12 +254,13 @@ def find_sequences(root: Path) -> list[Path]:
 
 
 @lru_cache(maxsize=1024)
-def _decoded(image_path: Path, scan_path: Path) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
-    """(resized uint8 image HxWx3, xyz float32, original (W, H)); resizing does not depend on the crop."""
+def _decoded(image_path: Path, scan_path: Path, scale: float) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """(image resized by `scale` (raised to cover the input) as uint8 HxWx3, xyz float32, original
+    (W, H)); resizing does not depend on the crop."""
     with Image.open(image_path) as im:
         im = im.convert("RGB")
         w, h = im.size
-        plan = g.preprocess_plan(w, h, NOMINAL_SCALE, OUT_W, OUT_H)
+        plan = g.preprocess_plan(w, h, scale, OUT_W, OUT_H)
         resized = np.asarray(im.resize((plan["resized_width"], plan["resized_height"]), Image.BILINEAR))
     return resized, read_scan(scan_path), (w, h)
 
@@ -289,22 +297,25 @@ def colour_jitter(rgb: np.ndarray, rng: np.random.Generator, strength: float = 0
 
 def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points: int = 40960,
                 max_shift_m: float = 10.0, motion: np.ndarray | None = None,
-                augment: aug.AugmentOptions = aug.DEFAULT) -> Sample:
+                augment: aug.AugmentOptions = aug.DEFAULT, focal_range_px=FOCAL_RANGE_PX) -> Sample:
     """`motion`: a given Q (a frozen test case) instead of a random one. The random draw still
     happens, so the rest of the sample does not depend on whether a motion was given.
     `augment` (training only): the default draws exactly what it always drew (random crop, basic
-    colour jitter); other options add draws after those (see `augment.py`)."""
-    resized, xyz, (w, h) = _decoded(frame.image_path, frame.scan_path)
+    colour jitter); other options add draws after those (see `augment.py`).
+    `focal_range_px`: the model's (lo, hi) focal lengths (`geometry.input_scale`; None: NOMINAL_SCALE
+    for every image)."""
+    scale = g.input_scale(NOMINAL_SCALE, focal_range_px, float(frame.calib.intrinsics[0]))
+    resized, xyz, (w, h) = _decoded(frame.image_path, frame.scan_path, scale)
     rh, rw = resized.shape[:2]
     zoom = aug.draw_zoom(rng, augment) if train and augment.scale_max > 1.0 else 1.0
     if zoom != 1.0:
-        zw, zh = g.resized_size(w, h, NOMINAL_SCALE, OUT_W, OUT_H, zoom)
+        zw, zh = g.resized_size(w, h, scale, OUT_W, OUT_H, zoom)
         # Resizing the cached image again composes exactly with the first resize (pixel-centre
         # convention), so the plan's intrinsics (original -> zoomed size) hold.
         resized = np.asarray(Image.fromarray(resized).resize((zw, zh), Image.BILINEAR))
         rh, rw = zh, zw
     crop = (int(rng.integers(0, rw - OUT_W + 1)), int(rng.integers(0, rh - OUT_H + 1))) if train else None
-    plan = g.preprocess_plan(w, h, NOMINAL_SCALE, OUT_W, OUT_H, crop, zoom)
+    plan = g.preprocess_plan(w, h, scale, OUT_W, OUT_H, crop, zoom)
     assert (plan["resized_width"], plan["resized_height"]) == (rw, rh)
     x0, y0 = plan["crop_x"], plan["crop_y"]
     rgb = resized[y0:y0 + OUT_H, x0:x0 + OUT_W].astype(np.float32) / 255.0

@@ -31,6 +31,7 @@ import onnx.utils
 import torch
 
 from . import geometry as g
+from .data import FOCAL_RANGE_PX
 from .files import atomic_write_bytes, git_commit  # noqa: F401 (re-exported: quantize, model_card, evaluate)
 from .flops import count as count_flops
 from .models import (COLUMN_SHIFTS, FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, IMAGE_HEIGHT, IMAGE_WIDTH, NUM_DOFS,
@@ -214,8 +215,8 @@ def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenan
             graphs[name]["flops"] = flops[name]
     doc = {
         "format": MANIFEST_FORMAT,
-        "image": dict(width=IMAGE_WIDTH, height=IMAGE_HEIGHT, nominal_scale=NOMINAL_SCALE, mean=list(IMAGE_MEAN),
-                      std=list(IMAGE_STD)),
+        "image": dict(width=IMAGE_WIDTH, height=IMAGE_HEIGHT, nominal_scale=NOMINAL_SCALE,
+                      focal_range_px=list(FOCAL_RANGE_PX), mean=list(IMAGE_MEAN), std=list(IMAGE_STD)),
         "features": dict(dim=FEATURE_DIM, stride=STRIDE, grid_height=GRID_HEIGHT, grid_width=GRID_WIDTH),
         "points": dict(num_points=NUM_POINTS, num_state_points=NUM_STATE_POINTS, state_xyz_scale_m=STATE_XYZ_SCALE_M),
         "actions": dict(dofs=list(g.DOFS), rotation_deg=[float(x) for x in g.ROTATION_STEPS_DEG],

@@ -137,20 +137,37 @@ def _round_half_away(x: float) -> int:
     return int(math.floor(x + 0.5))
 
 
-def resized_size(in_w: int, in_h: int, nominal_scale: float, out_w: int, out_h: int,
+# Most a focal range may enlarge an image beyond its nominal scale (Rust's MAX_FOCAL_SCALE).
+MAX_FOCAL_SCALE = 1.0
+
+
+def input_scale(nominal_scale: float, focal_range_px, fx: float) -> float:
+    """The factor an image with focal length `fx` (pixels) is resized by before the crop:
+    `nominal_scale`, or with `focal_range_px` = (lo, hi) (the model's trained focal lengths, in
+    model-input pixels) the factor nearest it that brings `fx` into [lo, hi], an enlargement at most
+    to max(MAX_FOCAL_SCALE, nominal). Twin of `geometry::input_scale` in the crate (fixture-pinned)."""
+    if focal_range_px is None:
+        return nominal_scale
+    lo, hi = focal_range_px
+    s = min(max(nominal_scale, lo / fx), hi / fx)
+    return min(s, max(MAX_FOCAL_SCALE, nominal_scale)) if s > nominal_scale else s
+
+
+def resized_size(in_w: int, in_h: int, scale: float, out_w: int, out_h: int,
                  zoom: float = 1.0) -> tuple[int, int]:
-    """The server's resize (zoom 1). Training's random zoom (`zoom` > 1) multiplies the factor; it
-    is Python-only, and the intrinsics follow through `adjust_intrinsics` like every other plan."""
-    s = max(nominal_scale, out_h / in_h, out_w / in_w)
+    """The server's resize (zoom 1): `scale` (`input_scale`), raised to cover the output. Training's
+    random zoom (`zoom` > 1) multiplies the factor; it is Python-only, and the intrinsics follow
+    through `adjust_intrinsics` like every other plan."""
+    s = max(scale, out_h / in_h, out_w / in_w)
     if zoom != 1.0:
         s *= zoom
     return max(_round_half_away(in_w * s), out_w), max(_round_half_away(in_h * s), out_h)
 
 
-def preprocess_plan(in_w, in_h, nominal_scale, out_w, out_h, crop_xy=None, zoom: float = 1.0) -> dict:
+def preprocess_plan(in_w, in_h, scale, out_w, out_h, crop_xy=None, zoom: float = 1.0) -> dict:
     """Resize-then-crop plan; centre crop unless `crop_xy` is given (random crops in training),
-    resize factor times `zoom` (training's random scale; 1 = the server's plan)."""
-    rw, rh = resized_size(in_w, in_h, nominal_scale, out_w, out_h, zoom)
+    resize factor (`resized_size`) times `zoom` (training's random scale; 1 = the server's plan)."""
+    rw, rh = resized_size(in_w, in_h, scale, out_w, out_h, zoom)
     cx, cy = crop_xy if crop_xy is not None else ((rw - out_w) // 2, (rh - out_h) // 2)
     return dict(resized_width=rw, resized_height=rh, crop_x=cx, crop_y=cy, out_width=out_w, out_height=out_h)
 

@@ -49,18 +49,18 @@ def server_resize(rgb: np.ndarray, width: int, height: int) -> np.ndarray:
     return np.floor(np.clip(both, 0, 255) + 0.5).astype(np.uint8)
 
 
-def _original(image_path: Path) -> tuple[np.ndarray, tuple[int, int]]:
+def _original(image_path: Path, scale: float = data.NOMINAL_SCALE) -> tuple[np.ndarray, tuple[int, int]]:
     """The decoded RGB image and the size the preprocessing plan resizes it to."""
     with Image.open(image_path) as im:
         rgb = np.asarray(im.convert("RGB"))
-    plan = g.preprocess_plan(rgb.shape[1], rgb.shape[0], data.NOMINAL_SCALE, data.OUT_W, data.OUT_H)
+    plan = g.preprocess_plan(rgb.shape[1], rgb.shape[0], scale, data.OUT_W, data.OUT_H)
     return rgb, (plan["resized_width"], plan["resized_height"])
 
 
 @lru_cache(maxsize=1024)
-def _decoded_like_the_server(image_path: Path, scan_path: Path):
+def _decoded_like_the_server(image_path: Path, scan_path: Path, scale: float):
     """`data._decoded` with the server's resize in place of PIL's."""
-    rgb, size = _original(image_path)
+    rgb, size = _original(image_path, scale)
     return server_resize(rgb, *size), data.read_scan(scan_path), (rgb.shape[1], rgb.shape[0])
 
 

@@ -31,7 +31,9 @@ def test_projection(case):
 @pytest.mark.parametrize("case", FIXTURE["preprocess"])
 def test_preprocess(case):
     w, h = case["in_size"]
-    plan = g.preprocess_plan(w, h, 0.5, 512, 160)
+    scale = g.input_scale(case["nominal_scale"], case["focal_range_px"], case["intrinsics"]["fx"])
+    assert scale == case["scale"]
+    plan = g.preprocess_plan(w, h, scale, 512, 160)
     assert plan == case["plan"]
     k = [case["intrinsics"][n] for n in ("fx", "fy", "cx", "cy")]
     adjusted = g.adjust_intrinsics(plan, k, w, h)
