@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from cmr import geometry as g
-from cmr.data import DataError, find_sequences, list_frames, make_sample, parse_calib, read_poses
+from cmr.data import (FOCAL_RANGE_PX, NOMINAL_SCALE, DataError, find_sequences, list_frames, make_sample, parse_calib,
+                      read_poses)
 
 
 def assert_labels_follow_truth(s) -> None:
@@ -38,7 +39,10 @@ def test_centre_crop_is_deterministic_and_matches_plan(tiny_dataset):
     assert np.array_equal(a.image, b.image) and np.array_equal(a.points, b.points)
     from PIL import Image
     w, h = Image.open(frame.image_path).size
-    plan = g.preprocess_plan(w, h, 0.5, 512, 160)
+    # The model's resize: the nominal 0.5 moved into the focal range (this rig's lens is outside it).
+    scale = g.input_scale(NOMINAL_SCALE, FOCAL_RANGE_PX, frame.calib.intrinsics[0])
+    assert scale != NOMINAL_SCALE
+    plan = g.preprocess_plan(w, h, scale, 512, 160)
     assert np.allclose(a.intrinsics, g.adjust_intrinsics(plan, frame.calib.intrinsics, w, h))
 
 
