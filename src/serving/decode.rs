@@ -167,6 +167,29 @@ mod tests {
         assert!(matches!(strip, LocalizeError::Invalid(ref s) if s.contains("aspect ratio")), "{strip}");
     }
 
+    /// With a focal range the header check bounds the resize any intrinsics can ask for: an image
+    /// at the pixel budget passes and then prepares within it for a lens of any focal length (a
+    /// tiny `fx` asks to enlarge it many times: capped at its own resolution); a thin strip is
+    /// still refused before decoding.
+    #[test]
+    fn with_a_focal_range_the_budget_holds_for_any_intrinsics() {
+        let mut m = manifest();
+        m.image.focal_range_px = Some([353.5456, 360.76885]);
+        let limits = ImageLimits { max_side: 8192, max_pixels: 2000 * 600 };
+        let bytes = png(2000, 600);
+        assert!(decode_image(&bytes, &m, limits).is_ok());
+        for fx in [1e-3, 10.0, 400.0, 2000.0, 1e7] {
+            let k = Intrinsics { fx, fy: fx, cx: 1000.0, cy: 300.0 };
+            let plan = m.image.plan(2000, 600, fx);
+            assert!(plan.resized_width as u64 * plan.resized_height as u64 <= limits.max_pixels, "fx {fx}: {plan:?}");
+            let (tensor, crop_k, _) = prepare_request_image(ImagePayload::Raw(bytes.clone().into()), &k, &m, limits).unwrap();
+            assert_eq!(tensor.len(), 3 * (m.image.width * m.image.height) as usize);
+            assert!(crop_k.fx > 0.0 && crop_k.fx <= fx.max(m.image.width as f64), "fx {fx}: {crop_k:?}");
+        }
+        let strip = decode_image(&png(1, 8192), &m, LIMITS).unwrap_err();
+        assert!(matches!(strip, LocalizeError::Invalid(ref s) if s.contains("aspect ratio")), "{strip}");
+    }
+
     #[test]
     fn a_cut_jpeg_is_corrupt_and_a_whole_one_decodes() {
         let m = manifest();

@@ -21,7 +21,8 @@ torch.set_num_threads(2)
 def _rust_binary() -> Path:
     path = Path(os.environ.get("CMR_AGENT_BIN", REPO / "target" / "release" / "cmr-agent"))
     if not path.is_file():
-        pytest.fail(f"{path} is missing: build it first (`make test` does, via `cargo build --release`)")
+        pytest.fail(f"{path} is missing: build it first (`make test` does, via `cargo test --release`), "
+                    "or point CMR_AGENT_BIN at a built cmr-agent")
     return path
 
 
