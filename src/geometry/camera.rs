@@ -80,11 +80,14 @@ pub const MAX_FOCAL_SCALE: f64 = 1.0;
 pub fn input_scale(nominal_scale: f64, focal_range_px: Option<[f64; 2]>, fx: f64) -> f64 {
     match focal_range_px {
         None => nominal_scale,
-        Some([lo, hi]) => {
-            let s = nominal_scale.clamp(lo / fx, hi / fx);
-            if s > nominal_scale { s.min(MAX_FOCAL_SCALE.max(nominal_scale)) } else { s }
-        }
+        Some([lo, hi]) => nominal_scale.clamp(lo / fx, hi / fx).min(max_input_scale(nominal_scale, focal_range_px)),
     }
+}
+
+/// The largest factor [`input_scale`] gives for any focal length: what a size budget checked
+/// before the intrinsics are read must allow.
+pub fn max_input_scale(nominal_scale: f64, focal_range_px: Option<[f64; 2]>) -> f64 {
+    if focal_range_px.is_some() { MAX_FOCAL_SCALE.max(nominal_scale) } else { nominal_scale }
 }
 
 /// How an input image of any size becomes the model's `out_width` × `out_height` input:

@@ -8,7 +8,7 @@ use std::io::Cursor;
 use base64::Engine;
 use image::{ImageFormat, ImageReader, RgbImage};
 
-use crate::geometry::{Intrinsics, MAX_FOCAL_SCALE, PreprocessPlan};
+use crate::geometry::{Intrinsics, PreprocessPlan, max_input_scale};
 use crate::model::Manifest;
 
 use super::error::LocalizeError;
@@ -98,10 +98,9 @@ fn check_size(w: u32, h: u32, manifest: &Manifest, limits: ImageLimits) -> Resul
     if pixels > limits.max_pixels {
         return Err(LocalizeError::PayloadTooLarge(format!("image is {w}x{h} = {pixels} pixels; the limit is {}", limits.max_pixels)));
     }
-    // The largest resize any intrinsics can ask for (a focal range enlarges an image to at most
-    // geometry::MAX_FOCAL_SCALE), so the check holds before the intrinsics are read.
+    // The largest resize any intrinsics can ask for, so the check holds before they are read.
     let spec = &manifest.image;
-    let scale = if spec.focal_range_px.is_some() { MAX_FOCAL_SCALE.max(spec.nominal_scale) } else { spec.nominal_scale };
+    let scale = max_input_scale(spec.nominal_scale, spec.focal_range_px);
     let plan = PreprocessPlan::centered(w, h, scale, spec.width, spec.height);
     let resized = plan.resized_width as u64 * plan.resized_height as u64;
     if resized > limits.max_pixels {

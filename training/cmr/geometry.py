@@ -144,13 +144,12 @@ MAX_FOCAL_SCALE = 1.0
 def input_scale(nominal_scale: float, focal_range_px, fx: float) -> float:
     """The factor an image with focal length `fx` (pixels) is resized by before the crop:
     `nominal_scale`, or with `focal_range_px` = (lo, hi) (the model's trained focal lengths, in
-    model-input pixels) the factor nearest it that brings `fx` into [lo, hi], an enlargement at most
-    to max(MAX_FOCAL_SCALE, nominal). Twin of `geometry::input_scale` in the crate (fixture-pinned)."""
+    model-input pixels) the factor nearest it that brings `fx` into [lo, hi], at most
+    max(MAX_FOCAL_SCALE, nominal). Twin of `geometry::input_scale` in the crate (fixture-pinned)."""
     if focal_range_px is None:
         return nominal_scale
     lo, hi = focal_range_px
-    s = min(max(nominal_scale, lo / fx), hi / fx)
-    return min(s, max(MAX_FOCAL_SCALE, nominal_scale)) if s > nominal_scale else s
+    return min(max(nominal_scale, lo / fx), hi / fx, max(MAX_FOCAL_SCALE, nominal_scale))
 
 
 def resized_size(in_w: int, in_h: int, scale: float, out_w: int, out_h: int,

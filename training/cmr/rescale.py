@@ -67,9 +67,9 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(f"{args.src}: no KITTI-layout sequence (calib.txt) found")
     for seq in sequences:
         rescale_sequence(seq, args.dst if seq == args.src else args.dst / seq.name, args.factor)
-    for name in ("rigs.json",):
-        if (args.src / name).exists() and not (args.dst / name).exists():
-            (args.dst / name).symlink_to((args.src / name).resolve())
+    rigs = args.src / "rigs.json"
+    if rigs.exists() and not (args.dst / "rigs.json").exists():
+        (args.dst / "rigs.json").symlink_to(rigs.resolve())
     print(f"{len(sequences)} sequence(s) resized by {args.factor} into {args.dst}")
 
 
