@@ -209,6 +209,22 @@ def smallest_safe_threshold(p: np.ndarray, y: np.ndarray, candidates: np.ndarray
     return safe
 
 
+def recall_ceiling(p: np.ndarray, y: np.ndarray, target: float) -> float | None:
+    """The highest recall that any one threshold on p [n] reaches with precision(p >= t) >= target
+    on these same rows (y [n] bool; tied p count together); None when no row is registered.
+
+    The threshold is chosen on the rows it is scored on, so this is a ceiling, not a result: what
+    the signals behind p could give at best. When it is below a recall bar, no threshold rule
+    meets that bar with these signals; better signals (a better model) are needed."""
+    if not y.any():
+        return None
+    order = np.argsort(-p, kind="stable")
+    ps, hits = p[order], np.cumsum(y[order])
+    last_of_tie = np.r_[ps[1:] != ps[:-1], True]
+    safe = last_of_tie & (hits >= target * np.arange(1, len(ps) + 1))
+    return float(hits[safe].max() / y.sum()) if safe.any() else 0.0
+
+
 def folds_of(groups: np.ndarray, k: int, seed: int) -> np.ndarray:
     """Fold index [n] per row: whole groups, shuffled with `seed`, dealt round-robin into k folds."""
     names = sorted(set(groups.tolist()))
@@ -222,8 +238,9 @@ def fit(rows: dict, features: tuple[str, ...] = SIGNALS, l2: float = 1.0, k: int
         target_precision: float = 0.95, clip: float | None = 3.0) -> tuple[dict, dict]:
     """Fits on `rows` (load_cases): returns (calibrator section without provenance, out-of-fold report).
 
-    The report holds the out-of-fold p [n] ("p"), the threshold, and per cases file and pooled the
-    `scores` at that threshold."""
+    The report holds the out-of-fold p [n] ("p"), the threshold, per cases file and pooled the
+    `scores` at that threshold, and per cases file the `recall_ceiling` of the out-of-fold p at the
+    target precision."""
     cols = [SIGNALS.index(name) for name in features]
     x, y = rows["x"][:, cols], rows["y"]
 
@@ -261,7 +278,9 @@ def fit(rows: dict, features: tuple[str, ...] = SIGNALS, l2: float = 1.0, k: int
     t = thresholds(calibrator, rows["x"])
     report = dict(p=oof, threshold=calibrator["threshold"], bounded_threshold=calibrator.get("bounded_threshold"),
                   pooled=scores(oof, y, t),
-                  per_file={int(i): scores(oof[rows["file"] == i], y[rows["file"] == i], t[rows["file"] == i]) for i in files})
+                  per_file={int(i): scores(oof[rows["file"] == i], y[rows["file"] == i], t[rows["file"] == i]) for i in files},
+                  recall_ceiling={int(i): recall_ceiling(oof[rows["file"] == i], y[rows["file"] == i], target_precision)
+                                  for i in files})
     return calibrator, report
 
 
@@ -306,7 +325,8 @@ def main(argv=None) -> None:
         git_commit=git_commit(),
         fit=dict(l2=args.l2, clip=args.clip or None, folds=args.folds, seed=args.seed, target_precision=args.target_precision,
                  groups=len(set(rows["group"].tolist()))),
-        out_of_fold=dict(pooled=report["pooled"], per_file={str(paths[i]): s for i, s in report["per_file"].items()}),
+        out_of_fold=dict(pooled=report["pooled"], per_file={str(paths[i]): s for i, s in report["per_file"].items()},
+                         recall_ceiling={str(paths[i]): r for i, r in report["recall_ceiling"].items()}),
     )
     text = json.dumps(calibrator, indent=2)
     print(text)

@@ -79,6 +79,24 @@ def test_the_threshold_holds_the_precision_at_and_above_it():
     assert c.smallest_safe_threshold(p, np.zeros_like(y), candidates, 0.95) == 1.0  # nothing is ever right
 
 
+def test_the_recall_ceiling_is_the_best_any_threshold_reaches():
+    p = np.array([0.95, 0.9, 0.85, 0.8, 0.7, 0.6, 0.5, 0.3])
+    y = np.array([True, True, False, True, True, True, False, False])
+    # Precision of p >= t from the top: 1, 1, 2/3, 3/4, 4/5, 5/6, 5/7, 5/8; recall k/5.
+    assert c.recall_ceiling(p, y, 0.8) == 1.0  # 5/6 at 0.6
+    assert c.recall_ceiling(p, y, 0.9) == 0.4  # only the top two
+    assert c.recall_ceiling(p, y, 1.0) == 0.4
+    # Tied scores go in or out together: the top three tie, one of them wrong.
+    assert c.recall_ceiling(np.array([0.9, 0.9, 0.9, 0.1]), np.array([True, True, False, True]), 0.9) == 0.0
+    assert c.recall_ceiling(p, np.zeros_like(y), 0.95) is None
+    # Whatever the threshold rule picks, its recall on the same rows is never above the ceiling.
+    rng = np.random.default_rng(3)
+    p, y = rng.uniform(size=200), rng.uniform(size=200) < 0.5
+    candidates = np.unique(np.concatenate([p, [1.0]]))
+    t = c.smallest_safe_threshold(p, y, candidates, 0.6)
+    assert (c.scores(p, y, t)["recall"] or 0.0) <= c.recall_ceiling(p, y, 0.6)
+
+
 def _cases_json(path: Path, rng, n: int, data: str) -> Path:
     """A cases.json (and eval.json) as cmr-agent eval writes them, with signals that predict the outcome."""
     records = []
