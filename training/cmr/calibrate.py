@@ -221,7 +221,7 @@ def recall_ceiling(p: np.ndarray, y: np.ndarray, target: float) -> float | None:
     order = np.argsort(-p, kind="stable")
     ps, hits = p[order], np.cumsum(y[order])
     last_of_tie = np.r_[ps[1:] != ps[:-1], True]
-    safe = last_of_tie & (hits >= target * np.arange(1, len(ps) + 1))
+    safe = last_of_tie & (hits / np.arange(1, len(ps) + 1) >= target)  # as smallest_safe_threshold
     return float(hits[safe].max() / y.sum()) if safe.any() else 0.0
 
 
