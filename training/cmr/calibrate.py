@@ -263,12 +263,12 @@ def fit(rows: dict, features: tuple[str, ...] = SIGNALS, l2: float = 1.0, k: int
         if held.any():
             oof[held] = probability(train(~held), rows["x"][held])
     candidates = np.unique(np.concatenate([oof, [1.0]]))
-    files = sorted(set(rows["file"].tolist()))
+    in_file = {int(i): rows["file"] == i for i in sorted(set(rows["file"].tolist()))}
     bounded = rows["x"][:, SIGNALS.index("bounded")] > 0.5
 
     def safe(kind: np.ndarray) -> float:
         """The threshold every file's answers of this kind meet."""
-        masks = [m for m in ((rows["file"] == i) & kind for i in files) if m.any()]
+        masks = [m for m in (f & kind for f in in_file.values()) if m.any()]
         return max((smallest_safe_threshold(oof[m], y[m], candidates, target_precision) for m in masks), default=1.0)
 
     calibrator = train(np.ones(len(y), bool))
@@ -278,9 +278,8 @@ def fit(rows: dict, features: tuple[str, ...] = SIGNALS, l2: float = 1.0, k: int
     t = thresholds(calibrator, rows["x"])
     report = dict(p=oof, threshold=calibrator["threshold"], bounded_threshold=calibrator.get("bounded_threshold"),
                   pooled=scores(oof, y, t),
-                  per_file={int(i): scores(oof[rows["file"] == i], y[rows["file"] == i], t[rows["file"] == i]) for i in files},
-                  recall_ceiling={int(i): recall_ceiling(oof[rows["file"] == i], y[rows["file"] == i], target_precision)
-                                  for i in files})
+                  per_file={i: scores(oof[f], y[f], t[f]) for i, f in in_file.items()},
+                  recall_ceiling={i: recall_ceiling(oof[f], y[f], target_precision) for i, f in in_file.items()})
     return calibrator, report
 
 
