@@ -56,12 +56,13 @@ async fn service_endpoints_and_a_localization() {
     assert_eq!(info["limits"]["default_hypotheses"], 4);
     assert_eq!(info["limits"]["merge_duplicates"], true);
     assert_eq!((&info["limits"]["keep_prior"], &info["limits"]["refine"]), (&true.into(), &true.into()));
-    // The continuous polish: from the search's answer, never to a lower score, within 10° / 3 m.
+    // The continuous polish: from the search's answer, never to a lower score, within its reach.
     assert_eq!(info["limits"]["polish"], true);
     let polish = &body["polish"];
     assert!(polish["alignment"].as_f64().unwrap() >= polish["from_alignment"].as_f64().unwrap(), "{polish}");
-    assert!(polish["rotation_deg"].as_f64().unwrap() <= 10.0 + 1e-6 && polish["translation_m"].as_f64().unwrap() <= 3.0 + 1e-6, "{polish}");
-    assert!((1..=60).contains(&polish["scores"].as_u64().unwrap()), "{polish}");
+    let reach = cmr_agent::agent::polish::REACH;
+    assert!(polish["rotation_deg"].as_f64().unwrap() <= reach.rotation_deg + 1e-6 && polish["translation_m"].as_f64().unwrap() <= reach.translation_m + 1e-6, "{polish}");
+    assert!((1..=cmr_agent::agent::polish::MAX_SCORES as u64).contains(&polish["scores"].as_u64().unwrap()), "{polish}");
     // Then the refinement round: four starts around the first round's answer, four around it
     // turned by 180°; the answer scores at least as well as every first-round final pose.
     let hypotheses = body["hypotheses"].as_array().unwrap();

@@ -218,11 +218,12 @@ pub struct SearchTuning {
     #[arg(long, env = "CMR_REFINE", default_value_t = true, action = clap::ArgAction::Set)]
     pub refine: bool,
     /// After a multi-start or bounded search, polish its answer on the alignment score: turns
-    /// about the camera centre and sideways shifts from 1° / 0.5 m down to 0.125° / 0.0625 m, at
-    /// most 60 poses scored, within 10° / 3 m of the answer and a request's `prior_bound`
-    /// (`true`/`false`). On by default: it registers more cases from every regime on the held-out
-    /// real-train drives and cuts the heading error of registered answers (docs/evaluation.md,
-    /// "A continuous polish").
+    /// about the camera centre and sideways shifts from 1° / 0.5 m down to 0.125° / 0.0625 m, then
+    /// turns from 8° down to 1° to look beyond that peak (and the fine steps again when they
+    /// found a higher one), at most 80 poses scored, within 20° / 3 m of the answer and a
+    /// request's `prior_bound` (`true`/`false`). On by default: it registers more cases from every
+    /// regime on the held-out real-train drives and cuts the heading error of registered answers
+    /// (docs/evaluation.md, "A continuous polish", "A wider turn for the polish").
     #[arg(long, env = "CMR_POLISH", default_value_t = true, action = clap::ArgAction::Set)]
     pub polish: bool,
     /// Without a `prior_bound`, a pose within 40° / 10 m of the prior competes for the answer
