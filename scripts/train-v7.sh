@@ -44,6 +44,9 @@
 #                                # run v18 (issue 29): v11's whole recipe on EfficientNet-Lite1's
 #                                # ImageNet backbone, encoders from scratch, samples at one focal
 #                                # length (cmr.data.FOCAL_RANGE_PX); across sessions
+#   RUN=~/.cache/cmr-agent/runs/v19 scripts/train-v7.sh start-v19
+#                                # run v19 (issue 29): v18's agent at iteration 2,000 trained on
+#                                # with half the episodes from fleet-like starts, encoders kept
 #   RUN=~/.cache/cmr-agent/runs/v9m scripts/train-v7.sh start-v9m
 #                                # run v9m: like v9e but v7's data mix and ranking term, with half
 #                                # the samples mirrored (image and map together), 4,000 steps
@@ -329,6 +332,15 @@ start_v17() {
 # made at one focal length (cmr.data.FOCAL_RANGE_PX, the make_sample default since 2026-12-05), the agent
 # from the shipped v11's (v7's float export, v11's start, is gone with an earlier machine); a copy of
 # every 5,000th step and every 500th iteration in $RUN/snap/. Across sessions: `save` at every stop.
+# Run v19: v18's agent (stage-2 iteration 2,000, the candidate that passed clause 1 under the
+# polish's wide pass) trained on with its encoders kept, half the episodes from fleet-like starts,
+# learning rate 1e-4 -> 1e-5 over 1,000 iterations; a copy every 250 in $RUN/snap/.
+start_v19() {
+  launch "$(train_roots)" "${V7_STAGE2[@]}" init_from="$RUN/../v18/snap/agent_02000.pt" embed_steps=0 \
+    agent_iters=1000 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 near_start_p=0.5 \
+    keep_agent_every=250 checkpoint_every=50
+}
+
 start_v18() {
   launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite1 \
     backbone_lr_scale=0.1 init_agent_from="$(v11_shipped)" keep_embed_every=5000 keep_agent_every=500
@@ -394,6 +406,7 @@ case "${1:-}" in
   start-v16) start_v16 ;;
   start-v17) start_v17 ;;
   start-v18) start_v18 ;;
+  start-v19) start_v19 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
