@@ -211,8 +211,8 @@ mod tests {
 
     #[test]
     fn the_wide_pass_keeps_a_local_peak_that_scores_highest() {
-        // The answer sits 1.5° off the highest peak; a lower one lies 8° beyond it, where a wide
-        // first turn would land and climb. Climbing the near peak first keeps the answer there.
+        // The answer sits 1.5° off the highest peak; a lower one lies 8° beyond the answer, where
+        // a wide first turn would land and climb. Climbing the near peak first keeps it there.
         let (near, far) = (camera(0.0, 0.0, 0.0), camera(0.0, 0.0, 9.5));
         let start = camera(0.0, 0.0, 1.5);
         let s0 = peaks(vec![(near, 1.0), (far, 0.9)])(&start);
