@@ -332,6 +332,11 @@ start_v17() {
 # made at one focal length (cmr.data.FOCAL_RANGE_PX, the make_sample default since 2026-12-05), the agent
 # from the shipped v11's (v7's float export, v11's start, is gone with an earlier machine); a copy of
 # every 5,000th step and every 500th iteration in $RUN/snap/. Across sessions: `save` at every stop.
+start_v18() {
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite1 \
+    backbone_lr_scale=0.1 init_agent_from="$(v11_shipped)" keep_embed_every=5000 keep_agent_every=500
+}
+
 # Run v19: v18's agent (stage-2 iteration 2,000, the candidate that passed clause 1 under the
 # polish's wide pass) trained on with its encoders kept, half the episodes from fleet-like starts,
 # learning rate 1e-4 -> 1e-5 over 1,000 iterations; a copy every 250 in $RUN/snap/.
@@ -339,11 +344,6 @@ start_v19() {
   launch "$(train_roots)" "${V7_STAGE2[@]}" init_from="$RUN/../v18/snap/agent_02000.pt" embed_steps=0 \
     agent_iters=1000 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 near_start_p=0.5 \
     keep_agent_every=250 checkpoint_every=50
-}
-
-start_v18() {
-  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite1 \
-    backbone_lr_scale=0.1 init_agent_from="$(v11_shipped)" keep_embed_every=5000 keep_agent_every=500
 }
 
 save() {
