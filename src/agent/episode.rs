@@ -181,7 +181,7 @@ impl Episode {
     pub fn settle(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch) {
         if self.alignment().is_nan() {
             let e = &self.evidence;
-            let score = alignment(layout, &map.points, &map.features, &e.image_features.channel_major, &e.intrinsics, &self.pose, scratch);
+            let score = alignment(layout, &map.points, &map.features, &e.image_features, &e.intrinsics, &self.pose, scratch);
             self.record_alignment(score);
         }
     }

@@ -631,8 +631,12 @@ impl Search {
             let started = std::time::Instant::now();
             let e = &self.evidence;
             let bound = self.rules.bound.map(|b| (&self.prior, b));
+            // Every pose the polish scores lies within its reach: only the points seen from there
+            // are projected (the same scores).
+            let reach = polish::REACH;
+            let near = state::NearView::new(layout, &e.intrinsics, &map.points, &pose, reach.rotation_deg, reach.translation_m);
             let p = polish::polish(self.frame, pose, alignment, bound, |p| {
-                state::alignment(layout, &map.points, &map.features, &e.image_features.channel_major, &e.intrinsics, p, scratch)
+                state::alignment_near(layout, &near, &map.features, &e.image_features, &e.intrinsics, p, scratch)
             });
             timings.polish_ms = super::ms(started);
             timings.agent_steps_ms += timings.polish_ms;

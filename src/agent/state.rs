@@ -128,8 +128,8 @@ impl StateLayout {
 }
 
 /// One image's features in the layouts the state builder reads: channel-major [D, GH·GW] as the
-/// image encoder returns them, and, for the correlation form, cell-major [GH·GW, D] (so a cell's
-/// feature is one contiguous vector). Made once per request.
+/// image encoder returns them, and cell-major [GH·GW, D] (so a cell's feature is one contiguous
+/// vector: the correlation form and the alignment score read it). Made once per request.
 #[derive(Debug, Default)]
 pub struct ImageGrid {
     pub channel_major: Vec<f32>,
@@ -138,19 +138,13 @@ pub struct ImageGrid {
 
 impl ImageGrid {
     pub fn new(layout: &StateLayout, channel_major: Vec<f32>) -> Self {
-        let cell_major = match layout.form {
-            Form2d::Features => Vec::new(),
-            Form2d::Correlation(_) => {
-                let (d, cells) = (layout.dim, layout.cells());
-                let mut out = vec![0f32; d * cells];
-                for (c, channel) in channel_major.chunks_exact(cells).enumerate() {
-                    for (cell, v) in channel.iter().enumerate() {
-                        out[cell * d + c] = *v;
-                    }
-                }
-                out
+        let (d, cells) = (layout.dim, layout.cells());
+        let mut cell_major = vec![0f32; d * cells];
+        for (c, channel) in channel_major.chunks_exact(cells).enumerate() {
+            for (cell, v) in channel.iter().enumerate() {
+                cell_major[cell * d + c] = *v;
             }
-        };
+        }
         Self { channel_major, cell_major }
     }
 }
@@ -162,7 +156,7 @@ pub struct ScatterScratch {
     sums: Vec<f32>,
     /// Per-cell point counts; all zero between calls.
     counts: Vec<u32>,
-    /// Cells that received a point in this call.
+    /// Cells that received a point in this call, ascending (`sort_touched`).
     touched: Vec<u32>,
     /// Every point's cell (`OUT_OF_VIEW` outside the frustum).
     cells: Vec<u32>,
@@ -192,7 +186,7 @@ pub fn write_state(
 ) -> f32 {
     let scale = layout.xyz_scale_m;
     let m = layout.num_state_points.min(points.len());
-    scatter(layout, points, point_features, k, camera_from_map, scratch, m, |i, p_cam, in_view| {
+    scatter(layout, points, None, point_features, k, camera_from_map, scratch, m, |i, p_cam, in_view| {
         let row = &mut state_3d[i * 5..(i + 1) * 5];
         row[0] = (p_cam.x / scale) as f32;
         row[1] = (p_cam.y / scale) as f32;
@@ -205,7 +199,7 @@ pub fn write_state(
             let (image_part, points_part) = state_2d.split_at_mut(layout.image_feature_len());
             image_part.copy_from_slice(&image.channel_major);
             points_part.fill(0.0);
-            drain(layout, &image.channel_major, scratch, Some(points_part))
+            drain(layout, &image.channel_major, scratch, points_part)
         }
         Form2d::Correlation(shifts) => {
             state_2d.fill(0.0);
@@ -266,7 +260,7 @@ unsafe fn correlate_cells<const D: usize, L: Lanes>(layout: &StateLayout, shifts
     let ScatterScratch { sums, counts, touched, unit, channel_dots, .. } = scratch;
     // Ascending cells keep the writes to each output plane moving forward (and give the
     // alignment sums `drain`'s order).
-    touched.sort_unstable();
+    sort_touched(touched, counts);
     unit.resize(d, 0.0);
     let unit = &mut unit[..d];
     let image_cell = |cell: usize| &image_cells[cell * d..(cell + 1) * d];
@@ -391,21 +385,95 @@ pub fn alignment(
     layout: &StateLayout,
     points: &[[f32; 3]],
     point_features: &[f32],
-    image_features: &[f32],
+    image: &ImageGrid,
     k: &Intrinsics,
     camera_from_map: &Pose,
     scratch: &mut ScatterScratch,
 ) -> f32 {
-    scatter(layout, points, point_features, k, camera_from_map, scratch, 0, |_, _, _| {});
-    drain(layout, image_features, scratch, None)
+    scatter(layout, points, None, point_features, k, camera_from_map, scratch, 0, |_, _, _| {});
+    drain_score(layout, &image.cell_major, scratch)
+}
+
+/// [`alignment`] of a pose near the one a [`NearView`] was made for (within its reach): the same
+/// score to the bit, projecting only the points the view kept.
+pub fn alignment_near(
+    layout: &StateLayout,
+    near: &NearView,
+    point_features: &[f32],
+    image: &ImageGrid,
+    k: &Intrinsics,
+    camera_from_map: &Pose,
+    scratch: &mut ScatterScratch,
+) -> f32 {
+    scatter(layout, &near.points, Some(&near.index), point_features, k, camera_from_map, scratch, 0, |_, _, _| {});
+    drain_score(layout, &image.cell_major, scratch)
+}
+
+/// The points of a map that some pose near one could see: every point that is in view (crop
+/// intrinsics `k`, the layout's input size) from a pose within `rotation_deg` (geodesic angle)
+/// and `translation_m` (camera centre distance) of `camera_from_map`, and a few more, in map
+/// order. Scoring poses there with [`alignment_near`] skips the projection of the points no such
+/// pose sees (the polish scores tens of poses within its reach).
+///
+/// The test, in the centre pose's camera frame: a point seen from a pose within the reach lies
+/// within the input's corner angle θ of that pose's optical axis, which is within `rotation_deg`
+/// of the centre's, from a camera centre within `translation_m` of the centre's; so the point
+/// lies within `translation_m` of the cone about the centre's axis with half-angle θ +
+/// `rotation_deg` (plus 0.2° and 1 cm for rounding). Degenerate intrinsics keep every point.
+pub struct NearView {
+    points: Vec<[f32; 3]>,
+    /// Each kept point's index in the map, ascending.
+    index: Vec<u32>,
+}
+
+impl NearView {
+    pub fn new(layout: &StateLayout, k: &Intrinsics, points: &[[f32; 3]], camera_from_map: &Pose, rotation_deg: f64, translation_m: f64) -> Self {
+        let (w, h) = (layout.image_width as f64, layout.image_height as f64);
+        // The largest |x / z| and |y / z| of a point in view (`cells_with`'s test).
+        let a = (k.cx + 0.5).abs().max((w - 0.5 - k.cx).abs()) / k.fx.abs();
+        let b = (k.cy + 0.5).abs().max((h - 0.5 - k.cy).abs()) / k.fy.abs();
+        let half_angle = a.hypot(b).atan() + (rotation_deg + 0.2).to_radians();
+        let reach = translation_m + 0.01;
+        if !(half_angle.is_finite() && reach.is_finite()) || half_angle >= std::f64::consts::PI || points.len() > u32::MAX as usize {
+            return Self { points: points.to_vec(), index: (0..points.len() as u32).collect() };
+        }
+        let (cos, sin) = (half_angle.cos(), half_angle.sin());
+        let rows = matrix_rows(camera_from_map);
+        let (mut kept, mut index) = (Vec::new(), Vec::new());
+        for (i, p) in points.iter().enumerate() {
+            let c = transform(&rows, p);
+            // In the plane of the axis and the point: axial h, radial q; `outside` is the
+            // distance beyond the cone's side (≤ 0 inside), `ahead` > 0 where that side, not the
+            // apex, is the nearest part of the cone.
+            let (h, q) = (c.z, (c.x * c.x + c.y * c.y).sqrt());
+            let outside = q * cos - h * sin;
+            let ahead = h * cos + q * sin;
+            if outside <= 0.0 || (outside <= reach && ahead > 0.0) || h * h + q * q <= reach * reach {
+                kept.push(*p);
+                index.push(i as u32);
+            }
+        }
+        Self { points: kept, index }
+    }
+
+    /// How many of the map's points the view kept.
+    pub fn len(&self) -> usize {
+        self.index.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.index.is_empty()
+    }
 }
 
 /// Adds each in-view point's feature to its cell's sum. `each` sees the first `first` points
-/// with their camera-frame position and whether they are in view.
+/// with their camera-frame position and whether they are in view. With `index`, `points` are
+/// those map points (their indices in `point_features`, ascending).
 #[allow(clippy::too_many_arguments)]
 fn scatter(
     layout: &StateLayout,
     points: &[[f32; 3]],
+    index: Option<&[u32]>,
     point_features: &[f32],
     k: &Intrinsics,
     camera_from_map: &Pose,
@@ -414,14 +482,13 @@ fn scatter(
     mut each: impl FnMut(usize, &Point3<f64>, bool),
 ) {
     let (d, cells) = (layout.dim, layout.cells());
-    debug_assert_eq!(point_features.len(), points.len() * d);
-    // The buffers stay zeroed between calls; `drain` or `write_correlation` resets only the
-    // touched cells, so a step costs work proportional to the points in view, not to the grid.
+    debug_assert!(index.is_some() || point_features.len() == points.len() * d);
+    // The buffers stay zeroed between calls; `drain`, `drain_score` or `write_correlation`
+    // resets only the touched cells (found with one pass over the grid's counts).
     if scratch.counts.len() != cells || scratch.sums.len() != cells * d {
         scratch.sums = vec![0.0; cells * d];
         scratch.counts = vec![0; cells];
     }
-    scratch.touched.clear();
     scratch.visible.clear();
     let rows = matrix_rows(camera_from_map);
     // Pass 1: where every point lands (no feature reads, vector lanes).
@@ -430,27 +497,28 @@ fn scatter(
     for (i, p) in points.iter().take(first).enumerate() {
         each(i, &transform(&rows, p), scratch.cells[i] != OUT_OF_VIEW);
     }
-    scratch.visible.extend(scratch.cells.iter().enumerate().filter(|(_, c)| **c != OUT_OF_VIEW).map(|(i, c)| (i as u32, *c)));
+    let in_view = scratch.cells.iter().enumerate().filter(|(_, c)| **c != OUT_OF_VIEW);
+    match index {
+        None => scratch.visible.extend(in_view.map(|(i, c)| (i as u32, *c))),
+        Some(index) => scratch.visible.extend(in_view.map(|(i, c)| (index[i], *c))),
+    }
     // Pass 2: add the features of the points in view, in point order (so every cell's sum is the
     // same as in one pass). The feature rows are scattered through a map-sized array, so the
     // rows a few points ahead are fetched while this one is added.
-    let ScatterScratch { sums, counts, touched, visible, .. } = scratch;
-    accumulate(d, point_features, visible, sums, counts, touched);
+    let ScatterScratch { sums, counts, visible, .. } = scratch;
+    accumulate(d, point_features, visible, sums, counts);
 }
 
 /// `scatter`'s pass 2: adds each visible point's feature row to its cell's sum, in point order,
-/// and lists the cells touched. Compiled for AVX2 and AVX-512 too and chosen at run time: the
+/// and counts the points per cell. Compiled for AVX2 and AVX-512 too and chosen at run time: the
 /// additions are element by element, so every build gives the same sums.
 #[multiversion::multiversion(targets("x86_64+avx512f+avx512vl+avx512dq", "x86_64+avx2"))]
-fn accumulate(d: usize, point_features: &[f32], visible: &[(u32, u32)], sums: &mut [f32], counts: &mut [u32], touched: &mut Vec<u32>) {
+fn accumulate(d: usize, point_features: &[f32], visible: &[(u32, u32)], sums: &mut [f32], counts: &mut [u32]) {
     for (n, &(i, cell)) in visible.iter().enumerate() {
         if let Some(&(ahead, _)) = visible.get(n + PREFETCH_POINTS_AHEAD) {
             prefetch(&point_features[ahead as usize * d..(ahead as usize + 1) * d]);
         }
         let (i, cell) = (i as usize, cell as usize);
-        if counts[cell] == 0 {
-            touched.push(cell as u32);
-        }
         counts[cell] += 1;
         for (s, f) in sums[cell * d..(cell + 1) * d].iter_mut().zip(&point_features[i * d..(i + 1) * d]) {
             *s += f;
@@ -532,38 +600,29 @@ fn prefetch(row: &[f32]) {
     let _ = row;
 }
 
-/// Ends a `scatter`: writes the per-cell means into `means` ([D, cells], channel-major) when
-/// given, zeroes the scratch again, and returns the alignment score. Σ over points of
-/// f_i · I(cell_i) equals Σ over cells of (Σ f_i) · I(cell), so the score needs only the sums.
-fn drain(layout: &StateLayout, image_features: &[f32], scratch: &mut ScatterScratch, mut means: Option<&mut [f32]>) -> f32 {
+/// Ends a `scatter` in the features form: writes the per-cell means into `means` ([D, cells],
+/// channel-major), zeroes the scratch again, and returns the alignment score as [`drain_score`]
+/// does (the same products summed in the same order). Σ over points of f_i · I(cell_i) equals Σ
+/// over cells of (Σ f_i) · I(cell), so the score needs only the sums.
+fn drain(layout: &StateLayout, image_features: &[f32], scratch: &mut ScatterScratch, means: &mut [f32]) -> f32 {
     let (d, cells) = (layout.dim, layout.cells());
-    // Channel-major outputs: visiting the touched cells in ascending order per channel keeps the
-    // reads of `image_features` and the writes of `means` moving forward through memory.
-    scratch.touched.sort_unstable();
+    sort_touched(&mut scratch.touched, &scratch.counts);
     let mut in_view = 0u64;
     for &cell in &scratch.touched {
         in_view += scratch.counts[cell as usize] as u64;
     }
+    // Channel-major outputs: visiting the touched cells in ascending order per channel keeps the
+    // reads of `image_features` and the writes of `means` moving forward through memory.
     let mut dot = 0f64;
     for c in 0..d {
         let image = &image_features[c * cells..(c + 1) * cells];
+        let out = &mut means[c * cells..(c + 1) * cells];
         let mut channel = 0f64;
-        match means.as_deref_mut() {
-            Some(means) => {
-                let out = &mut means[c * cells..(c + 1) * cells];
-                for &cell in &scratch.touched {
-                    let cell = cell as usize;
-                    let s = scratch.sums[cell * d + c];
-                    channel += (s * image[cell]) as f64;
-                    out[cell] = s / scratch.counts[cell] as f32;
-                }
-            }
-            None => {
-                for &cell in &scratch.touched {
-                    let cell = cell as usize;
-                    channel += (scratch.sums[cell * d + c] * image[cell]) as f64;
-                }
-            }
+        for &cell in &scratch.touched {
+            let cell = cell as usize;
+            let s = scratch.sums[cell * d + c];
+            channel += (s * image[cell]) as f64;
+            out[cell] = s / scratch.counts[cell] as f32;
         }
         dot += channel;
     }
@@ -573,6 +632,39 @@ fn drain(layout: &StateLayout, image_features: &[f32], scratch: &mut ScatterScra
         scratch.counts[cell] = 0;
     }
     if in_view == 0 { -1.0 } else { (dot / in_view as f64) as f32 }
+}
+
+/// Ends a `scatter` for the score alone: zeroes the scratch again and returns the alignment
+/// score. Per channel, the products of the cell sums with the image features (`image_cells`,
+/// cell-major) are summed in f64 over the cells in ascending order, then the channels in order:
+/// `drain`'s sums, but one cell's sums and image features are read as two contiguous vectors.
+#[multiversion::multiversion(targets("x86_64+avx512f+avx512vl+avx512dq", "x86_64+avx2"))]
+fn drain_score(layout: &StateLayout, image_cells: &[f32], scratch: &mut ScatterScratch) -> f32 {
+    let d = layout.dim;
+    let ScatterScratch { sums, counts, touched, channel_dots, .. } = scratch;
+    sort_touched(touched, counts);
+    channel_dots.clear();
+    channel_dots.resize(d, 0.0);
+    let mut in_view = 0u64;
+    for &cell in touched.iter() {
+        let cell = cell as usize;
+        in_view += counts[cell] as u64;
+        counts[cell] = 0;
+        let sum = &mut sums[cell * d..(cell + 1) * d];
+        for ((acc, s), i) in channel_dots.iter_mut().zip(sum.iter()).zip(&image_cells[cell * d..(cell + 1) * d]) {
+            *acc += (s * i) as f64;
+        }
+        sum.fill(0.0);
+    }
+    touched.clear();
+    if in_view == 0 { -1.0 } else { (channel_dots.iter().fold(0f64, |a, b| a + b) / in_view as f64) as f32 }
+}
+
+/// Puts the touched cells in ascending order: rebuilt from the counts (a pass over the grid's
+/// cells is cheaper than sorting the thousands a real frame touches).
+fn sort_touched(touched: &mut Vec<u32>, counts: &[u32]) {
+    touched.clear();
+    touched.extend(counts.iter().enumerate().filter(|(_, n)| **n != 0).map(|(cell, _)| cell as u32));
 }
 
 pub fn sigmoid(x: f32) -> f32 {
@@ -612,7 +704,7 @@ mod tests {
         let score = write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut scratch, &mut s2, &mut s3);
         // Points 0-2 are in view: (0.5 (1 + 2) + 0.5 (3 + 4) + 0.5 (10 + 20)) / 3.
         assert!((score - 20.0 / 3.0).abs() < 1e-6, "{score}");
-        assert_eq!(alignment(&layout, &points, &features, &image.channel_major, &k, &Pose::identity(), &mut scratch), score);
+        assert_eq!(alignment(&layout, &points, &features, &image, &k, &Pose::identity(), &mut scratch), score);
         // A second call with the same scratch buffers gives the same state.
         let (first_2d, first_3d) = (s2.clone(), s3.clone());
         write_state(&layout, &points, &features, &probs, &image, &k, &Pose::identity(), &mut scratch, &mut s2, &mut s3);
@@ -628,7 +720,7 @@ mod tests {
         assert_eq!(s3[14], 1.0);
         // Nothing in view: the worst score.
         let behind = Pose::from_rt(nalgebra::Matrix3::identity(), nalgebra::Vector3::new(0.0, 0.0, -100.0));
-        assert_eq!(alignment(&layout, &points, &features, &image.channel_major, &k, &behind, &mut scratch), -1.0);
+        assert_eq!(alignment(&layout, &points, &features, &image, &k, &behind, &mut scratch), -1.0);
     }
 
     #[test]
@@ -664,6 +756,50 @@ mod tests {
         let mut f2 = vec![0f32; self::layout().state_2d_len()];
         let same = write_state(&self::layout(), &points, &features, &probs, &features_form, &k, &Pose::identity(), &mut ScatterScratch::default(), &mut f2, &mut s3);
         assert_eq!(score, same);
+    }
+
+    #[test]
+    fn a_near_view_scores_every_pose_within_its_reach_to_the_bit() {
+        use nalgebra::{Matrix3, Rotation3, Unit, Vector3};
+        use rand::{Rng, SeedableRng};
+        let layout = StateLayout { dim: 8, stride: 4, grid_height: 40, grid_width: 128, image_width: 512, image_height: 160, ..layout() };
+        let k = Intrinsics { fx: 180.0, fy: 180.0, cx: 249.8, cy: 78.1 };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        // A scan around the camera, some points within the reach of its centre.
+        let points: Vec<[f32; 3]> = (0..30000)
+            .map(|i| {
+                let (azimuth, range) = (rng.random_range(-3.2f32..3.2), if i % 50 == 0 { rng.random_range(0.2f32..4.0) } else { rng.random_range(2.0f32..60.0) });
+                [range * azimuth.cos(), range * azimuth.sin(), rng.random_range(-3.0f32..3.0)]
+            })
+            .collect();
+        let features: Vec<f32> = (0..points.len() * layout.dim).map(|_| rng.random_range(-1.0f32..1.0)).collect();
+        let image = ImageGrid::new(&layout, (0..layout.image_feature_len()).map(|_| rng.random_range(-1.0f32..1.0)).collect());
+        // Level, looking along map +x, at (1, 2, 0).
+        let level = Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0);
+        let centre = Pose::from_rt(level, -(level * Vector3::new(1.0, 2.0, 0.0)));
+        let (rotation_deg, translation_m) = (20.0, 3.0);
+        let near = NearView::new(&layout, &k, &points, &centre, rotation_deg, translation_m);
+        assert!(near.len() < points.len() * 2 / 3 && near.len() > points.len() / 10, "kept {}", near.len());
+        let narrow = NearView::new(&layout, &k, &points, &centre, 5.0, 0.5);
+        let mut scratch = ScatterScratch::default();
+        let mut narrow_differs = 0;
+        for n in 0..300 {
+            // Turned about a random axis and moved in a random direction, every tenth pose by the
+            // whole reach.
+            let axis = Unit::new_normalize(Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)));
+            let direction = Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)).normalize();
+            let edge = n % 10 == 0;
+            let angle = if edge { rotation_deg } else { rng.random_range(0.0..rotation_deg) };
+            let shift = if edge { translation_m } else { rng.random_range(0.0..translation_m) };
+            let rotation = Rotation3::from_axis_angle(&axis, angle.to_radians()).into_inner() * level;
+            let position = Vector3::new(1.0, 2.0, 0.0) + direction * shift;
+            let pose = Pose::from_rt(rotation, -(rotation * position));
+            let all = alignment(&layout, &points, &features, &image, &k, &pose, &mut scratch);
+            assert_eq!(alignment_near(&layout, &near, &features, &image, &k, &pose, &mut scratch).to_bits(), all.to_bits(), "pose {n}");
+            narrow_differs += (alignment_near(&layout, &narrow, &features, &image, &k, &pose, &mut scratch) != all) as usize;
+        }
+        // The test can fail: a view made for a smaller reach misses points these poses see.
+        assert!(narrow_differs > 100, "{narrow_differs}");
     }
 
     #[test]
