@@ -216,11 +216,13 @@ pub struct LocalizeResponse {
 }
 
 /// The continuous polish of an answer (docs/server.md, "The continuous polish"): from the
-/// search's answer (the chosen hypothesis's pose, or the kept prior), turns about the camera
-/// centre and sideways shifts kept while they raise the alignment score.
+/// search's answer (the chosen hypothesis's pose, or the kept prior) or, when its polish scored
+/// higher, another hypothesis's final pose, turns about the camera centre and sideways shifts
+/// kept while they raise the alignment score.
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct PolishBody {
-    /// The search's answer before the polish (camera_from_map, map frame).
+    /// The pose polished (camera_from_map, map frame): the search's answer, or the final pose of
+    /// the hypothesis the polished choice took (`chosen_hypothesis`).
     #[schema(value_type = Matrix4x4)]
     pub from_camera_from_map: Rows4x4,
     /// Its alignment score.
@@ -231,8 +233,12 @@ pub struct PolishBody {
     pub rotation_deg: f64,
     /// Camera centre moved from `from_camera_from_map` to `pose`, metres.
     pub translation_m: f64,
-    /// Poses scored.
+    /// Poses scored, every candidate's together.
     pub scores: usize,
+    /// Poses polished to choose the answer: the search's answer and up to 6 other hypotheses'
+    /// final poses apart from it; `from_camera_from_map` is the one whose polish scored highest
+    /// (docs/server.md, "The continuous polish").
+    pub candidates: usize,
 }
 
 impl LocalizeResponse {
@@ -273,7 +279,7 @@ impl LocalizeResponse {
             kept_prior: loc.kept_prior,
             polish: loc.polish.map(|p| {
                 let (rotation_deg, translation_m) = crate::agent::search::offset_between(&p.from, &p.camera_from_map);
-                PolishBody { from_camera_from_map: p.from.to_rows(), from_alignment: p.from_alignment, alignment: p.alignment, rotation_deg, translation_m, scores: p.scores }
+                PolishBody { from_camera_from_map: p.from.to_rows(), from_alignment: p.from_alignment, alignment: p.alignment, rotation_deg, translation_m, scores: p.scores, candidates: p.candidates }
             }),
             timings_ms,
         }
