@@ -157,7 +157,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
     assert_eq!(polished.camera_from_map(), p.camera_from_map);
     assert_eq!(polished.pose_after(polished.iterations()), p.camera_from_map);
     assert!(p.alignment >= p.from_alignment && p.scores > 0);
-    assert!(p.scores <= agent::polish::MAX_SCORES);
+    assert!(p.scores <= p.candidates * agent::polish::MAX_SCORES);
     assert!(bound.contains(&prior, &p.camera_from_map) && agent::polish::REACH.contains(&answer, &p.camera_from_map));
     assert_eq!(polished.signals(), bounded.signals(), "the verdict reads the search's answer");
     // A single start without a bound never polishes (track's small searches).
