@@ -73,11 +73,10 @@ pub struct Polish {
 /// Polishes `from` (camera_from_map, scoring `from_alignment`) on `score`, turning and shifting in
 /// `frame`'s axes; every pose it moves to lies within `bound` (the prior and its bound) when one
 /// is given. A NaN score never wins.
+/// [`choose`] with the one candidate.
 pub fn polish(frame: ActionFrame, from: Pose, from_alignment: f32, bound: Option<(&Pose, PriorBound)>, mut score: impl FnMut(&Pose) -> f32) -> Polish {
-    let mut climb = Climb::new(frame, from, from_alignment, bound);
-    climb.run(YAW_DEG, LATERAL_M, HALVINGS, &mut score);
-    climb.widen(&mut score);
-    climb.result(1, climb.scores)
+    let (_, polished) = choose(frame, &[(from, from_alignment)], bound, |_, alignment| alignment, |_, p| score(p)).expect("one candidate");
+    polished
 }
 
 /// The polished choice: every candidate (camera_from_map and its alignment score; the search's

@@ -156,7 +156,7 @@ pub struct ScatterScratch {
     sums: Vec<f32>,
     /// Per-cell point counts; all zero between calls.
     counts: Vec<u32>,
-    /// Cells that received a point in this call, ascending (`sort_touched`).
+    /// Cells that received a point in this call, ascending (`list_touched`).
     touched: Vec<u32>,
     /// Every point's cell (`OUT_OF_VIEW` outside the frustum).
     cells: Vec<u32>,
@@ -260,7 +260,7 @@ unsafe fn correlate_cells<const D: usize, L: Lanes>(layout: &StateLayout, shifts
     let ScatterScratch { sums, counts, touched, unit, channel_dots, .. } = scratch;
     // Ascending cells keep the writes to each output plane moving forward (and give the
     // alignment sums `drain`'s order).
-    sort_touched(touched, counts);
+    list_touched(touched, counts);
     unit.resize(d, 0.0);
     let unit = &mut unit[..d];
     let image_cell = |cell: usize| &image_cells[cell * d..(cell + 1) * d];
@@ -275,9 +275,7 @@ unsafe fn correlate_cells<const D: usize, L: Lanes>(layout: &StateLayout, shifts
         in_view += count as u64;
         counts[cell] = 0;
         let sum = &mut sums[cell * d..(cell + 1) * d];
-        for ((acc, s), i) in channel_dots.iter_mut().zip(sum.iter()).zip(image_cell(cell)) {
-            *acc += (s * i) as f64;
-        }
+        add_cell_dots(channel_dots, sum, image_cell(cell));
         let per_point = 1.0 / count as f32;
         for (u, s) in unit.iter_mut().zip(sum.iter_mut()) {
             *u = *s * per_point;
@@ -306,7 +304,7 @@ unsafe fn correlate_cells<const D: usize, L: Lanes>(layout: &StateLayout, shifts
         out[occupancy * cells + cell] = 1.0;
     }
     touched.clear();
-    if in_view == 0 { -1.0 } else { (channel_dots.iter().sum::<f64>() / in_view as f64) as f32 }
+    score_of(channel_dots, in_view)
 }
 
 /// The correlation's f32 dot product, in one order whatever the instructions: eight lanes, lane
@@ -606,7 +604,7 @@ fn prefetch(row: &[f32]) {
 /// over cells of (Σ f_i) · I(cell), so the score needs only the sums.
 fn drain(layout: &StateLayout, image_features: &[f32], scratch: &mut ScatterScratch, means: &mut [f32]) -> f32 {
     let (d, cells) = (layout.dim, layout.cells());
-    sort_touched(&mut scratch.touched, &scratch.counts);
+    list_touched(&mut scratch.touched, &scratch.counts);
     let mut in_view = 0u64;
     for &cell in &scratch.touched {
         in_view += scratch.counts[cell as usize] as u64;
@@ -642,7 +640,7 @@ fn drain(layout: &StateLayout, image_features: &[f32], scratch: &mut ScatterScra
 fn drain_score(layout: &StateLayout, image_cells: &[f32], scratch: &mut ScatterScratch) -> f32 {
     let d = layout.dim;
     let ScatterScratch { sums, counts, touched, channel_dots, .. } = scratch;
-    sort_touched(touched, counts);
+    list_touched(touched, counts);
     channel_dots.clear();
     channel_dots.resize(d, 0.0);
     let mut in_view = 0u64;
@@ -651,18 +649,32 @@ fn drain_score(layout: &StateLayout, image_cells: &[f32], scratch: &mut ScatterS
         in_view += counts[cell] as u64;
         counts[cell] = 0;
         let sum = &mut sums[cell * d..(cell + 1) * d];
-        for ((acc, s), i) in channel_dots.iter_mut().zip(sum.iter()).zip(&image_cells[cell * d..(cell + 1) * d]) {
-            *acc += (s * i) as f64;
-        }
+        add_cell_dots(channel_dots, sum, &image_cells[cell * d..(cell + 1) * d]);
         sum.fill(0.0);
     }
     touched.clear();
+    score_of(channel_dots, in_view)
+}
+
+/// Adds one cell's products, feature sum × image feature, to the alignment's per-channel sums
+/// (each product rounded in f32, then added in f64): the order `drain` sums them in, per channel
+/// over the cells in ascending order.
+#[inline(always)]
+fn add_cell_dots(channel_dots: &mut [f64], sum: &[f32], image_cell: &[f32]) {
+    for ((acc, s), i) in channel_dots.iter_mut().zip(sum).zip(image_cell) {
+        *acc += (s * i) as f64;
+    }
+}
+
+/// The alignment score from its per-channel sums (channels in order) over `in_view` points; −1
+/// with none in view.
+fn score_of(channel_dots: &[f64], in_view: u64) -> f32 {
     if in_view == 0 { -1.0 } else { (channel_dots.iter().fold(0f64, |a, b| a + b) / in_view as f64) as f32 }
 }
 
-/// Puts the touched cells in ascending order: rebuilt from the counts (a pass over the grid's
-/// cells is cheaper than sorting the thousands a real frame touches).
-fn sort_touched(touched: &mut Vec<u32>, counts: &[u32]) {
+/// Lists the touched cells (count > 0) in ascending order: one pass over the grid's counts,
+/// cheaper than collecting them during the scatter and sorting the thousands a real frame touches.
+fn list_touched(touched: &mut Vec<u32>, counts: &[u32]) {
     touched.clear();
     touched.extend(counts.iter().enumerate().filter(|(_, n)| **n != 0).map(|(cell, _)| cell as u32));
 }
