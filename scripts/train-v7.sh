@@ -346,6 +346,15 @@ start_v19() {
     keep_agent_every=250 checkpoint_every=50
 }
 
+# Run v20: v19's stage-2 recipe (half the episodes from fleet-like starts, 1e-4 -> 1e-5 over 1,000
+# iterations, no BC-only phase) on the shipped v11 (its encoders and agent; runs/v11-shipped.pt),
+# stage 1 skipped; a copy every 250 in $RUN/snap/.
+start_v20() {
+  launch "$(train_roots)" "${V7_STAGE2[@]}" init_from="$(v11_shipped)" embed_steps=0 \
+    agent_iters=1000 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 near_start_p=0.5 \
+    keep_agent_every=250 checkpoint_every=50
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -407,6 +416,7 @@ case "${1:-}" in
   start-v17) start_v17 ;;
   start-v18) start_v18 ;;
   start-v19) start_v19 ;;
+  start-v20) start_v20 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
