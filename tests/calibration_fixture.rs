@@ -21,10 +21,10 @@ fn calibrator() -> Calibrator {
         kind: LOGISTIC.into(),
         target: "fixture".into(),
         // Not every signal, and not in SIGNAL_NAMES order: the names pick the columns.
-        features: ["in_view", "alignment", "agreement", "alignment_margin", "policy_certainty", "converged", "log2_starts", "alignment_gain", "bounded", "visit_share"].map(String::from).to_vec(),
-        mean: vec![0.2, 0.45, 0.3, 0.05, 0.6, 0.4, 1.0, 0.1, 0.3, 0.3],
-        std: vec![0.1, 0.15, 0.35, 0.08, 0.2, 0.49, 1.0, 0.15, 0.46, 0.2],
-        weights: vec![-0.15, 0.9, 0.4, 0.3, 0.2, -0.1, 0.25, 0.3, 0.5, 0.6],
+        features: ["in_view", "alignment", "agreement", "alignment_margin", "policy_certainty", "converged", "log2_starts", "alignment_gain", "bounded", "visit_share", "peak_margin"].map(String::from).to_vec(),
+        mean: vec![0.2, 0.45, 0.3, 0.05, 0.6, 0.4, 1.0, 0.1, 0.3, 0.3, 0.02],
+        std: vec![0.1, 0.15, 0.35, 0.08, 0.2, 0.49, 1.0, 0.15, 0.46, 0.2, 0.03],
+        weights: vec![-0.15, 0.9, 0.4, 0.3, 0.2, -0.1, 0.25, 0.3, 0.5, 0.6, 0.7],
         bias: -0.3,
         // Tight enough that some of the random signals below are cut.
         clip: Some(1.5),
@@ -49,6 +49,7 @@ fn random_signals(rng: &mut ChaCha8Rng) -> Signals {
         log2_starts: if rng.random_bool(0.5) { 0.0 } else { 2.0 },
         bounded: if rng.random_bool(0.3) { 1.0 } else { 0.0 },
         visit_share: rng.random_range(0..=40) as f64 / 40.0,
+        peak_margin: rng.random_range(-0.02..0.1),
     }
 }
 

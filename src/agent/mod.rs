@@ -170,6 +170,7 @@ impl Localization {
             log2_starts: (first.len().max(1) as f64).log2(),
             bounded: if self.rules.bound.is_some() { 1.0 } else { 0.0 },
             visit_share: near as f64 / all.max(1) as f64,
+            peak_margin: self.polish.and_then(|p| Some((p.alignment - p.runner_up_alignment?) as f64)).unwrap_or(0.0),
         }
     }
 
@@ -261,6 +262,15 @@ mod tests {
         assert_eq!(s.visit_share, 0.5);
         let single = localization(vec![hypothesis(0.0, 0.5)], 0).signals();
         assert_eq!((single.alignment_margin, single.agreement, single.log2_starts), (0.0, 0.0, 0.0));
+        // The peak margin: the polished answer over the best other candidate's peak; 0 without
+        // a polish or with one candidate.
+        assert_eq!(s.peak_margin, 0.0);
+        let mut polished = localization(vec![hypothesis(0.0, 0.5), hypothesis(far, 0.75)], 1);
+        let p = polish::Polish { from: Pose::identity(), from_alignment: 0.75, camera_from_map: Pose::identity(), alignment: 0.875, scores: 9, candidates: 2, runner_up_alignment: Some(0.625) };
+        polished.polish = Some(p);
+        assert_eq!(polished.signals().peak_margin, 0.25);
+        polished.polish = Some(polish::Polish { candidates: 1, runner_up_alignment: None, ..p });
+        assert_eq!(polished.signals().peak_margin, 0.0);
     }
 
     /// A kept prior is the answer: its own score, every start counts as another, no steps.

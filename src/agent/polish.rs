@@ -68,6 +68,10 @@ pub struct Polish {
     pub scores: usize,
     /// Poses polished to choose the answer ([`choose`]; 1 for [`polish`]).
     pub candidates: usize,
+    /// The highest alignment score another candidate's peak reached (the fine pass), `None` with
+    /// one candidate: how clearly the answer's peak won the choice (the calibrator's
+    /// `peak_margin`).
+    pub runner_up_alignment: Option<f32>,
 }
 
 /// Polishes `from` (camera_from_map, scoring `from_alignment`) on `score`, turning and shifting in
@@ -97,11 +101,13 @@ pub fn choose(
     mut score: impl FnMut(usize, &Pose) -> f32,
 ) -> Option<(usize, Polish)> {
     let mut best: Option<(usize, Climb, f32)> = None;
+    let mut peaks = Vec::with_capacity(candidates.len());
     let mut scores = 0;
     for (c, &(from, from_alignment)) in candidates.iter().enumerate() {
         let mut climb = Climb::new(frame, from, from_alignment, bound);
         climb.run(YAW_DEG, LATERAL_M, HALVINGS, &mut |p: &Pose| score(c, p));
         scores += climb.scores;
+        peaks.push(climb.best);
         let judged = judge(&climb.pose, climb.best);
         if best.as_ref().is_none_or(|(_, _, b)| outscores(judged, *b)) {
             best = Some((c, climb, judged));
@@ -110,7 +116,8 @@ pub fn choose(
     let (c, mut climb, _) = best?;
     let before = climb.scores;
     climb.widen(&mut |p: &Pose| score(c, p));
-    Some((c, climb.result(candidates.len(), scores + climb.scores - before)))
+    let runner_up = peaks.iter().enumerate().filter(|&(i, _)| i != c).map(|(_, &a)| a).reduce(|a, b| if outscores(b, a) { b } else { a });
+    Some((c, climb.result(candidates.len(), scores + climb.scores - before, runner_up)))
 }
 
 /// The polish's pattern search: the pose reached, its score, and the poses scored so far.
@@ -139,8 +146,8 @@ impl<'a> Climb<'a> {
         }
     }
 
-    fn result(&self, candidates: usize, scores: usize) -> Polish {
-        Polish { from: self.from, from_alignment: self.from_alignment, camera_from_map: self.pose, alignment: self.best, scores, candidates }
+    fn result(&self, candidates: usize, scores: usize, runner_up_alignment: Option<f32>) -> Polish {
+        Polish { from: self.from, from_alignment: self.from_alignment, camera_from_map: self.pose, alignment: self.best, scores, candidates, runner_up_alignment }
     }
 
     /// Climbs from the pose reached: turns of `yaw_deg` and, unless `lateral_m` is 0, sideways
@@ -290,6 +297,10 @@ mod tests {
         // The scores of both candidates' climbs are counted.
         let alone = polish(ActionFrame::MapZ, candidates[1], scored[1].1, None, two());
         assert!(p.scores > alone.scores && p.alignment == alone.alignment && p.camera_from_map == alone.camera_from_map);
+        // The runner-up is the other candidate's peak (0.8, reached from 1° off), not its start.
+        let runner_up = p.runner_up_alignment.unwrap();
+        assert!(runner_up > scored[0].1 && (runner_up - 0.8).abs() < 0.01, "{runner_up}");
+        assert_eq!(alone.runner_up_alignment, None);
         // The judge decides: a margin for the first candidate keeps it.
         let (c, p) = choose(ActionFrame::MapZ, &scored, None, |pose, a| a + if PoseError::between(pose, &low).rre_geodesic_deg < 30.0 { 0.5 } else { 0.0 }, |c, pose| fs[c](pose)).unwrap();
         assert_eq!((c, p.from), (0, candidates[0]));
@@ -303,6 +314,8 @@ mod tests {
         assert_eq!((c, p.camera_from_map, p.candidates), (0, a, 2));
         let (c, _) = choose(ActionFrame::MapZ, &[(a, 0.5), (b, f32::NAN)], None, |_, s| s, |c, _| if c == 0 { 0.5 } else { f32::NAN }).unwrap();
         assert_eq!(c, 0);
+        let (_, p) = choose(ActionFrame::MapZ, &[(a, 0.5), (b, 0.25), (a, f32::NAN)], None, |_, s| s, |c, _| [0.5, 0.25, f32::NAN][c]).unwrap();
+        assert_eq!(p.runner_up_alignment, Some(0.25), "a NaN peak is never the runner-up over a number");
         assert!(choose(ActionFrame::MapZ, &[], None, |_, s| s, |_, _| 0.5).is_none());
     }
 }

@@ -239,6 +239,9 @@ pub struct PolishBody {
     /// final poses apart from it; `from_camera_from_map` is the one whose polish scored highest
     /// (docs/server.md, "The continuous polish").
     pub candidates: usize,
+    /// The highest alignment score another candidate's peak reached; absent with one candidate.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub runner_up_alignment: Option<f32>,
 }
 
 impl LocalizeResponse {
@@ -279,7 +282,7 @@ impl LocalizeResponse {
             kept_prior: loc.kept_prior,
             polish: loc.polish.map(|p| {
                 let (rotation_deg, translation_m) = crate::agent::search::offset_between(&p.from, &p.camera_from_map);
-                PolishBody { from_camera_from_map: p.from.to_rows(), from_alignment: p.from_alignment, alignment: p.alignment, rotation_deg, translation_m, scores: p.scores, candidates: p.candidates }
+                PolishBody { from_camera_from_map: p.from.to_rows(), from_alignment: p.from_alignment, alignment: p.alignment, rotation_deg, translation_m, scores: p.scores, candidates: p.candidates, runner_up_alignment: p.runner_up_alignment }
             }),
             timings_ms,
         }

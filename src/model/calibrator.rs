@@ -23,7 +23,7 @@ use utoipa::ToSchema;
 
 /// The signals a calibrator may read, by name (the manifest's `calibrator.features`, Python's
 /// `cmr.calibrate.SIGNALS`). What each one means is on the fields of [`Signals`].
-pub const SIGNAL_NAMES: [&str; 12] = [
+pub const SIGNAL_NAMES: [&str; 13] = [
     "alignment",
     "alignment_gain",
     "alignment_margin",
@@ -36,6 +36,7 @@ pub const SIGNAL_NAMES: [&str; 12] = [
     "log2_starts",
     "bounded",
     "visit_share",
+    "peak_margin",
 ];
 
 /// The only calibrator kind this build applies.
@@ -83,6 +84,13 @@ pub struct Signals {
     /// records.
     #[serde(default)]
     pub visit_share: f64,
+    /// The polished answer's alignment minus the highest peak another candidate of the polished
+    /// choice reached (`agent::polish::Polish::runner_up_alignment`); 0 with one candidate or no
+    /// polish. The choice compares peaks, so this, not `alignment_margin` (final poses before
+    /// the polish), says how clearly the answer won. Absent in records written before it: 0, and
+    /// `cmr.calibrate` refuses to fit on such records.
+    #[serde(default)]
+    pub peak_margin: f64,
 }
 
 impl Signals {
@@ -101,6 +109,7 @@ impl Signals {
             "log2_starts" => self.log2_starts,
             "bounded" => self.bounded,
             "visit_share" => self.visit_share,
+            "peak_margin" => self.peak_margin,
             _ => return None,
         })
     }
@@ -266,6 +275,7 @@ mod tests {
             log2_starts: 2.0,
             bounded: 0.0,
             visit_share: 0.25,
+            peak_margin: 0.02,
         }
     }
 

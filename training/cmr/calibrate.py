@@ -49,7 +49,7 @@ from .files import atomic_write_bytes, git_commit
 
 # model::calibrator::SIGNAL_NAMES, in its order.
 SIGNALS = ("alignment", "alignment_gain", "alignment_margin", "agreement", "frustum_iou", "policy_certainty", "converged",
-           "steps_fraction", "in_view", "log2_starts", "bounded", "visit_share")
+           "steps_fraction", "in_view", "log2_starts", "bounded", "visit_share", "peak_margin")
 # Signals that records written before them lack, with the value they stood for then (Rust's
 # `#[serde(default)]` on the same fields): no bound was stated before `bounded` existed.
 SIGNAL_DEFAULTS = {"bounded": 0.0}

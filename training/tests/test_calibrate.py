@@ -176,8 +176,8 @@ def test_folds_keep_groups_whole():
 
 
 def test_records_older_than_a_signal_are_refused_not_filled_in(tmp_path):
-    """A cases.json written before `visit_share` existed cannot be fitted on (0 would be a guess);
-    one written before `bounded` can (no bound could be stated then)."""
+    """A cases.json written before `visit_share` or `peak_margin` existed cannot be fitted on (0
+    would be a guess); one written before `bounded` can (no bound could be stated then)."""
     path = _cases_json(tmp_path / "a", np.random.default_rng(6), 10, "synth")
     records = json.loads(path.read_text())
     for r in records:
@@ -188,4 +188,9 @@ def test_records_older_than_a_signal_are_refused_not_filled_in(tmp_path):
         r.get("notes", {}).get("signals", {}).pop("visit_share", None)
     path.write_text(json.dumps(records))
     with pytest.raises(ValueError, match="visit_share"):
+        c.load_cases([path])
+    for r in records:
+        r.get("notes", {}).get("signals", {}).pop("peak_margin", None)
+    path.write_text(json.dumps(records))
+    with pytest.raises(ValueError, match="peak_margin"):
         c.load_cases([path])
