@@ -355,6 +355,14 @@ start_v20() {
     keep_agent_every=250 checkpoint_every=50
 }
 
+# Run v21: v20 with half the samples' maps cut from a drive region as the server cuts them
+# (virtual_scan_p 0.5 instead of COMMON's 0.25), for the fused-region cases v20 lost.
+start_v21() {
+  launch "$(train_roots)" "${V7_STAGE2[@]}" init_from="$(v11_shipped)" embed_steps=0 \
+    agent_iters=1000 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 near_start_p=0.5 \
+    virtual_scan_p=0.5 keep_agent_every=250 checkpoint_every=50
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -417,6 +425,7 @@ case "${1:-}" in
   start-v18) start_v18 ;;
   start-v19) start_v19 ;;
   start-v20) start_v20 ;;
+  start-v21) start_v21 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
