@@ -348,19 +348,17 @@ start_v19() {
 
 # Run v20: v19's stage-2 recipe (half the episodes from fleet-like starts, 1e-4 -> 1e-5 over 1,000
 # iterations, no BC-only phase) on the shipped v11 (its encoders and agent; runs/v11-shipped.pt),
-# stage 1 skipped; a copy every 250 in $RUN/snap/.
+# stage 1 skipped; a copy every 250 in $RUN/snap/. SETTING... after these (a later one wins).
 start_v20() {
   launch "$(train_roots)" "${V7_STAGE2[@]}" init_from="$(v11_shipped)" embed_steps=0 \
     agent_iters=1000 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 near_start_p=0.5 \
-    keep_agent_every=250 checkpoint_every=50
+    keep_agent_every=250 checkpoint_every=50 "$@"
 }
 
 # Run v21: v20 with half the samples' maps cut from a drive region as the server cuts them
 # (virtual_scan_p 0.5 instead of COMMON's 0.25), for the fused-region cases v20 lost.
 start_v21() {
-  launch "$(train_roots)" "${V7_STAGE2[@]}" init_from="$(v11_shipped)" embed_steps=0 \
-    agent_iters=1000 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 near_start_p=0.5 \
-    virtual_scan_p=0.5 keep_agent_every=250 checkpoint_every=50
+  start_v20 virtual_scan_p=0.5
 }
 
 save() {
