@@ -358,7 +358,14 @@ start_v20() {
 # Run v21: v20 with half the samples' maps cut from a drive region as the server cuts them
 # (virtual_scan_p 0.5 instead of COMMON's 0.25), for the fused-region cases v20 lost.
 start_v21() {
-  start_v20 virtual_scan_p=0.5
+  start_v20 virtual_scan_p=0.5 "$@"
+}
+
+# Run v22: v21 with its fleet-like starts turned at most 10 deg instead of 30 (the shift still
+# within 5 m), so that half the episodes start with the heading nearly right and the position off:
+# the translation the fused-region cases end short of.
+start_v22() {
+  start_v21 near_start_yaw_deg=10
 }
 
 save() {
@@ -424,6 +431,7 @@ case "${1:-}" in
   start-v19) start_v19 ;;
   start-v20) start_v20 ;;
   start-v21) start_v21 ;;
+  start-v22) start_v22 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
