@@ -56,7 +56,9 @@
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
-#                                # rtv-fleet, dev-protocol, dev-fleet, synth-test, v2-val, own-synth
+#                                # rtv-fleet, rtv-fleet2 (a second fleet sample of the same drives,
+#                                # seed 3106), dev-protocol, dev-fleet, synth-test, v2-val, own-synth,
+#                                # and fused (tests/fleet_maps.rs's two 42-case files on the candidate)
 #                                # (default: the shipping rule's rtv-protocol synth-test); EVAL_FLAGS
 #                                # adds eval flags (e.g. "--keep-prior true") and TAG a suffix;
 #                                # QUANTIZE_GRAPHS=agent keeps the image encoder float (a new NAME)
@@ -391,11 +393,20 @@ judge() {
     case $set in
       rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-perturbations.json ;;
       rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-perturbations.json ;;
+      rtv-fleet2) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed3106-perturbations.json ;;
       dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-perturbations.json ;;
       dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-perturbations.json ;;
       synth-test) data=$DATA/synth-test; cases=docs/eval/perturbations.json ;;
       v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-perturbations.json ;;
       own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-perturbations.json ;;
+      fused)  # tests/fleet_maps.rs, the region fused from a drive, 42 cases 5 m / 30 deg off, without
+        # and with the bound stated: the candidate through the server (CMR_TEST_MODELS)
+        (cd "$ROOT" && for t in "five_metre -- --ignored" "with_the_bound --"; do
+          # shellcheck disable=SC2086
+          CMR_TEST_MODELS=$out/models nice -n "$NICE" cargo test --release --test fleet_maps $t --nocapture 2>&1 || true  # a miss of its bar is a figure here
+        done) > "$out/fused.log"
+        printf '%-22s' fused; grep -h 'deg off.*RR' "$out/fused.log" | sed 's/, mean localize.*//' | tr '\n' ';'; echo
+        continue ;;
       *) echo "unknown set $set" >&2; return 2 ;;
     esac
     # shellcheck disable=SC2086
