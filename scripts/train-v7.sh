@@ -348,13 +348,15 @@ start_v19() {
     keep_agent_every=250 checkpoint_every=50
 }
 
-# Run v20: v19's stage-2 recipe (half the episodes from fleet-like starts, 1e-4 -> 1e-5 over 1,000
-# iterations, no BC-only phase) on the shipped v11 (its encoders and agent; runs/v11-shipped.pt),
-# stage 1 skipped; a copy every 250 in $RUN/snap/. SETTING... after these (a later one wins).
+# v19's stage-2 recipe as v20 runs it on v11's agent: half the episodes from fleet-like starts,
+# 1e-4 -> 1e-5 over 1,000 iterations, no BC-only phase, a copy every 250 in $RUN/snap/.
+V20_STAGE2=(agent_iters=1000 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 near_start_p=0.5
+  keep_agent_every=250 checkpoint_every=50)
+
+# Run v20: V20_STAGE2 on the shipped v11 (its encoders and agent; runs/v11-shipped.pt), stage 1
+# skipped. SETTING... after these (a later one wins).
 start_v20() {
-  launch "$(train_roots)" "${V7_STAGE2[@]}" init_from="$(v11_shipped)" embed_steps=0 \
-    agent_iters=1000 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 near_start_p=0.5 \
-    keep_agent_every=250 checkpoint_every=50 "$@"
+  launch "$(train_roots)" "${V7_STAGE2[@]}" init_from="$(v11_shipped)" embed_steps=0 "${V20_STAGE2[@]}" "$@"
 }
 
 # Run v21: v20 with half the samples' maps cut from a drive region as the server cuts them
@@ -374,10 +376,9 @@ start_v22() {
 # the maps cut from a drive region as the server cuts them (virtual_scan_p 0.75: no density centre
 # at the camera), then v20's stage 2 on them (v11's agent, 1,000 iterations).
 start_v24() {
-  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 backbone_lr_scale=0.1 init_from="$(v11_shipped)" \
-    embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 embed_steps=6000 keep_embed_every=1500 embed_eval_every=1500 \
-    agent_iters=1000 agent_lr=1e-4 agent_lr_min=1e-5 bc_only_iters=0 expert_mix_start=0.2 near_start_p=0.5 \
-    keep_agent_every=250 checkpoint_every=50 virtual_scan_p=0.75 "$@"
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 backbone_lr_scale=0.1 \
+    init_from="$(v11_shipped)" embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 embed_steps=6000 keep_embed_every=1500 \
+    embed_eval_every=1500 "${V20_STAGE2[@]}" virtual_scan_p=0.75 "$@"
 }
 
 save() {

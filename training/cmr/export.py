@@ -353,6 +353,12 @@ def replace_graphs(model_dir: Path, models: dict[str, torch.nn.Module], source: 
     return doc
 
 
+def shipped_agent(state: dict) -> dict:
+    """A checkpoint's agent as it ships: the moving average when the run kept one
+    (`train.Run.shipped_models`), else `models.agent`."""
+    return state["agent_ema"] if state.get("agent_ema") is not None else state["models"]["agent"]
+
+
 def load_models(checkpoint: Path | None) -> tuple[dict[str, torch.nn.Module], dict]:
     models = build_all()
     meta: dict = {}
@@ -362,9 +368,7 @@ def load_models(checkpoint: Path | None) -> tuple[dict[str, torch.nn.Module], di
         models = build_all(**arch_of(state.get("meta", {}).get("config", {})))
         for name, module in models.items():
             if name in state["models"]:
-                module.load_state_dict(state["models"][name])
-        if "agent_ema" in state:  # runs with agent_ema ship the averaged agent (train.Run.shipped_models)
-            models["agent"].load_state_dict(state["agent_ema"])
+                module.load_state_dict(shipped_agent(state) if name == "agent" else state["models"][name])
         meta = state.get("meta", {})
     for m in models.values():
         m.eval()

@@ -15,16 +15,15 @@ agent reads their embeddings): ValueError otherwise, and on any shape or key mis
 from __future__ import annotations
 
 import argparse
+import io
 from pathlib import Path
 
 import torch
 
+from .export import shipped_agent
+from .files import atomic_write_bytes
+
 ENCODERS = ("point_encoder", "image_encoder", "frustum_head")
-
-
-def shipped_agent(state: dict) -> dict:
-    """The agent a checkpoint exports (`export` ships `agent_ema` when the run kept one)."""
-    return state["agent_ema"] if state.get("agent_ema") is not None else state["models"]["agent"]
 
 
 def interpolate(start: dict, tuned: dict, alpha: float) -> dict:
@@ -57,10 +56,9 @@ def main() -> None:
     args = ap.parse_args()
     load = lambda p: torch.load(p, map_location="cpu", weights_only=False)  # noqa: E731
     state = interpolate(load(args.start), load(args.tuned), args.alpha)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    torch.save(state, tmp)
-    tmp.replace(args.out)
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    atomic_write_bytes(args.out, buffer.getvalue())
     print(f"wrote {args.out}: agent = {1 - args.alpha:g} x {args.start} + {args.alpha:g} x {args.tuned}")
 
 
