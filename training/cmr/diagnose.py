@@ -14,6 +14,12 @@ Two global figures say how well the score would judge the whole search space, wi
   10 deg) left out, that score below the truth (mean over frames; 0.5 = no signal), and
   `truth_beats_all`: the share of frames where the truth outscores every one of them.
 
+And where the score peaks near the truth, the floor of any search's position error: `peak` scores
+a grid about the true pose (`PEAK_YAWS_DEG` turns about the camera centre, times ground shifts on
+a 1 m lattice within `PEAK_RADIUS_M`; 405 poses) and gives the best pose's camera-centre distance
+from the truth (mean, median, share within 1 m) and the share of frames where it has the true
+heading.
+
     python -m cmr.diagnose --checkpoint runs/default/last.pt --data ../data/synth-val --frames 24
 """
 
@@ -43,6 +49,8 @@ def alignment_score(eps, row: int, pose: np.ndarray) -> float:
 
 
 SWEEP_DEG = np.arange(0.0, 360.0, 5.0)  # the headings of `heading_at_truth`
+PEAK_YAWS_DEG = (-6.0, -3.0, 0.0, 3.0, 6.0)  # the turns of `peak`'s grid
+PEAK_RADIUS_M = 5  # its ground shifts: a 1 m lattice within this radius
 
 
 def global_poses(truth: np.ndarray, rng: np.random.Generator, count: int) -> tuple[list[np.ndarray], np.ndarray]:
@@ -58,12 +66,30 @@ def global_poses(truth: np.ndarray, rng: np.random.Generator, count: int) -> tup
     return sweep + drawn, np.asarray(far)
 
 
+def peak_grid(truth: np.ndarray) -> tuple[list[np.ndarray], np.ndarray, np.ndarray]:
+    """`peak`'s poses about `truth` (camera_from_map): each turn of `PEAK_YAWS_DEG` about the camera
+    centre (map z), then each ground shift of the lattice (right, forward of the turned heading);
+    with each pose's camera-centre distance from the truth (m) and whether its turn is 0."""
+    centre = g.invert(truth)[:3, 3]
+    r = PEAK_RADIUS_M
+    shifts = [(x, z) for x in range(-r, r + 1) for z in range(-r, r + 1) if x * x + z * z <= r * r]
+    poses, turn_zero = [], []
+    for yaw in PEAK_YAWS_DEG:
+        turned = g.apply_action(truth, centre, yaw, 0.0, 0.0, frame=g.MAP_Z)
+        for x, z in shifts:
+            poses.append(g.apply_action(turned, centre, 0.0, float(x), float(z), frame=g.MAP_Z))
+            turn_zero.append(yaw == 0.0)
+    dist = np.array([np.linalg.norm(g.invert(p)[:3, 3] - centre) for p in poses])
+    return poses, dist, np.asarray(turn_zero)
+
+
 @torch.no_grad()
 def diagnose(models: dict, frames, seed: int = 4321, num_points: int = 40960, chunk: int = 4,
              global_count: int = 128) -> dict:
     for m in models.values():
         m.eval()
     heading_hits, percentiles, beats_all = 0, [], 0
+    peak_dist, peak_heading = [], []
     wins = {name: 0 for name, *_ in PERTURBATIONS}
     margins = {name: [] for name, *_ in PERTURBATIONS}
     confusion = np.zeros(3, dtype=np.int64)
@@ -88,10 +114,17 @@ def diagnose(models: dict, frames, seed: int = 4321, num_points: int = 40960, ch
             others = scores[n_sweep:][far]
             percentiles.append(float((others < truth_score).mean()) if len(others) else 1.0)
             beats_all += bool((others < truth_score).all())
+            grid, dist, turn_zero = peak_grid(s.truth)
+            best = int(np.argmax(eps.alignment(grid, [row] * len(grid))))
+            peak_dist.append(float(dist[best]))
+            peak_heading.append(bool(turn_zero[best]))
     n = len(frames)
     return dict(frames=n, frustum=precision_recall(confusion),
                 heading_at_truth=heading_hits / n, truth_percentile=float(np.mean(percentiles)),
                 truth_beats_all=beats_all / n,
+                peak=dict(distance_mean_m=float(np.mean(peak_dist)), distance_median_m=float(np.median(peak_dist)),
+                          within_1m=float(np.mean(np.asarray(peak_dist) <= 1.0 + 1e-9)),
+                          heading_right=float(np.mean(peak_heading))),
                 truth_wins={k: v / n for k, v in wins.items()},
                 median_margin={k: float(np.median(v)) for k, v in margins.items()})
 

@@ -107,3 +107,26 @@ def test_global_poses_sweep_the_heading_and_draw_protocol_starts():
     errs = [g.pose_error(p, pose) for p in poses[72:]]
     assert np.array_equal(far, [e["rte_m"] >= 5.0 or e["rre_euler_deg"] >= 10.0 for e in errs])
     assert 0 < (~far).sum() < 30  # a few starts land within 5 m / 10 deg
+
+
+def test_peak_grid_turns_about_the_camera_and_shifts_on_the_ground():
+    """`cmr.diagnose.peak_grid`: 5 turns x 81 lattice shifts within 5 m; the turns keep the camera
+    centre, the shifts move it by exactly their length in the ground plane, at the turned heading."""
+    import numpy as np
+
+    from cmr import geometry as g
+    from cmr.diagnose import PEAK_YAWS_DEG, peak_grid
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # level camera, map z up
+    pose[:3, 3] = [0.3, 1.6, -2.0]
+    poses, dist, turn_zero = peak_grid(pose)
+    assert len(poses) == 405 and turn_zero.sum() == 81
+    centre = g.invert(pose)[:3, 3]
+    moved = np.array([g.invert(p)[:3, 3] - centre for p in poses])
+    assert np.allclose(moved[:, 2], 0.0, atol=1e-9) and np.allclose(np.linalg.norm(moved, axis=1), dist)
+    assert dist.max() <= 5.0 + 1e-9 and sorted(set(np.round(dist ** 2, 6)))[:3] == [0.0, 1.0, 2.0]
+    heading = lambda p: np.degrees(np.arctan2(*g.ground_heading(p)[1][:2][::-1]))  # noqa: E731
+    turns = [(heading(p) - heading(pose) + 180.0) % 360.0 - 180.0 for p in poses[::81]]
+    assert np.allclose(sorted(turns), sorted(PEAK_YAWS_DEG), atol=1e-6)
+    # the untouched pose is on the grid, at distance 0, with the true heading
+    assert any(np.allclose(p, pose) for p, z in zip(poses, turn_zero) if z)
