@@ -82,26 +82,35 @@ def test_frozen_cases_reproduce_the_harness_motions(tmp_path, tiny_dataset):
     assert np.allclose(s.motion, g.ground_motion(np.radians(30.0), 3.0, -4.0))
 
 
+def level_camera():
+    """A level camera (map z up) off the origin: the pose both grids of `cmr.diagnose` are tested about."""
+    pose = np.eye(4)
+    pose[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    pose[:3, 3] = [0.3, 1.6, -2.0]
+    return pose
+
+
+def turn_deg(a, b):
+    """How far pose b's ground heading is turned from pose a's, counter-clockwise about map z, in (-180, 180]."""
+    from cmr import geometry as g
+    fa, fb = g.ground_heading(a)[1], g.ground_heading(b)[1]
+    return float(np.degrees(np.arctan2(np.cross(fa, fb)[2], fa @ fb)))
+
+
 def test_global_poses_sweep_the_heading_and_draw_protocol_starts():
     """`cmr.diagnose.global_poses`: 72 headings 5 deg apart at the true camera centre, then starts
     within +-10 m in the ground plane at any heading, with the registered ones flagged."""
     import math
 
-    import numpy as np
-
     from cmr import geometry as g
     from cmr.diagnose import global_poses
-    pose = np.eye(4)
-    pose[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # level camera, map z up
-    pose[:3, 3] = [0.3, 1.6, -2.0]
+    pose = level_camera()
     poses, far = global_poses(pose, np.random.default_rng(0), 300)
     assert len(poses) == 372 and far.shape == (300,)
     centre = g.invert(pose)[:3, 3]
-    f0 = g.ground_heading(pose)[1]
     for i, p in enumerate(poses[:72]):
         assert np.allclose(g.invert(p)[:3, 3], centre)
-        turn = math.degrees(math.atan2(np.cross(f0, g.ground_heading(p)[1])[2], f0 @ g.ground_heading(p)[1]))
-        assert abs((turn - 5.0 * i + 180.0) % 360.0 - 180.0) < 1e-6
+        assert abs((turn_deg(pose, p) - 5.0 * i + 180.0) % 360.0 - 180.0) < 1e-6
     moved = np.array([g.invert(p)[:3, 3] - centre for p in poses[72:]])
     assert np.allclose(moved[:, 2], 0.0) and np.abs(moved[:, :2]).max() <= 10.0 * math.sqrt(2) + 1e-9
     errs = [g.pose_error(p, pose) for p in poses[72:]]
@@ -112,21 +121,15 @@ def test_global_poses_sweep_the_heading_and_draw_protocol_starts():
 def test_peak_grid_turns_about_the_camera_and_shifts_on_the_ground():
     """`cmr.diagnose.peak_grid`: 5 turns x 81 lattice shifts within 5 m; the turns keep the camera
     centre, the shifts move it by exactly their length in the ground plane, at the turned heading."""
-    import numpy as np
-
     from cmr import geometry as g
     from cmr.diagnose import PEAK_YAWS_DEG, peak_grid
-    pose = np.eye(4)
-    pose[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # level camera, map z up
-    pose[:3, 3] = [0.3, 1.6, -2.0]
+    pose = level_camera()
     poses, dist, turn_zero = peak_grid(pose)
     assert len(poses) == 405 and turn_zero.sum() == 81
     centre = g.invert(pose)[:3, 3]
     moved = np.array([g.invert(p)[:3, 3] - centre for p in poses])
     assert np.allclose(moved[:, 2], 0.0, atol=1e-9) and np.allclose(np.linalg.norm(moved, axis=1), dist)
     assert dist.max() <= 5.0 + 1e-9 and sorted(set(np.round(dist ** 2, 6)))[:3] == [0.0, 1.0, 2.0]
-    heading = lambda p: np.degrees(np.arctan2(*g.ground_heading(p)[1][:2][::-1]))  # noqa: E731
-    turns = [(heading(p) - heading(pose) + 180.0) % 360.0 - 180.0 for p in poses[::81]]
-    assert np.allclose(sorted(turns), sorted(PEAK_YAWS_DEG), atol=1e-6)
+    assert np.allclose(sorted(turn_deg(pose, p) for p in poses[::81]), sorted(PEAK_YAWS_DEG), atol=1e-6)
     # the untouched pose is on the grid, at distance 0, with the true heading
     assert any(np.allclose(p, pose) for p, z in zip(poses, turn_zero) if z)
