@@ -7,7 +7,7 @@
 //! the coordinate bound) is caught before its state is built, and policy outputs are checked row
 //! by row after the call. A failing policy call as a whole fails the requests that were in it.
 
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Instant;
 
 use rayon::prelude::*;
@@ -18,7 +18,7 @@ use crate::model::{Backend, Manifest};
 
 use super::episode::ImageEvidence;
 use super::search::Search;
-use super::state::{self, ScatterScratch, StateLayout};
+use super::state::{self, ScratchPool, StateLayout};
 use super::{Localization, SearchConfig, Timings, ms};
 
 /// Why a request left the batch without a localization.
@@ -58,8 +58,8 @@ pub struct Batch<T> {
     running: Vec<Running<T>>,
     layout: StateLayout,
     actions: ActionSet,
-    /// Scatter buffers, one per thread building states at once.
-    scratch: Mutex<Vec<ScatterScratch>>,
+    /// Scatter buffers, one per thread building states or polishing at once.
+    scratch: ScratchPool,
     state_2d: Vec<f32>,
     state_3d: Vec<f32>,
 }
@@ -70,7 +70,7 @@ impl<T: Send> Batch<T> {
             running: Vec::new(),
             layout: StateLayout::from_manifest(manifest),
             actions: manifest.action_set(),
-            scratch: Mutex::new(Vec::new()),
+            scratch: ScratchPool::default(),
             state_2d: Vec::new(),
             state_3d: Vec::new(),
         }
@@ -128,10 +128,12 @@ impl<T: Send> Batch<T> {
             self.ask_policy(backend, &rows);
         }
         // Every request still running ends its iteration here, those that only replayed too.
-        let scratch = first_scratch(&mut self.scratch);
-        for r in self.running.iter_mut().filter(|r| r.failed.is_none()) {
-            r.search.after_step(&r.map, &self.layout, scratch);
-        }
+        let (running, layout) = (&mut self.running, &self.layout);
+        self.scratch.with(|scratch| {
+            for r in running.iter_mut().filter(|r| r.failed.is_none()) {
+                r.search.after_step(&r.map, layout, scratch);
+            }
+        });
         rows.len()
     }
 
@@ -192,9 +194,7 @@ impl<T: Send> Batch<T> {
             .into_par_iter()
             .map(|(i, map, episode, s2, s3)| {
                 let t = Instant::now();
-                let mut scratch = pool.lock().expect("scratch pool").pop().unwrap_or_default();
-                episode.write_state(map, layout, &mut scratch, s2, s3);
-                pool.lock().expect("scratch pool").push(scratch);
+                pool.with(|scratch| episode.write_state(map, layout, scratch, s2, s3));
                 (i, ms(t))
             })
             .collect();
@@ -239,22 +239,13 @@ impl<T: Send> Batch<T> {
                 Some(e) => Err(e),
                 None => {
                     r.timings.agent_steps_ms = ms(r.steps_started);
-                    Ok(r.search.finish(&r.map, &self.layout, first_scratch(&mut self.scratch), r.timings))
+                    Ok(r.search.finish(&r.map, &self.layout, &self.scratch, r.timings))
                 }
             };
             out.push((r.tag, result));
         }
         out
     }
-}
-
-/// A scratch buffer from the pool for single-threaded work (scoring after a step, finishing).
-fn first_scratch(pool: &mut Mutex<Vec<ScatterScratch>>) -> &mut ScatterScratch {
-    let pool = pool.get_mut().expect("scratch pool");
-    if pool.is_empty() {
-        pool.push(ScatterScratch::default());
-    }
-    &mut pool[0]
 }
 
 /// Runs the image encoder and the frustum head (everything per request that precedes the loop)

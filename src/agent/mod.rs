@@ -22,7 +22,7 @@ pub use batch::{Batch, Start, StepError};
 pub use episode::{Confidence, Episode, ImageEvidence, Step};
 pub use input::prepare_image;
 pub use search::{AnswerRules, DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, outscores, start_yaw_offsets};
-pub use state::{Form2d, ImageGrid, ScatterScratch, Shifts, StateLayout};
+pub use state::{Form2d, ImageGrid, ScatterScratch, ScratchPool, Shifts, StateLayout};
 
 /// Milliseconds spent per phase of one localization.
 #[derive(Debug, Clone, Copy, Default)]

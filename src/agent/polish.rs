@@ -23,9 +23,12 @@
 //!
 //! The search polishes more than its answer: [`choose`] lets the answer and the final poses of
 //! other hypotheses apart from it (`search::polish_candidates`) each climb their nearest peak
-//! with the fine pass, and polishes on the one whose peak scores highest.
+//! with the fine pass, and polishes on the one whose peak scores highest. The candidates climb in
+//! parallel (rayon); each climb is sequential, so the poses scored and the answer do not depend on
+//! the threads.
 
 use nalgebra::Point3;
+use rayon::prelude::*;
 
 use crate::geometry::actions::apply_motion;
 use crate::geometry::{ActionFrame, Pose};
@@ -78,7 +81,7 @@ pub struct Polish {
 /// `frame`'s axes; every pose it moves to lies within `bound` (the prior and its bound) when one
 /// is given. A NaN score never wins.
 /// [`choose`] with the one candidate.
-pub fn polish(frame: ActionFrame, from: Pose, from_alignment: f32, bound: Option<(&Pose, PriorBound)>, mut score: impl FnMut(&Pose) -> f32) -> Polish {
+pub fn polish(frame: ActionFrame, from: Pose, from_alignment: f32, bound: Option<(&Pose, PriorBound)>, score: impl Fn(&Pose) -> f32 + Sync) -> Polish {
     let (_, polished) = choose(frame, &[(from, from_alignment)], bound, |_, alignment| alignment, |_, p| score(p)).expect("one candidate");
     polished
 }
@@ -87,8 +90,9 @@ pub fn polish(frame: ActionFrame, from: Pose, from_alignment: f32, bound: Option
 /// own answer first) climbs its nearest peak (the fine pass, within its own [`REACH`] and
 /// `bound`); the one whose peak scores highest by `judge` (pose, alignment; the first on a draw,
 /// never a NaN) goes on with the wide pass (and the fine pass again if that moved), as
-/// [`polish`] would. `score(c, pose)` scores a pose near candidate `c`. Returns the candidate
-/// chosen and its polish (`scores` counts every candidate's).
+/// [`polish`] would. `score(c, pose)` scores a pose near candidate `c`, called from several
+/// threads at once (the candidates climb in parallel). Returns the candidate chosen and its
+/// polish (`scores` counts every candidate's).
 ///
 /// Why: the search ranks its hypotheses by their final poses' scores, and a final pose is often
 /// short of its own peak by more than the peaks differ; compared at their peaks, the hypothesis
@@ -98,16 +102,21 @@ pub fn choose(
     candidates: &[(Pose, f32)],
     bound: Option<(&Pose, PriorBound)>,
     judge: impl Fn(&Pose, f32) -> f32,
-    mut score: impl FnMut(usize, &Pose) -> f32,
+    score: impl Fn(usize, &Pose) -> f32 + Sync,
 ) -> Option<(usize, Polish)> {
+    let climbs: Vec<Climb> = candidates
+        .par_iter()
+        .enumerate()
+        .map(|(c, &(from, from_alignment))| {
+            let mut climb = Climb::new(frame, from, from_alignment, bound);
+            climb.run(YAW_DEG, LATERAL_M, HALVINGS, &mut |p: &Pose| score(c, p));
+            climb
+        })
+        .collect();
+    let scores: usize = climbs.iter().map(|climb| climb.scores).sum();
+    let peaks: Vec<f32> = climbs.iter().map(|climb| climb.best).collect();
     let mut best: Option<(usize, Climb, f32)> = None;
-    let mut peaks = Vec::with_capacity(candidates.len());
-    let mut scores = 0;
-    for (c, &(from, from_alignment)) in candidates.iter().enumerate() {
-        let mut climb = Climb::new(frame, from, from_alignment, bound);
-        climb.run(YAW_DEG, LATERAL_M, HALVINGS, &mut |p: &Pose| score(c, p));
-        scores += climb.scores;
-        peaks.push(climb.best);
+    for (c, climb) in climbs.into_iter().enumerate() {
         let judged = judge(&climb.pose, climb.best);
         if best.as_ref().is_none_or(|(_, _, b)| outscores(judged, *b)) {
             best = Some((c, climb, judged));
@@ -195,7 +204,7 @@ mod tests {
     }
 
     /// A smooth score peaking at `truth`, flat along the heading like a real frame's.
-    fn score_near(truth: Pose) -> impl FnMut(&Pose) -> f32 {
+    fn score_near(truth: Pose) -> impl Fn(&Pose) -> f32 + Sync {
         move |p: &Pose| {
             let e = PoseError::between(p, &truth);
             let (right, _) = crate::geometry::actions::ground_heading(&truth);
@@ -209,7 +218,7 @@ mod tests {
         let truth = camera(3.0, -2.0, 20.0);
         // 1.7° and 0.8 m sideways off (about the camera's own centre).
         let start = apply_motion(ActionFrame::MapZ, &truth, &Point3::from(truth.camera_position_in_map()), 1.7, 0.8, 0.0);
-        let mut f = score_near(truth);
+        let f = score_near(truth);
         let s0 = f(&start);
         let p = polish(ActionFrame::MapZ, start, s0, None, score_near(truth));
         let angle = PoseError::between(&p.camera_from_map, &truth).rre_geodesic_deg;
@@ -228,7 +237,7 @@ mod tests {
         let prior = camera(0.0, 0.0, -10.0);
         let peak = camera(0.0, 0.0, 3.0);
         let bound = PriorBound { rotation_deg: 10.0, translation_m: 5.0 };
-        let mut f = score_near(peak);
+        let f = score_near(peak);
         let p = polish(ActionFrame::MapZ, prior, f(&prior), Some((&prior, bound)), score_near(peak));
         assert!(bound.contains(&prior, &p.camera_from_map));
         assert!(PoseError::between(&p.camera_from_map, &prior).rre_geodesic_deg > 9.0);
@@ -244,7 +253,7 @@ mod tests {
     }
 
     /// Peaks in heading: the highest of `score_near` each, scaled by its height.
-    fn peaks(peaks: Vec<(Pose, f32)>) -> impl FnMut(&Pose) -> f32 {
+    fn peaks(peaks: Vec<(Pose, f32)>) -> impl Fn(&Pose) -> f32 + Sync {
         move |p: &Pose| peaks.iter().map(|&(peak, height)| height * score_near(peak)(p)).fold(f32::MIN, f32::max)
     }
 
@@ -290,7 +299,7 @@ mod tests {
         let candidates = [camera(0.0, 0.0, 1.0), camera(0.0, 0.0, 96.0)];
         let scored: Vec<(Pose, f32)> = candidates.iter().map(|p| (*p, two()(p))).collect();
         assert!(scored[0].1 > scored[1].1);
-        let mut fs = [two(), two()];
+        let fs = [two(), two()];
         let (c, p) = choose(ActionFrame::MapZ, &scored, None, |_, a| a, |c, pose| fs[c](pose)).unwrap();
         assert_eq!((c, p.candidates, p.from), (1, 2, candidates[1]));
         assert!(PoseError::between(&p.camera_from_map, &high).rre_geodesic_deg < 0.2);
@@ -305,6 +314,23 @@ mod tests {
         let (c, p) = choose(ActionFrame::MapZ, &scored, None, |pose, a| a + if PoseError::between(pose, &low).rre_geodesic_deg < 30.0 { 0.5 } else { 0.0 }, |c, pose| fs[c](pose)).unwrap();
         assert_eq!((c, p.from), (0, candidates[0]));
         assert!(PoseError::between(&p.camera_from_map, &low).rre_geodesic_deg < 0.2);
+    }
+
+    #[test]
+    fn the_choice_is_the_same_on_one_thread_and_on_several() {
+        // Five candidates near three peaks of different heights: the climbs run in parallel, the
+        // choice and every count must not depend on which finishes first.
+        let f = peaks(vec![(camera(0.0, 0.0, 0.0), 0.8), (camera(0.0, 0.0, 95.0), 1.0), (camera(0.0, 0.0, -60.0), 0.9)]);
+        let candidates: Vec<(Pose, f32)> = [1.5, 40.0, 92.0, 170.0, -57.0].iter().map(|&yaw| camera(0.3, -0.2, yaw)).map(|p| (p, f(&p))).collect();
+        let on = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            pool.install(|| choose(ActionFrame::MapZ, &candidates, None, |_, a| a, |_, p| f(p)))
+        };
+        let one = on(1).unwrap();
+        assert_eq!(one.0, 2, "the highest peak's candidate");
+        for threads in [2, 5] {
+            assert_eq!(on(threads).unwrap(), one);
+        }
     }
 
     #[test]

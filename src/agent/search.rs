@@ -45,6 +45,7 @@
 use std::sync::Arc;
 
 use nalgebra::Point3;
+use rayon::prelude::*;
 
 use crate::geometry::{ActionFrame, Pose, PoseError};
 use crate::geometry::actions::apply_motion;
@@ -53,7 +54,7 @@ use crate::maps::PreparedMap;
 
 use super::episode::{Episode, ImageEvidence, Step};
 use super::polish;
-use super::state::{self, ScatterScratch, StateLayout};
+use super::state::{self, ScatterScratch, ScratchPool, StateLayout};
 use super::{Localization, Timings};
 
 /// Most starts one request may ask for.
@@ -643,10 +644,14 @@ impl Search {
     /// one scores higher); with the polish, the polished choice between that answer and the
     /// final poses apart from it ([`polish_candidates`], `polish::choose`); and turns the search
     /// into its result.
-    pub fn finish(mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch, mut timings: Timings) -> Localization {
-        for episode in &mut self.episodes {
-            episode.settle(map, layout, scratch);
-        }
+    /// The polished choice's candidates climb on several threads (scatter buffers from `pool`);
+    /// every pose and score is the same whatever the threads.
+    pub fn finish(mut self, map: &PreparedMap, layout: &StateLayout, pool: &ScratchPool, mut timings: Timings) -> Localization {
+        pool.with(|scratch| {
+            for episode in &mut self.episodes {
+                episode.settle(map, layout, scratch);
+            }
+        });
         let first_round = self.first_round;
         let hypotheses: Vec<Hypothesis> = self
             .episodes
@@ -672,10 +677,10 @@ impl Search {
             // from there are projected (the same scores).
             let reach = polish::REACH;
             let views: Vec<state::NearView> =
-                poses.iter().map(|(p, _)| state::NearView::new(layout, &e.intrinsics, &map.points, p, reach.rotation_deg, reach.translation_m)).collect();
+                poses.par_iter().map(|(p, _)| state::NearView::new(layout, &e.intrinsics, &map.points, p, reach.rotation_deg, reach.translation_m)).collect();
             let judge = |pose: &Pose, alignment: f32| self.rules.score(&self.prior, pose, alignment);
             let (c, p) = polish::choose(self.frame, &poses, bound, judge, |c, p| {
-                state::alignment_near(layout, &views[c], &map.features, &e.image_features, &e.intrinsics, p, scratch)
+                pool.with(|scratch| state::alignment_near(layout, &views[c], &map.features, &e.image_features, &e.intrinsics, p, scratch))
             })
             .expect("the search's answer is a candidate");
             if c > 0 {

@@ -16,6 +16,8 @@
 //! The same scatter also yields the pose's alignment score ([`alignment`]), which the
 //! multi-start search ranks hypotheses by.
 
+use std::sync::Mutex;
+
 use nalgebra::Point3;
 
 use crate::geometry::{Intrinsics, MIN_DEPTH_M, Pose};
@@ -166,6 +168,22 @@ pub struct ScatterScratch {
     channel_dots: Vec<f64>,
     /// One cell's unit point feature (correlation form).
     unit: Vec<f32>,
+}
+
+/// Scatter buffers for work on several threads at once (a batch's states, the polished choice's
+/// climbs): [`ScratchPool::with`] lends one to a closure and takes it back when the closure
+/// returns (a closure that panics keeps it, so a half-written buffer is never lent again).
+#[derive(Default)]
+pub struct ScratchPool(Mutex<Vec<ScatterScratch>>);
+
+impl ScratchPool {
+    /// Runs `work` with a buffer of the pool (a new one when all are lent).
+    pub fn with<R>(&self, work: impl FnOnce(&mut ScatterScratch) -> R) -> R {
+        let mut scratch = self.0.lock().expect("scratch pool").pop().unwrap_or_default();
+        let out = work(&mut scratch);
+        self.0.lock().expect("scratch pool").push(scratch);
+        out
+    }
 }
 
 /// Writes one state into `state_2d` (len `state_2d_len`) and `state_3d` (len `state_3d_len`).
