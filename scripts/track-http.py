@@ -4,11 +4,14 @@
 The same loop as `cmr-agent track` (src/track/mod.rs), over HTTP: the first frame is localized
 with the full search from a coarse prior (the truth moved --prior-noise-m in the ground plane and
 turned --prior-noise-deg about the vertical), every later frame from the previous estimate moved
-by a constant-velocity prediction with a small search (--tracked-hypotheses starts,
---tracked-iterations steps). That answer is kept when the server says it is `localized` (the model
-set's calibrated verdict) and its confidence score is at least --fallback-below; otherwise the frame
-is redone with the full search (the server's defaults) from the same prior, and when that answer is
-not `localized` either, the frame is dead-reckoned (its estimate is the prediction). Without a
+by a constant-velocity prediction with small searches (--tracked-hypotheses starts,
+--tracked-iterations steps) from the prediction and from it moved along its optical axis by
++-k * --axis-step-m, k = 1..--axis-starts; the answer with the highest alignment score is kept,
+the prediction's own with --axis-margin added. That answer is kept when the server says it is
+`localized` (the model set's calibrated verdict) and its confidence score is at least
+--fallback-below; otherwise the frame is redone with the full search (the server's defaults) from
+the prior that small search started from, and when that answer is not `localized` either, the
+frame is dead-reckoned (its estimate is the prediction). Without a
 calibrator on the server (`p_registered` null) the score alone decides and the full search's
 answer is kept.
 
@@ -129,6 +132,17 @@ def predict(before_last, last):
     return last if before_last is None else mul(mul(last, inv(before_last)), last)
 
 
+def axis_priors(predicted, each_way, step_m):
+    """The prediction, then the camera moved along its own optical axis by +k*step_m and -k*step_m,
+    k = 1..each_way (src/track/mod.rs, `axis_priors`)."""
+    def moved(d):
+        return mul([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, -d], [0.0, 0.0, 0.0, 1.0]], predicted)
+    priors = [predicted]
+    for k in range(1, each_way + 1):
+        priors += [moved(k * step_m), moved(-k * step_m)]
+    return priors
+
+
 # --- HTTP -----------------------------------------------------------------------------------------
 
 
@@ -172,6 +186,9 @@ def main():
     parser.add_argument("--full-hypotheses", type=int, default=4)
     parser.add_argument("--full-iterations", type=int, default=10)
     parser.add_argument("--fallback-below", type=float, default=0.3)
+    parser.add_argument("--axis-starts", type=int, default=2)
+    parser.add_argument("--axis-step-m", type=float, default=1.25)
+    parser.add_argument("--axis-margin", type=float, default=0.005)
     args = parser.parse_args()
 
     seq = read_sequence(args.sequence)
@@ -191,12 +208,19 @@ def main():
             mode, tracked_confidence = "cold", None
         else:
             prior = predict(estimates[-2] if position >= 2 else None, estimates[-1])
-            pose, answer, latency = localize(
-                args.server, args.id, image_b64, seq["intrinsics"], prior, args.tracked_hypotheses, args.tracked_iterations
-            )
+            best, latency = None, 0.0
+            for i, start in enumerate(axis_priors(prior, args.axis_starts, args.axis_step_m)):
+                pose, answer, more = localize(
+                    args.server, args.id, image_b64, seq["intrinsics"], start, args.tracked_hypotheses, args.tracked_iterations
+                )
+                latency += more
+                judged = answer["alignment"] + (args.axis_margin if i == 0 else 0.0)
+                if best is None or judged > best[0]:
+                    best = (judged, start, pose, answer)
+            _, start, pose, answer = best
             mode, tracked_confidence = "tracked", answer["score"]
             if answer["score"] < args.fallback_below or trusted(answer) is False:
-                pose, answer, more = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
+                pose, answer, more = localize(args.server, args.id, image_b64, seq["intrinsics"], start, *full)
                 mode, latency = "fallback", latency + more
                 if trusted(answer) is False:
                     pose, mode = prior, "dead_reckoning"

@@ -71,6 +71,18 @@ pub struct TrackArgs {
     /// (`--default-hypotheses` starts, `--default-max-iterations` steps) from the same prior.
     #[arg(long, default_value_t = 0.3)]
     pub fallback_below: f32,
+    /// Small searches of a tracked frame from the prediction moved forward and back along its
+    /// optical axis, each way (0 = the prediction alone); the answer scoring highest is kept
+    /// (docs/tracking.md, "Starts along the optical axis").
+    #[arg(long, env = "CMR_TRACK_AXIS_STARTS", default_value_t = 2)]
+    pub axis_starts: u32,
+    /// Their spacing, metres.
+    #[arg(long, env = "CMR_TRACK_AXIS_STEP_M", default_value_t = 1.25)]
+    pub axis_step_m: f64,
+    /// A start along the axis must outscore the prediction's own answer by more than this
+    /// (alignment-score units).
+    #[arg(long, env = "CMR_TRACK_AXIS_MARGIN", default_value_t = 0.005)]
+    pub axis_margin: f32,
     /// After tracking, localize this many frames (spread over the drive) cold: the full search
     /// from a coarse prior, for the summary's latency and accuracy comparison.
     #[arg(long, default_value_t = 0)]
@@ -108,7 +120,7 @@ impl FrameLocalizer for StoredRegion<'_> {
             .map_err(|e| anyhow!("frame {} ({}): {e}", frame.index, frame.image_path.display()))?;
         let latency_ms = crate::agent::ms(started);
         let loc = &done.localization;
-        Ok(FrameAnswer { camera_from_map: loc.camera_from_map(), confidence: loc.confidence.score, verdict: loc.verdict, iterations: loc.answer_steps().len(), latency_ms })
+        Ok(FrameAnswer { camera_from_map: loc.camera_from_map(), confidence: loc.confidence.score, alignment: loc.confidence.alignment, verdict: loc.verdict, iterations: loc.answer_steps().len(), latency_ms })
     }
 }
 
@@ -133,6 +145,9 @@ pub fn run(args: TrackArgs) -> Result<()> {
         tracked: SearchSize { hypotheses: args.tracked_hypotheses, max_iterations: args.tracked_iterations },
         full: SearchSize { hypotheses: args.engine.default_hypotheses, max_iterations: args.engine.default_max_iterations },
         fallback_below: args.fallback_below,
+        axis_starts: args.axis_starts,
+        axis_step_m: args.axis_step_m,
+        axis_margin: args.axis_margin,
     };
 
     let (offline, id, name) = match (&args.map, &args.id) {

@@ -4,11 +4,18 @@
 //! - The first frame starts from a coarse prior (GNSS-like: [`coarse_prior`]) and runs the full
 //!   multi-start search (a cold localize).
 //! - Every later frame starts from [`predict`]ed pose and runs a small search (by default one
-//!   start, three policy steps). That answer is kept when it is trusted: `localized` (the model
+//!   start, three policy steps) from it and from it moved along its optical axis by
+//!   ±[`TrackConfig::axis_step_m`] ([`TrackConfig::axis_starts`] each way; [`axis_priors`]), and
+//!   keeps the answer whose alignment score is highest. Why: the small search corrects heading
+//!   and sideways errors but does not move the camera along its optical axis, and a constant-
+//!   velocity prediction is off exactly there (the speed is unknown at the second frame, and
+//!   noisy after); the alignment score does peak along the axis where the policy does not move
+//!   (docs/tracking.md, "Starts along the optical axis"). That answer is kept when it is trusted: `localized` (the model
 //!   set's calibrated verdict, `model::calibrator`) and its confidence score
 //!   (`agent::Confidence::score` = sqrt(frustum IoU × the last step's policy certainty), in
 //!   [0, 1]) at least [`TrackConfig::fallback_below`]. Otherwise the frame is localized again
-//!   with the full search from the same predicted prior ([`Mode::Fallback`]); when that answer
+//!   with the full search from the prior the kept small search started from
+//!   ([`Mode::Fallback`]); when that answer
 //!   is not `localized` either, the frame is dead-reckoned: its estimate is the prediction
 //!   ([`Mode::DeadReckoning`]).
 //! - A model set without a calibrator gives no verdict (`p_registered: None`): then the score
@@ -53,6 +60,26 @@ pub struct TrackConfig {
     /// A tracked answer whose confidence score is below this (or that is not `localized`) falls
     /// back to the full search. Anything above 1 always does.
     pub fallback_below: f32,
+    /// Small searches from the prediction moved forward and back along its optical axis, each
+    /// way (0: the prediction alone).
+    pub axis_starts: u32,
+    /// Their spacing, metres.
+    pub axis_step_m: f64,
+    /// What the prediction's own answer adds to its alignment score when the small searches are
+    /// compared: a start along the axis must outscore it by more than this.
+    pub axis_margin: f32,
+}
+
+/// The priors a tracked frame's small searches start from: `predicted` (camera_from_map), then
+/// the camera moved along its own optical axis by +k·`step_m` and −k·`step_m` for k = 1..=`each_way`.
+pub fn axis_priors(predicted: &Pose, each_way: u32, step_m: f64) -> Vec<Pose> {
+    let moved = |d: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(0.0, 0.0, -d)).compose(predicted);
+    let mut priors = vec![*predicted];
+    for k in 1..=each_way {
+        let d = k as f64 * step_m;
+        priors.extend([moved(d), moved(-d)]);
+    }
+    priors
 }
 
 /// One frame's answer from a [`FrameLocalizer`].
@@ -62,6 +89,9 @@ pub struct FrameAnswer {
     pub camera_from_map: Pose,
     /// `agent::Confidence::score` of the answer, in [0, 1].
     pub confidence: f32,
+    /// Its alignment score (`agent::state::alignment`): how the tracker compares the small
+    /// searches of one frame.
+    pub alignment: f32,
     /// The calibrated verdict (`p_registered: None, localized: false` without a calibrator).
     pub verdict: Verdict,
     /// Steps of the chosen hypothesis.
@@ -119,7 +149,8 @@ pub struct TrackedFrame {
     pub tracked_confidence: Option<f32>,
     /// Steps of the kept answer's chosen hypothesis.
     pub iterations: usize,
-    /// Sum of the localizations' latencies for this frame (both, on a fallback), ms.
+    /// Sum of the localizations' latencies for this frame (every small search, and the full one
+    /// on a fallback), ms.
     pub latency_ms: f64,
 }
 
@@ -175,15 +206,25 @@ pub fn track(
             let last = &done[position - 1].estimate;
             let before_last = position.checked_sub(2).map(|i| &done[i].estimate);
             let prior = predict(before_last, last);
-            let small = localizer.localize(position, &prior, config.tracked).with_context(at)?;
+            // The small searches along the axis; the first of the highest alignment wins.
+            let (mut start, mut small, mut small_ms) = (prior, None::<(FrameAnswer, f32)>, 0.0);
+            for (i, candidate) in axis_priors(&prior, config.axis_starts, config.axis_step_m).into_iter().enumerate() {
+                let answer = localizer.localize(position, &candidate, config.tracked).with_context(at)?;
+                small_ms += answer.latency_ms;
+                let judged = answer.alignment + if i == 0 { config.axis_margin } else { 0.0 };
+                if small.is_none_or(|(_, best)| judged > best) {
+                    (start, small) = (candidate, Some((answer, judged)));
+                }
+            }
+            let (small, _) = small.expect("the prediction is a candidate");
             let calibrated = small.verdict.p_registered.is_some();
             if small.confidence >= config.fallback_below && (small.verdict.localized || !calibrated) {
-                tracked_frame(position, Mode::Tracked, prior, &small, Some(small.confidence), small.latency_ms)
+                tracked_frame(position, Mode::Tracked, start, &small, Some(small.confidence), small_ms)
             } else {
-                let full = localizer.localize(position, &prior, config.full).with_context(at)?;
-                let latency_ms = small.latency_ms + full.latency_ms;
+                let full = localizer.localize(position, &start, config.full).with_context(at)?;
+                let latency_ms = small_ms + full.latency_ms;
                 if full.verdict.localized || full.verdict.p_registered.is_none() {
-                    tracked_frame(position, Mode::Fallback, prior, &full, Some(small.confidence), latency_ms)
+                    tracked_frame(position, Mode::Fallback, start, &full, Some(small.confidence), latency_ms)
                 } else {
                     let predicted = FrameAnswer { camera_from_map: prior, ..full };
                     tracked_frame(position, Mode::DeadReckoning, prior, &predicted, Some(small.confidence), latency_ms)
@@ -306,7 +347,7 @@ mod tests {
                 true => Verdict { p_registered: Some(confidence as f64), localized: confidence > 0.5 },
                 false => Verdict::default(),
             };
-            Ok(FrameAnswer { camera_from_map: pose, confidence, verdict, iterations: 3, latency_ms: search.hypotheses as f64 })
+            Ok(FrameAnswer { camera_from_map: pose, confidence, alignment: confidence, verdict, iterations: 3, latency_ms: search.hypotheses as f64 })
         }
     }
 
@@ -314,6 +355,9 @@ mod tests {
         tracked: SearchSize { hypotheses: 1, max_iterations: 3 },
         full: SearchSize { hypotheses: 4, max_iterations: 10 },
         fallback_below: 0.5,
+        axis_starts: 0,
+        axis_step_m: 1.25,
+        axis_margin: 0.0,
     };
 
     #[test]
@@ -391,6 +435,44 @@ mod tests {
         let mut basin = Basin { truth, reach_m: 0.2, calls: vec![], calibrated: false };
         let frames = track(&mut basin, 3, first, &CONFIG, |_| {}).unwrap();
         assert!(frames[1..].iter().all(|f| f.mode == Mode::Fallback));
+    }
+
+    #[test]
+    fn axis_priors_move_the_camera_along_its_optical_axis() {
+        let predicted = drive(1)[0];
+        let priors = axis_priors(&predicted, 2, 1.25);
+        assert_eq!(priors.len(), 5);
+        assert_eq!(priors[0], predicted);
+        let axis = predicted.rotation().transpose() * Vector3::z();
+        for (prior, d) in priors[1..].iter().zip([1.25, -1.25, 2.5, -2.5]) {
+            let moved = prior.camera_position_in_map() - predicted.camera_position_in_map();
+            assert!((moved - d * axis).norm() < 1e-12, "{moved:?} for {d}");
+            assert_eq!(prior.rotation(), predicted.rotation());
+        }
+        assert_eq!(axis_priors(&predicted, 0, 1.25), vec![predicted]);
+    }
+
+    /// Frame 1's prediction (standing still) is 1 m behind the truth: beyond a 0.5 m basin, so
+    /// without starts along the axis the frame falls back; with one each way, the start 1 m ahead
+    /// lands in the basin and wins on its alignment, and the frame is tracked.
+    #[test]
+    fn starts_along_the_axis_catch_an_unknown_speed() {
+        let truth = drive(4);
+        let axis = TrackConfig { axis_starts: 1, axis_step_m: 1.0, ..CONFIG };
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true };
+        let frames = track(&mut basin, 4, coarse_prior(&truth[0], 1.0, 0.0, 1), &axis, |_| {}).unwrap();
+        let modes: Vec<Mode> = frames.iter().map(|f| f.mode).collect();
+        assert_eq!(modes, [Mode::Cold, Mode::Tracked, Mode::Tracked, Mode::Tracked]);
+        assert_eq!(frames[1].estimate, truth[1]);
+        let ahead = frames[1].prior.camera_position_in_map() - frames[0].estimate.camera_position_in_map();
+        assert!((ahead.norm() - 1.0).abs() < 1e-9, "frame 1 started from the prediction moved 1 m: {ahead:?}");
+        assert_eq!(frames[1].latency_ms, 3.0, "the three small searches count");
+        assert_eq!(basin.calls.len(), 1 + 3 * 3);
+        // The same drive without them: frame 1 needs the full search.
+        let first = coarse_prior(&truth[0], 1.0, 0.0, 1);
+        let mut basin = Basin { truth, reach_m: 0.5, calls: vec![], calibrated: true };
+        let frames = track(&mut basin, 2, first, &CONFIG, |_| {}).unwrap();
+        assert_eq!(frames[1].mode, Mode::Fallback);
     }
 
     #[test]
