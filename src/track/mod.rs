@@ -3,20 +3,21 @@
 //!
 //! - The first frame starts from a coarse prior (GNSS-like: [`coarse_prior`]) and runs the full
 //!   multi-start search (a cold localize).
-//! - Every later frame starts from [`predict`]ed pose and runs a small search (by default one
-//!   start, three policy steps) from it and from it moved along its optical axis by
-//!   ±[`TrackConfig::axis_step_m`] ([`TrackConfig::axis_starts`] each way; [`axis_priors`]), and
-//!   keeps the answer whose alignment score is highest. Why: the small search corrects heading
-//!   and sideways errors but does not move the camera along its optical axis, and a constant-
-//!   velocity prediction is off exactly there (the speed is unknown at the second frame, and
-//!   noisy after); the alignment score does peak along the axis where the policy does not move
-//!   (docs/tracking.md, "Starts along the optical axis"). That answer is kept when it is trusted: `localized` (the model
-//!   set's calibrated verdict, `model::calibrator`) and its confidence score
-//!   (`agent::Confidence::score` = sqrt(frustum IoU × the last step's policy certainty), in
-//!   [0, 1]) at least [`TrackConfig::fallback_below`]. Otherwise the frame is localized again
-//!   with the full search from the prior the kept small search started from
-//!   ([`Mode::Fallback`]); when that answer
-//!   is not `localized` either, the frame is dead-reckoned: its estimate is the prediction
+//! - Every later frame starts from the [`predict`]ed pose and runs a small search (by default
+//!   one start, three policy steps) from it and from it moved along its optical axis by
+//!   ±k·[`TrackConfig::axis_step_m`], k = 1..=[`TrackConfig::axis_starts`] ([`axis_priors`]),
+//!   keeping the answer whose alignment score is highest (the prediction's own with
+//!   [`TrackConfig::axis_margin`] added). Why: the small search corrects heading and sideways
+//!   errors but does not move the camera along its optical axis, and a constant-velocity
+//!   prediction is off exactly there (the speed is unknown at the second frame, and noisy
+//!   after); the alignment score does peak along the axis where the policy does not move
+//!   (docs/tracking.md, "Starts along the optical axis").
+//! - That answer is kept when it is trusted: `localized` (the model set's calibrated verdict,
+//!   `model::calibrator`) and its confidence score (`agent::Confidence::score` = sqrt(frustum
+//!   IoU × the last step's policy certainty), in [0, 1]) at least
+//!   [`TrackConfig::fallback_below`]. Otherwise the frame is localized again with the full search
+//!   from the prior the kept small search started from ([`Mode::Fallback`]); when that answer is
+//!   not `localized` either, the frame is dead-reckoned: its estimate is the prediction
 //!   ([`Mode::DeadReckoning`]).
 //! - A model set without a calibrator gives no verdict (`p_registered: None`): then the score
 //!   alone decides the small search, and the full search's answer is always kept (the loop as it
@@ -468,6 +469,12 @@ mod tests {
         assert!((ahead.norm() - 1.0).abs() < 1e-9, "frame 1 started from the prediction moved 1 m: {ahead:?}");
         assert_eq!(frames[1].latency_ms, 3.0, "the three small searches count");
         assert_eq!(basin.calls.len(), 1 + 3 * 3);
+        // A margin larger than the start ahead wins by (0.9 against 0.1) keeps the prediction's
+        // answer, which then falls back.
+        let wide = TrackConfig { axis_margin: 1.0, ..axis };
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true };
+        let frames = track(&mut basin, 2, coarse_prior(&truth[0], 1.0, 0.0, 1), &wide, |_| {}).unwrap();
+        assert_eq!((frames[1].mode, frames[1].prior), (Mode::Fallback, frames[0].estimate));
         // The same drive without them: frame 1 needs the full search.
         let first = coarse_prior(&truth[0], 1.0, 0.0, 1);
         let mut basin = Basin { truth, reach_m: 0.5, calls: vec![], calibrated: true };
