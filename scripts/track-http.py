@@ -133,11 +133,12 @@ def predict(before_last, last):
 
 
 def axis_priors(predicted, each_way, step_m):
-    """The prediction, then the camera moved along its own optical axis by +k*step_m and -k*step_m,
-    k = 1..each_way (src/track/mod.rs, `axis_priors`)."""
+    """(shift along the optical axis in metres, prior): the prediction (0), then the camera moved
+    along its own optical axis by +k*step_m and -k*step_m, k = 1..each_way (src/track/mod.rs,
+    `axis_priors`)."""
     def moved(d):
-        return mul([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, -d], [0.0, 0.0, 0.0, 1.0]], predicted)
-    priors = [predicted]
+        return d, mul([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, -d], [0.0, 0.0, 0.0, 1.0]], predicted)
+    priors = [(0.0, predicted)]
     for k in range(1, each_way + 1):
         priors += [moved(k * step_m), moved(-k * step_m)]
     return priors
@@ -205,19 +206,19 @@ def main():
         if position == 0:
             prior = coarse_prior(truth, args.prior_noise_m, args.prior_noise_deg, rng)
             pose, answer, latency = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
-            mode, tracked_confidence = "cold", None
+            mode, tracked_confidence, shift = "cold", None, None
         else:
             prior = predict(estimates[-2] if position >= 2 else None, estimates[-1])
             best, latency = None, 0.0
-            for i, start in enumerate(axis_priors(prior, args.axis_starts, args.axis_step_m)):
+            for i, (d, start) in enumerate(axis_priors(prior, args.axis_starts, args.axis_step_m)):
                 pose, answer, more = localize(
                     args.server, args.id, image_b64, seq["intrinsics"], start, args.tracked_hypotheses, args.tracked_iterations
                 )
                 latency += more
                 judged = answer["alignment"] + (args.axis_margin if i == 0 else 0.0)
                 if best is None or judged > best[0]:
-                    best = (judged, start, pose, answer)
-            _, start, pose, answer = best
+                    best = (judged, d, start, pose, answer)
+            _, shift, start, pose, answer = best
             mode, tracked_confidence = "tracked", answer["score"]
             if answer["score"] < args.fallback_below or trusted(answer) is False:
                 pose, answer, more = localize(args.server, args.id, image_b64, seq["intrinsics"], start, *full)
@@ -229,7 +230,7 @@ def main():
         est, gt = centre(pose), centre(truth)
         row = {
             "position": position, "frame": index, "mode": mode, "confidence": confidence,
-            "tracked_confidence": tracked_confidence, "latency_ms": latency,
+            "tracked_confidence": tracked_confidence, "axis_shift_m": shift, "latency_ms": latency,
             "p_registered": answer.get("p_registered"), "localized": answer.get("localized"),
             "position_error_m": math.dist(est, gt), "rpe_translation_m": None, "rpe_rotation_deg": None,
             "estimate_x": est[0], "estimate_y": est[1], "truth_x": gt[0], "truth_y": gt[1],

@@ -71,11 +71,12 @@ pub struct TrackConfig {
     pub axis_margin: f32,
 }
 
-/// The priors a tracked frame's small searches start from: `predicted` (camera_from_map), then
-/// the camera moved along its own optical axis by +k·`step_m` and −k·`step_m` for k = 1..=`each_way`.
-pub fn axis_priors(predicted: &Pose, each_way: u32, step_m: f64) -> Vec<Pose> {
-    let moved = |d: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(0.0, 0.0, -d)).compose(predicted);
-    let mut priors = vec![*predicted];
+/// The priors a tracked frame's small searches start from, each with its shift along the optical
+/// axis (metres, forward positive): `predicted` (camera_from_map, 0), then the camera moved along
+/// its own optical axis by +k·`step_m` and −k·`step_m` for k = 1..=`each_way`.
+pub fn axis_priors(predicted: &Pose, each_way: u32, step_m: f64) -> Vec<(f64, Pose)> {
+    let moved = |d: f64| (d, Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(0.0, 0.0, -d)).compose(predicted));
+    let mut priors = vec![(0.0, *predicted)];
     for k in 1..=each_way {
         let d = k as f64 * step_m;
         priors.extend([moved(d), moved(-d)]);
@@ -153,6 +154,9 @@ pub struct TrackedFrame {
     /// Sum of the localizations' latencies for this frame (every small search, and the full one
     /// on a fallback), ms.
     pub latency_ms: f64,
+    /// Where the kept small search started along the prediction's optical axis (metres, forward
+    /// positive; [`axis_priors`]); `None` for the first frame.
+    pub axis_shift_m: Option<f64>,
 }
 
 /// Constant-velocity prediction of the next camera_from_map from the last two estimates
@@ -208,27 +212,27 @@ pub fn track(
             let before_last = position.checked_sub(2).map(|i| &done[i].estimate);
             let prior = predict(before_last, last);
             // The small searches along the axis; the first of the highest alignment wins.
-            let (mut start, mut small, mut small_ms) = (prior, None::<(FrameAnswer, f32)>, 0.0);
-            for (i, candidate) in axis_priors(&prior, config.axis_starts, config.axis_step_m).into_iter().enumerate() {
+            let (mut start, mut shift, mut small, mut small_ms) = (prior, 0.0, None::<(FrameAnswer, f32)>, 0.0);
+            for (i, (d, candidate)) in axis_priors(&prior, config.axis_starts, config.axis_step_m).into_iter().enumerate() {
                 let answer = localizer.localize(position, &candidate, config.tracked).with_context(at)?;
                 small_ms += answer.latency_ms;
                 let judged = answer.alignment + if i == 0 { config.axis_margin } else { 0.0 };
                 if small.is_none_or(|(_, best)| judged > best) {
-                    (start, small) = (candidate, Some((answer, judged)));
+                    (start, shift, small) = (candidate, d, Some((answer, judged)));
                 }
             }
             let (small, _) = small.expect("the prediction is a candidate");
             let calibrated = small.verdict.p_registered.is_some();
             if small.confidence >= config.fallback_below && (small.verdict.localized || !calibrated) {
-                tracked_frame(position, Mode::Tracked, start, &small, Some(small.confidence), small_ms)
+                tracked_frame(position, Mode::Tracked, start, &small, Some((small.confidence, shift)), small_ms)
             } else {
                 let full = localizer.localize(position, &start, config.full).with_context(at)?;
                 let latency_ms = small_ms + full.latency_ms;
                 if full.verdict.localized || full.verdict.p_registered.is_none() {
-                    tracked_frame(position, Mode::Fallback, start, &full, Some(small.confidence), latency_ms)
+                    tracked_frame(position, Mode::Fallback, start, &full, Some((small.confidence, shift)), latency_ms)
                 } else {
                     let predicted = FrameAnswer { camera_from_map: prior, ..full };
-                    tracked_frame(position, Mode::DeadReckoning, prior, &predicted, Some(small.confidence), latency_ms)
+                    tracked_frame(position, Mode::DeadReckoning, prior, &predicted, Some((small.confidence, shift)), latency_ms)
                 }
             }
         };
@@ -238,7 +242,9 @@ pub fn track(
     Ok(done)
 }
 
-fn tracked_frame(position: usize, mode: Mode, prior: Pose, answer: &FrameAnswer, tracked_confidence: Option<f32>, latency_ms: f64) -> TrackedFrame {
+/// `small`: the kept small search's confidence score and its start's shift along the axis
+/// (`None` for the first frame).
+fn tracked_frame(position: usize, mode: Mode, prior: Pose, answer: &FrameAnswer, small: Option<(f32, f64)>, latency_ms: f64) -> TrackedFrame {
     TrackedFrame {
         position,
         mode,
@@ -246,9 +252,10 @@ fn tracked_frame(position: usize, mode: Mode, prior: Pose, answer: &FrameAnswer,
         estimate: answer.camera_from_map,
         confidence: answer.confidence,
         verdict: answer.verdict,
-        tracked_confidence,
+        tracked_confidence: small.map(|(c, _)| c),
         iterations: answer.iterations,
         latency_ms,
+        axis_shift_m: small.map(|(_, d)| d),
     }
 }
 
@@ -442,15 +449,16 @@ mod tests {
     fn axis_priors_move_the_camera_along_its_optical_axis() {
         let predicted = drive(1)[0];
         let priors = axis_priors(&predicted, 2, 1.25);
-        assert_eq!(priors.len(), 5);
-        assert_eq!(priors[0], predicted);
+        let shifts: Vec<f64> = priors.iter().map(|(d, _)| *d).collect();
+        assert_eq!(shifts, [0.0, 1.25, -1.25, 2.5, -2.5]);
+        assert_eq!(priors[0].1, predicted);
         let axis = predicted.rotation().transpose() * Vector3::z();
-        for (prior, d) in priors[1..].iter().zip([1.25, -1.25, 2.5, -2.5]) {
+        for (d, prior) in &priors[1..] {
             let moved = prior.camera_position_in_map() - predicted.camera_position_in_map();
-            assert!((moved - d * axis).norm() < 1e-12, "{moved:?} for {d}");
+            assert!((moved - *d * axis).norm() < 1e-12, "{moved:?} for {d}");
             assert_eq!(prior.rotation(), predicted.rotation());
         }
-        assert_eq!(axis_priors(&predicted, 0, 1.25), vec![predicted]);
+        assert_eq!(axis_priors(&predicted, 0, 1.25), vec![(0.0, predicted)]);
     }
 
     /// Frame 1's prediction (standing still) is 1 m behind the truth: beyond a 0.5 m basin, so
@@ -467,6 +475,7 @@ mod tests {
         assert_eq!(frames[1].estimate, truth[1]);
         let ahead = frames[1].prior.camera_position_in_map() - frames[0].estimate.camera_position_in_map();
         assert!((ahead.norm() - 1.0).abs() < 1e-9, "frame 1 started from the prediction moved 1 m: {ahead:?}");
+        assert_eq!((frames[0].axis_shift_m, frames[1].axis_shift_m), (None, Some(1.0)));
         assert_eq!(frames[1].latency_ms, 3.0, "the three small searches count");
         assert_eq!(basin.calls.len(), 1 + 3 * 3);
         // A margin larger than the start ahead wins by (0.9 against 0.1) keeps the prediction's

@@ -50,6 +50,9 @@ pub struct FrameRow {
     pub latency_ms: f64,
     /// How far the search's start was from the truth (camera centres), metres.
     pub prior_error_m: f64,
+    /// Where the kept small search started along the prediction's optical axis, metres (empty for
+    /// the first frame; `track::axis_priors`).
+    pub axis_shift_m: Option<f64>,
     pub position_error_m: f64,
     pub heading_error_deg: f64,
     pub rte_m: f64,
@@ -207,6 +210,7 @@ impl TrackRun<'_> {
                     iterations: f.iterations,
                     latency_ms: f.latency_ms,
                     prior_error_m: (f.prior.camera_position_in_map() - gt_c).norm(),
+                    axis_shift_m: f.axis_shift_m,
                     position_error_m: e.position_m,
                     heading_error_deg: e.heading_deg,
                     rte_m: e.pose.rte_m,
