@@ -4,13 +4,14 @@
 The same loop as `cmr-agent track` (src/track/mod.rs), over HTTP: the first frame is localized
 with the full search from a coarse prior (the truth moved --prior-noise-m in the ground plane and
 turned --prior-noise-deg about the vertical), every later frame from the previous estimate moved
-by a constant-velocity prediction with small searches (--tracked-hypotheses starts,
+by a constant-velocity prediction with a small search (--tracked-hypotheses starts,
 --tracked-iterations steps) from the prediction and from it moved along its optical axis by
-+-k * --axis-step-m, k = 1..--axis-starts; the answer with the highest alignment score is kept,
-the prediction's own with --axis-margin added. That answer is kept when the server says it is
++-k * --tracked-axis-step-m, k = 1..--tracked-axis-starts, in one request (its `axis_starts`:
+the server keeps the answer with the highest alignment score, the prediction's own with
+--tracked-axis-margin added). That answer is kept when the server says it is
 `localized` (the model set's calibrated verdict) and its confidence score is at least
 --fallback-below; otherwise the frame is redone with the full search (the server's defaults) from
-the prior that small search started from, and when that answer is not `localized` either, the
+the prior that small search's answer started from, and when that answer is not `localized` either, the
 frame is dead-reckoned (its estimate is the prediction). Without a
 calibrator on the server (`p_registered` null) the score alone decides and the full search's
 answer is kept.
@@ -132,29 +133,29 @@ def predict(before_last, last):
     return last if before_last is None else mul(mul(last, inv(before_last)), last)
 
 
-def axis_priors(predicted, each_way, step_m):
-    """(shift along the optical axis in metres, prior): the prediction (0), then the camera moved
-    along its own optical axis by +k*step_m and -k*step_m, k = 1..each_way (src/track/mod.rs,
-    `axis_priors`)."""
-    def moved(d):
-        return d, mul([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, -d], [0.0, 0.0, 0.0, 1.0]], predicted)
-    priors = [(0.0, predicted)]
-    for k in range(1, each_way + 1):
-        priors += [moved(k * step_m), moved(-k * step_m)]
-    return priors
+def along_axis(pose, d):
+    """camera_from_map `pose` with the camera moved d metres along its own optical axis (forward
+    positive; src/agent/search.rs, `AxisStarts::along_axis`)."""
+    if d == 0.0:
+        return pose
+    return mul([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, -d], [0.0, 0.0, 0.0, 1.0]], pose)
 
 
 # --- HTTP -----------------------------------------------------------------------------------------
 
 
-def localize(server, map_id, image_b64, intrinsics, prior, hypotheses, iterations):
-    body = json.dumps({
+def localize(server, map_id, image_b64, intrinsics, prior, hypotheses, iterations, axis_starts=None):
+    """(pose, confidence, latency in ms, the answer's start's shift along the axis in metres)."""
+    request = {
         "image": image_b64,
         "intrinsics": intrinsics,
         "prior_camera_from_map": prior,
         "hypotheses": hypotheses,
         "max_iterations": iterations,
-    }).encode()
+    }
+    if axis_starts is not None:
+        request["axis_starts"] = axis_starts
+    body = json.dumps(request).encode()
     request = urllib.request.Request(f"{server}/v1/maps/{map_id}/localize", data=body, headers={"Content-Type": "application/json"})
     started = time.perf_counter()
     try:
@@ -163,7 +164,8 @@ def localize(server, map_id, image_b64, intrinsics, prior, hypotheses, iteration
     except urllib.error.HTTPError as e:
         raise SystemExit(f"localize failed: HTTP {e.code}: {e.read().decode(errors='replace')}")
     latency_ms = (time.perf_counter() - started) * 1000.0
-    return answer["pose"]["camera_from_map"], answer["confidence"], latency_ms
+    shift = answer["hypotheses"][answer["chosen_hypothesis"]]["start_axis_shift_m"]
+    return answer["pose"]["camera_from_map"], answer["confidence"], latency_ms, shift
 
 
 def trusted(confidence):
@@ -187,9 +189,9 @@ def main():
     parser.add_argument("--full-hypotheses", type=int, default=4)
     parser.add_argument("--full-iterations", type=int, default=10)
     parser.add_argument("--fallback-below", type=float, default=0.3)
-    parser.add_argument("--axis-starts", type=int, default=2)
-    parser.add_argument("--axis-step-m", type=float, default=1.25)
-    parser.add_argument("--axis-margin", type=float, default=0.005)
+    parser.add_argument("--tracked-axis-starts", type=int, default=2)
+    parser.add_argument("--tracked-axis-step-m", type=float, default=1.25)
+    parser.add_argument("--tracked-axis-margin", type=float, default=0.005)
     args = parser.parse_args()
 
     seq = read_sequence(args.sequence)
@@ -205,23 +207,18 @@ def main():
         full = (args.full_hypotheses, args.full_iterations)
         if position == 0:
             prior = coarse_prior(truth, args.prior_noise_m, args.prior_noise_deg, rng)
-            pose, answer, latency = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
+            pose, answer, latency, _ = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
             mode, tracked_confidence, shift = "cold", None, None
         else:
             prior = predict(estimates[-2] if position >= 2 else None, estimates[-1])
-            best, latency = None, 0.0
-            for i, (d, start) in enumerate(axis_priors(prior, args.axis_starts, args.axis_step_m)):
-                pose, answer, more = localize(
-                    args.server, args.id, image_b64, seq["intrinsics"], start, args.tracked_hypotheses, args.tracked_iterations
-                )
-                latency += more
-                judged = answer["alignment"] + (args.axis_margin if i == 0 else 0.0)
-                if best is None or judged > best[0]:
-                    best = (judged, d, start, pose, answer)
-            _, shift, start, pose, answer = best
+            axis = {"each_way": args.tracked_axis_starts, "step_m": args.tracked_axis_step_m, "margin": args.tracked_axis_margin}
+            pose, answer, latency, shift = localize(
+                args.server, args.id, image_b64, seq["intrinsics"], prior, args.tracked_hypotheses, args.tracked_iterations, axis
+            )
+            start = along_axis(prior, shift)
             mode, tracked_confidence = "tracked", answer["score"]
             if answer["score"] < args.fallback_below or trusted(answer) is False:
-                pose, answer, more = localize(args.server, args.id, image_b64, seq["intrinsics"], start, *full)
+                pose, answer, more, _ = localize(args.server, args.id, image_b64, seq["intrinsics"], start, *full)
                 mode, latency = "fallback", latency + more
                 if trusted(answer) is False:
                     pose, mode = prior, "dead_reckoning"

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use std::sync::Arc;
 
-use cmr_agent::agent::{self, SearchConfig};
+use cmr_agent::agent::{self, AxisStarts, SearchConfig};
 use cmr_agent::maps::{PreparedMap, prepare_map};
 use cmr_agent::geometry::actions::{apply_action, apply_motion};
 use cmr_agent::geometry::{ActionFrame, Intrinsics, Pose};
@@ -79,7 +79,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 
     // Four starts: the first is the single trajectory above (same rows, batched with three more),
     // the others start from the prior turned about the pivot, and the answer is the best score.
-    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0 };
+    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE };
     let multi = agent::localize(&mut backend, &map, &tensor, crop_k, prior, four).unwrap();
     assert_eq!(multi.hypotheses.len(), 4);
     let first = &multi.hypotheses[0];
@@ -177,6 +177,46 @@ fn bad_inputs_are_refused() {
     assert!(agent::prepare_image(&image, &nan, &set.manifest).is_err());
 }
 
+/// Starts along the optical axis in one search answer as the best of separate searches from
+/// each shifted prior would (the tracker's loop before 2026-12-06): the same trajectories, the
+/// same answer and, read from its own group, the same calibrator signals.
+#[test]
+fn axis_starts_answer_as_the_best_of_separate_searches() {
+    let set = models();
+    let mut backend = set.backend().unwrap();
+    let map = Arc::new(prepare_map(&mut backend, &cloud()).unwrap());
+    let image = image::RgbImage::from_fn(640, 200, |x, y| image::Rgb([(x * 3) as u8, (y * 5) as u8, ((x + y) % 11 * 20) as u8]));
+    let (tensor, crop_k) = agent::prepare_image(&image, &Intrinsics { fx: 500.0, fy: 500.0, cx: 319.5, cy: 99.5 }, &set.manifest).unwrap();
+    let prior = rig().compose(&Pose::ground_motion(0.2, 1.0, -0.5));
+    let base = SearchConfig { hypotheses: 2, keep_prior: true, merge_duplicates: true, ..SearchConfig::single(3) };
+    for margin in [0.0, 0.005, 1.0] {
+        let axis = AxisStarts { each_way: 2, step_m: 1.25, margin };
+        let one = agent::localize(&mut backend, &map, &tensor, crop_k, prior, SearchConfig { axis, ..base }).unwrap();
+        assert_eq!(one.hypotheses.len(), 2 * 5);
+        let mut best: Option<(agent::Localization, f64, f32)> = None;
+        for (g, (d, start)) in axis.priors(&prior).into_iter().enumerate() {
+            let alone = agent::localize(&mut backend, &map, &tensor, crop_k, start, base).unwrap();
+            for (h, (a, b)) in one.hypotheses[2 * g..2 * g + 2].iter().zip(&alone.hypotheses).enumerate() {
+                assert_eq!((a.start_axis_shift_m, a.steps.len(), a.dropped), (d, b.steps.len(), b.dropped), "group {g}, start {h}");
+                assert!((a.camera_from_map().matrix() - b.camera_from_map().matrix()).abs().max() < 1e-9, "group {g}, start {h}");
+            }
+            let judged = alone.confidence.alignment + if d == 0.0 { margin } else { 0.0 };
+            if best.as_ref().is_none_or(|(_, _, b)| judged > *b) {
+                best = Some((alone, d, judged));
+            }
+        }
+        let (alone, d, _) = best.unwrap();
+        assert_eq!((one.best().start_axis_shift_m, one.kept_prior, one.answer_steps), (d, alone.kept_prior, alone.answer_steps), "margin {margin}");
+        assert!((one.camera_from_map().matrix() - alone.camera_from_map().matrix()).abs().max() < 1e-9, "margin {margin}");
+        let (a, b) = (one.signals(), alone.signals());
+        assert!((a.alignment - b.alignment).abs() < 1e-6 && a.log2_starts == b.log2_starts && a.agreement == b.agreement && (a.visit_share - b.visit_share).abs() < 1e-12, "{a:?} against {b:?}");
+        match margin {
+            0.0 => assert_ne!(d, 0.0, "without a margin this image is best explained from a shifted prior"),
+            _ => assert_eq!(d, 0.0, "a margin of 0.005 or more keeps the prior's own answer here"),
+        }
+    }
+}
+
 /// Requests stepped together in one batched policy call get exactly the answers they get alone.
 #[test]
 fn batched_workers_match_the_synchronous_loop() {
@@ -195,7 +235,7 @@ fn batched_workers_match_the_synchronous_loop() {
             // Searches of 1 to 3 starts (one narrowed): the 8-row batch holds some, the rest wait.
             let narrow_after = (i == 4).then_some(1);
             let merge_duplicates = i == 5;
-            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None, refine: i % 3 == 1, polish: i % 2 == 1, prior_margin: if i % 4 == 0 { 0.03 } else { 0.0 } })
+            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None, refine: i % 3 == 1, polish: i % 2 == 1, prior_margin: if i % 4 == 0 { 0.03 } else { 0.0 }, axis: if i == 3 { AxisStarts { each_way: 1, step_m: 1.25, margin: 0.005 } } else { AxisStarts::NONE } })
         })
         .collect();
     let expected: Vec<_> = cases
@@ -221,7 +261,8 @@ fn batched_workers_match_the_synchronous_loop() {
             let diff = (g.camera_from_map().matrix() - w.camera_from_map().matrix()).abs().max();
             assert!(diff < 1e-9, "batched result differs by {diff}");
         }
-        // The polished answer too (cases 1 and 5 polish; case 3 is a single start, which does not).
+        // The polished answer too (cases 1 and 5 polish; case 3 is a single start from each of three
+        // priors along the axis, which does not).
         assert_eq!(got.polish.is_some(), want.polish.is_some());
         let diff = (got.camera_from_map().matrix() - want.camera_from_map().matrix()).abs().max();
         assert!(diff < 1e-9, "batched answer differs by {diff}");

@@ -34,7 +34,9 @@ pub enum StepError {
 
 /// What a request brings to the batch: everything `prepare_image` and the map store made.
 pub struct Start {
-    pub map: Arc<PreparedMap>,
+    /// The map: one, or (a tiled region with starts along the optical axis) one per prior along
+    /// the axis, each cut around its own prior (`search::Search::new`).
+    pub maps: Vec<Arc<PreparedMap>>,
     /// [3, H, W] per the manifest, from `prepare_image`.
     pub image_tensor: Vec<f32>,
     /// The crop's intrinsics, from `prepare_image`.
@@ -46,7 +48,6 @@ pub struct Start {
 
 struct Running<T> {
     tag: T,
-    map: Arc<PreparedMap>,
     search: Search,
     timings: Timings,
     steps_started: Instant,
@@ -94,9 +95,9 @@ impl<T: Send> Batch<T> {
     /// Runs the per-request graphs (image encoder, frustum head) and adds the request. On error
     /// the tag comes back with the reason.
     pub fn admit(&mut self, backend: &mut dyn Backend, start: Start, tag: T) -> Result<(), (T, StepError)> {
-        match begin(backend, &start, &self.layout) {
+        match begin(backend, start, &self.layout) {
             Ok((search, timings)) => {
-                self.running.push(Running { tag, map: start.map, search, timings, steps_started: Instant::now(), failed: None });
+                self.running.push(Running { tag, search, timings, steps_started: Instant::now(), failed: None });
                 Ok(())
             }
             Err(e) => Err((tag, e)),
@@ -131,7 +132,7 @@ impl<T: Send> Batch<T> {
         let (running, layout) = (&mut self.running, &self.layout);
         self.scratch.with(|scratch| {
             for r in running.iter_mut().filter(|r| r.failed.is_none()) {
-                r.search.after_step(&r.map, layout, scratch);
+                r.search.after_step(layout, scratch);
             }
         });
         rows.len()
@@ -167,7 +168,8 @@ impl<T: Send> Batch<T> {
                 r.failed = Some(StepError::NonFinite(format!("the policy answered non-finite values for hypothesis {h}")));
                 continue;
             }
-            r.search.episodes[h].advance(&r.map, &self.actions, logits, output.value[slot]);
+            let map = r.search.map_of(h).clone();
+            r.search.episodes[h].advance(&map, &self.actions, logits, output.value[slot]);
         }
     }
 
@@ -180,12 +182,12 @@ impl<T: Send> Batch<T> {
         let mut slots_3d = self.state_3d[..rows.len() * l3].chunks_mut(l3);
         let mut jobs = Vec::with_capacity(rows.len());
         for (i, r) in self.running.iter_mut().enumerate() {
-            let Running { map, search, .. } = r;
             let wanted: Vec<usize> = rows.iter().filter(|(j, _)| *j == i).map(|(_, h)| *h).collect();
-            for (h, episode) in search.episodes.iter_mut().enumerate() {
+            let maps: Vec<Arc<PreparedMap>> = (0..r.search.episodes.len()).map(|h| r.search.map_of(h).clone()).collect();
+            for ((h, episode), map) in r.search.episodes.iter_mut().enumerate().zip(maps) {
                 if wanted.contains(&h) {
                     let (s2, s3) = (slots_2d.next().expect("one slot per row"), slots_3d.next().expect("one slot per row"));
-                    jobs.push((i, &**map, episode, s2, s3));
+                    jobs.push((i, map, episode, s2, s3));
                 }
             }
         }
@@ -194,7 +196,7 @@ impl<T: Send> Batch<T> {
             .into_par_iter()
             .map(|(i, map, episode, s2, s3)| {
                 let t = Instant::now();
-                pool.with(|scratch| episode.write_state(map, layout, scratch, s2, s3));
+                pool.with(|scratch| episode.write_state(&map, layout, scratch, s2, s3));
                 (i, ms(t))
             })
             .collect();
@@ -239,7 +241,7 @@ impl<T: Send> Batch<T> {
                 Some(e) => Err(e),
                 None => {
                     r.timings.agent_steps_ms = ms(r.steps_started);
-                    Ok(r.search.finish(&r.map, &self.layout, &self.scratch, r.timings))
+                    Ok(r.search.finish(&self.layout, &self.scratch, r.timings))
                 }
             };
             out.push((r.tag, result));
@@ -248,12 +250,12 @@ impl<T: Send> Batch<T> {
     }
 }
 
-/// Runs the image encoder and the frustum head (everything per request that precedes the loop)
-/// and sets up the search's hypotheses.
-fn begin(backend: &mut dyn Backend, start: &Start, layout: &StateLayout) -> Result<(Search, Timings), StepError> {
+/// Runs the image encoder and the frustum head (once per map; everything per request that
+/// precedes the loop) and sets up the search's hypotheses.
+fn begin(backend: &mut dyn Backend, start: Start, layout: &StateLayout) -> Result<(Search, Timings), StepError> {
     let manifest = backend.manifest().clone();
-    let map = &start.map;
-    if map.features.len() != map.points.len() * manifest.features.dim || map.points.len() < manifest.points.num_state_points {
+    let fits = |map: &PreparedMap| map.features.len() == map.points.len() * manifest.features.dim && map.points.len() >= manifest.points.num_state_points;
+    if start.maps.is_empty() || !start.maps.iter().all(|m| fits(m)) {
         return Err(StepError::Inference("the prepared map does not match this model (feature dimension or point count)".into()));
     }
     if !start.prior.is_sane() {
@@ -265,11 +267,15 @@ fn begin(backend: &mut dyn Backend, start: &Start, layout: &StateLayout) -> Resu
     // The frustum head's answers are read for the state points only (the 3D state and the
     // confidence), so it runs on those: M of the N points, a twentieth of the work.
     let t = Instant::now();
-    let state_features = &map.features[..manifest.points.num_state_points * manifest.features.dim];
-    let logits = backend.frustum_logits(state_features, &image_features).map_err(|e| StepError::Inference(format!("frustum head: {e:#}")))?;
+    let mut frustum_probs = Vec::with_capacity(start.maps.len());
+    for map in &start.maps {
+        let state_features = &map.features[..manifest.points.num_state_points * manifest.features.dim];
+        let logits = backend.frustum_logits(state_features, &image_features).map_err(|e| StepError::Inference(format!("frustum head: {e:#}")))?;
+        frustum_probs.push(logits.iter().map(|l| state::sigmoid(*l)).collect::<Vec<f32>>());
+    }
     let frustum_head_ms = ms(t);
-    let image_features = state::ImageGrid::new(layout, image_features);
-    let evidence = ImageEvidence { image_features, frustum_probs: logits.iter().map(|l| state::sigmoid(*l)).collect(), intrinsics: start.intrinsics };
-    let search = Search::new(evidence, map, start.prior, start.search, manifest.action_frame());
+    let image_features = Arc::new(state::ImageGrid::new(layout, image_features));
+    let evidence = frustum_probs.into_iter().map(|frustum_probs| ImageEvidence { image_features: image_features.clone(), frustum_probs, intrinsics: start.intrinsics }).collect();
+    let search = Search::new(evidence, start.maps, start.prior, start.search, manifest.action_frame());
     Ok((search, Timings { image_encoder_ms, frustum_head_ms, ..Default::default() }))
 }

@@ -46,12 +46,13 @@ pub struct Confidence {
     pub in_view: f32,
 }
 
-/// What every hypothesis of one request shares: computed once per request, never copied.
+/// What every hypothesis of one request that localizes in one map shares: computed once per
+/// request and map, never copied (the image features are shared by the maps of one request).
 #[derive(Debug)]
 pub struct ImageEvidence {
     /// Image features [D, GH, GW] (and cell-major where the state needs them).
-    pub image_features: ImageGrid,
-    /// sigmoid(frustum logit) of the first M sampled map points (the state points).
+    pub image_features: Arc<ImageGrid>,
+    /// sigmoid(frustum logit) of the first M sampled points of the map (the state points).
     pub frustum_probs: Vec<f32>,
     /// The crop's intrinsics.
     pub intrinsics: Intrinsics,
@@ -340,7 +341,7 @@ mod tests {
         let state_features = &map.features[..manifest.points.num_state_points * manifest.features.dim];
         let logits = backend.frustum_logits(state_features, &image_features).unwrap();
         let evidence = Arc::new(ImageEvidence {
-            image_features: ImageGrid::new(&layout, image_features),
+            image_features: Arc::new(ImageGrid::new(&layout, image_features)),
             frustum_probs: logits.iter().map(|l| sigmoid(*l)).collect(),
             intrinsics: Intrinsics { fx: 250.0, fy: 250.0, cx: 255.5, cy: 79.5 },
         });
@@ -389,7 +390,7 @@ mod tests {
         };
         let set = ActionSet::default();
         let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 256.0, cy: 80.0 };
-        let evidence = Arc::new(ImageEvidence { image_features: ImageGrid::default(), frustum_probs: vec![0.95], intrinsics: k });
+        let evidence = Arc::new(ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.95], intrinsics: k });
         let mut ep = Episode::new(evidence, Pose::identity(), 5);
         let mut logits = vec![0f32; 33];
         logits[10] = 5.0; // yaw +62.5°

@@ -21,7 +21,7 @@ use crate::model::{Backend, Signals, Verdict};
 pub use batch::{Batch, Start, StepError};
 pub use episode::{Confidence, Episode, ImageEvidence, Step};
 pub use input::prepare_image;
-pub use search::{AnswerRules, DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, outscores, start_yaw_offsets};
+pub use search::{AnswerRules, AxisStarts, DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, outscores, start_yaw_offsets};
 pub use state::{Form2d, ImageGrid, ScatterScratch, ScratchPool, Shifts, StateLayout};
 
 /// Milliseconds spent per phase of one localization.
@@ -51,11 +51,16 @@ pub struct Localization {
     /// possibly fewer with one (0 when the prior was kept).
     pub answer_steps: usize,
     /// The search's answer is the prior itself, unmoved: it outscored every final pose
-    /// (`SearchConfig::keep_prior`); the polish may still move it (`polish`).
+    /// (`SearchConfig::keep_prior`); with starts along the axis, the start of the chosen group
+    /// (the prior moved by the chosen hypothesis's `start_axis_shift_m`); the polish may still
+    /// move it (`polish`).
     pub kept_prior: bool,
     /// How the poses competed for the answer (`SearchConfig::answer_rules`: the request's bound
     /// on the prior's error, whether the prior competed, the prior's margin).
     pub rules: search::AnswerRules,
+    /// What the unmoved prior's group added to its score against the groups along the optical
+    /// axis (`search::AxisStarts::margin`; irrelevant without axis starts).
+    pub axis_margin: f32,
     /// Of the answer (the chosen hypothesis's final pose, or the prior).
     pub confidence: Confidence,
     /// The request's policy steps per hypothesis.
@@ -80,10 +85,10 @@ impl Localization {
         self.polish.map_or_else(|| self.search_answer(), |p| p.camera_from_map)
     }
 
-    /// The search's own answer, before any polish: the chosen hypothesis's pose, or the prior when
-    /// it was kept.
+    /// The search's own answer, before any polish: the chosen hypothesis's pose after
+    /// `answer_steps` (its start, the prior or a prior along the axis, when it was kept).
     pub fn search_answer(&self) -> Pose {
-        if self.kept_prior { self.prior } else { self.best().pose_after(self.answer_steps).0 }
+        self.best().pose_after(self.answer_steps).0
     }
 
     /// The steps that led to the answer: the chosen hypothesis's up to the answer, none when the
@@ -105,10 +110,7 @@ impl Localization {
         if iterations >= self.max_iterations {
             return self.camera_from_map();
         }
-        match search::search_answer(&self.hypotheses, &self.prior, self.rules, iterations, false) {
-            None => self.prior,
-            Some((h, k)) => self.hypotheses[h].pose_after(k).0,
-        }
+        search::search_answer(&self.hypotheses, &self.prior, self.rules, self.axis_margin, iterations, false).pose(&self.hypotheses).0
     }
 
     /// The hypotheses of the first round (before any refinement round's).
@@ -132,17 +134,23 @@ impl Localization {
     }
 
     /// What the calibrator reads (`model::calibrator::Signals`; its fields say what each is), of
-    /// the search's answer before any polish (the chosen hypothesis's pose, or the prior when it
+    /// the search's answer before any polish (the chosen hypothesis's pose, or its start when it
     /// was kept: what the calibrator was fitted on; the polish moves it in steps of at most 1° or
-    /// 0.5 m, and only ever to a pose that scores higher). The search's
-    /// context is its first round's (the starts the calibrator was fitted on): every first-round
-    /// hypothesis but the chosen one is an "other" one; "agreeing" starts end within the search's
-    /// duplicate radius of the answer.
+    /// 0.5 m, and only ever to a pose that scores higher). The search's context is its first
+    /// round's (the starts the calibrator was fitted on): every first-round hypothesis but the
+    /// chosen one is an "other" one; "agreeing" starts end within the search's duplicate radius
+    /// of the answer. With starts along the optical axis, the context is the chosen hypothesis's
+    /// group (`search::axis_groups`; a refinement hypothesis's: the group of the first round's
+    /// answer it refined), as if its prior had been a request of its own: the signals are then
+    /// those that request would have had.
     pub fn signals(&self) -> Signals {
         let answer = self.search_answer();
         let alignment = self.confidence.alignment;
         let first = self.first_round();
-        let others: Vec<&Hypothesis> = first.iter().enumerate().filter(|(h, _)| self.kept_prior || *h != self.chosen).map(|(_, h)| h).collect();
+        let shift = self.best().start_axis_shift_m;
+        let context = search::axis_groups(first).into_iter().find(|g| first[g.start].start_axis_shift_m == shift).unwrap_or(0..first.len());
+        let group = &first[context.clone()];
+        let others: Vec<&Hypothesis> = group.iter().enumerate().filter(|(h, _)| self.kept_prior || context.start + h != self.chosen).map(|(_, h)| h).collect();
         let (margin, agreement) = if others.is_empty() {
             (0.0, 0.0)
         } else {
@@ -153,8 +161,9 @@ impl Localization {
                 .count();
             ((alignment - runner_up) as f64, agreeing as f64 / others.len() as f64)
         };
-        let start_mean = first.iter().map(|h| h.start_alignment as f64).sum::<f64>() / first.len().max(1) as f64;
-        let visited = self.hypotheses.iter().flat_map(|h| std::iter::once(h.start).chain(h.steps.iter().map(|s| s.camera_from_map)));
+        let start_mean = group.iter().map(|h| h.start_alignment as f64).sum::<f64>() / group.len().max(1) as f64;
+        let searched = group.iter().chain(&self.hypotheses[first.len()..]);
+        let visited = searched.flat_map(|h| std::iter::once(h.start).chain(h.steps.iter().map(|s| s.camera_from_map)));
         let (near, all) = visited.fold((0usize, 0usize), |(near, all), p| (near + PoseError::between(&p, &answer).is_registered() as usize, all + 1));
         let converged = self.converged();
         Signals {
@@ -167,7 +176,7 @@ impl Localization {
             converged: if converged { 1.0 } else { 0.0 },
             steps_fraction: self.answer_steps().len() as f64 / self.max_iterations.max(1) as f64,
             in_view: self.confidence.in_view as f64,
-            log2_starts: (first.len().max(1) as f64).log2(),
+            log2_starts: (group.len().max(1) as f64).log2(),
             bounded: if self.rules.bound.is_some() { 1.0 } else { 0.0 },
             visit_share: near as f64 / all.max(1) as f64,
             peak_margin: self.polish.and_then(|p| Some((p.alignment - p.runner_up_alignment?) as f64)).unwrap_or(0.0),
@@ -194,7 +203,7 @@ pub fn localize(
     config: SearchConfig,
 ) -> Result<Localization> {
     let mut batch = Batch::new(backend.manifest());
-    let start = Start { map: map.clone(), image_tensor: image_tensor.to_vec(), intrinsics, prior, search: config };
+    let start = Start { maps: vec![map.clone()], image_tensor: image_tensor.to_vec(), intrinsics, prior, search: config };
     batch.admit(backend, start, ()).map_err(|(_, e)| anyhow::Error::new(e))?;
     loop {
         batch.step(backend);
@@ -216,6 +225,7 @@ mod tests {
     fn hypothesis(x_m: f64, alignment: f32) -> Hypothesis {
         Hypothesis {
             start_yaw_offset_deg: 0.0,
+            start_axis_shift_m: 0.0,
             refinement: false,
             start: Pose::from_rt(Matrix3::identity(), Vector3::new(x_m, 0.0, 0.0)),
             start_alignment: alignment,
@@ -235,6 +245,7 @@ mod tests {
             answer_steps,
             kept_prior: false,
             rules: Default::default(),
+            axis_margin: 0.0,
             confidence,
             max_iterations: 10,
             timings: Timings::default(),
@@ -292,7 +303,7 @@ mod tests {
             repeated: false,
         });
         let mut loc = localization(vec![first, hypothesis(near, 0.75), hypothesis(-far, 0.5)], 0);
-        (loc.kept_prior, loc.rules.prior_competes, loc.confidence.alignment) = (true, true, 0.875);
+        (loc.kept_prior, loc.answer_steps, loc.rules.prior_competes, loc.confidence.alignment) = (true, 0, true, 0.875);
         assert_eq!(loc.camera_from_map(), Pose::identity());
         let s = loc.signals();
         assert_eq!((s.alignment, s.alignment_margin), (0.875, 0.125));
@@ -302,5 +313,18 @@ mod tests {
         assert!((s.alignment_gain - (0.875 - (0.875 + 0.75 + 0.5) / 3.0)).abs() < 1e-12);
         // Visited: the prior (the first start), its step far away, the near start, the far one.
         assert_eq!(s.visit_share, 0.5);
+    }
+
+    /// With starts along the optical axis, the signals read the chosen hypothesis's group alone:
+    /// those its prior would have had as a request of its own.
+    #[test]
+    fn signals_of_an_axis_group_are_those_of_its_own_search() {
+        let far = search::DUPLICATE_RTE_M * 3.0;
+        let in_group = |x_m: f64, alignment: f32, shift: f64| Hypothesis { start_axis_shift_m: shift, ..hypothesis(x_m, alignment) };
+        // Two groups of two starts (shifts 0 and +1.25 m); the second group's first start answers.
+        let grouped = localization(vec![in_group(0.0, 0.5, 0.0), in_group(far, 0.875, 0.0), in_group(1.0, 0.75, 1.25), in_group(-far, 0.25, 1.25)], 2);
+        let alone = localization(vec![hypothesis(1.0, 0.75), hypothesis(-far, 0.25)], 0);
+        assert_eq!(grouped.signals(), alone.signals());
+        assert_eq!(grouped.signals().alignment_margin, 0.5, "over its group's other start, not the other group's 0.875");
     }
 }

@@ -41,6 +41,12 @@
 //! round's most common mistake), [`REFINE_ITERATIONS`] steps each; each group answers like a
 //! bounded search around its base, and the best-scoring of the first round's answer and the
 //! groups' answers wins (the first round's on a draw) (docs/evaluation.md, "A refinement round").
+//!
+//! With [`AxisStarts`] (off by default; `track`'s small searches use it), the first round runs
+//! its starts also from the prior moved forward and back along its optical axis, each such
+//! prior searched as a request of its own would be, and answers with the best of their answers
+//! ([`first_round_answer`]): one image encoding and batched steps where `track` once ran a
+//! request per shifted prior (docs/tracking.md, "Starts along the optical axis").
 
 use std::sync::Arc;
 
@@ -121,7 +127,8 @@ impl AnswerRules {
 /// How far one request searches.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SearchConfig {
-    /// Starts (yaw offsets of the prior); 1 = the paper's single trajectory.
+    /// Starts (yaw offsets of the prior; of each prior along the axis with `axis`); 1 = the
+    /// paper's single trajectory.
     pub hypotheses: usize,
     /// Policy steps per hypothesis.
     pub max_iterations: usize,
@@ -147,14 +154,78 @@ pub struct SearchConfig {
     /// adds to its alignment score when the search chooses its answer: a pose away from the
     /// prior must outscore the best one near it by more than this (0 = off; the module's docs).
     pub prior_margin: f32,
+    /// Starts along the prior's optical axis ([`AxisStarts`]; `each_way` 0 = none); ignored with
+    /// a prior bound.
+    pub axis: AxisStarts,
+}
+
+/// Starts along the prior's optical axis: besides the prior, the prior with the camera moved
+/// ±k·`step_m` along its own optical axis, k = 1..=`each_way` ([`AxisStarts::priors`]). Each
+/// such prior is searched as a request of its own would be (its `hypotheses` starts turned about
+/// the map pivot, its own start competing with `keep_prior`, the prior's margin judged against
+/// it), and the first round answers with the best of their answers by alignment score, the
+/// unmoved prior's with `margin` added ([`first_round_answer`]). Why: the policy corrects heading
+/// and sideways errors but hardly moves the camera along its optical axis, while the alignment
+/// score does peak there (docs/tracking.md, "Starts along the optical axis"); a tracked frame's
+/// constant-velocity prediction and a fleet prior are off exactly there.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct AxisStarts {
+    /// Shifted priors each way (0: the prior alone).
+    pub each_way: usize,
+    /// Their spacing, metres.
+    pub step_m: f64,
+    /// What the unmoved prior's answer adds to its alignment score when the answers are
+    /// compared (alignment-score units, 0..=1).
+    pub margin: f32,
+}
+
+impl AxisStarts {
+    /// The prior alone.
+    pub const NONE: AxisStarts = AxisStarts { each_way: 0, step_m: 0.0, margin: 0.0 };
+
+    /// The priors searched, each with its shift along the optical axis (metres, forward
+    /// positive): `prior` (camera_from_map, 0, unchanged to the bit), then the camera moved along
+    /// its own optical axis (camera z) by +k·`step_m` and −k·`step_m` for k = 1..=`each_way`.
+    pub fn priors(&self, prior: &Pose) -> Vec<(f64, Pose)> {
+        let mut priors = vec![(0.0, *prior)];
+        for k in 1..=self.each_way {
+            let d = k as f64 * self.step_m;
+            priors.extend([(d, Self::along_axis(prior, d)), (-d, Self::along_axis(prior, -d))]);
+        }
+        priors
+    }
+
+    /// `pose` (camera_from_map) with the camera moved `d` metres along its own optical axis
+    /// (camera z, forward positive), the rotation kept; `pose` itself, to the bit, for 0.
+    pub fn along_axis(pose: &Pose, d: f64) -> Pose {
+        if d == 0.0 { *pose } else { Pose::from_rt(nalgebra::Matrix3::identity(), nalgebra::Vector3::new(0.0, 0.0, -d)).compose(pose) }
+    }
+
+    /// How many priors are searched: 2·`each_way` + 1.
+    pub fn groups(&self) -> usize {
+        2 * self.each_way + 1
+    }
 }
 
 impl SearchConfig {
-    /// The most policy rows this search steps at once: its starts, or the refinement round's
-    /// when that is larger (a worker reserves them when it admits the request).
+    /// The most policy rows this search steps at once: its starts ([`SearchConfig::starts`]),
+    /// or the refinement round's when that is larger (a worker reserves them when it admits the
+    /// request).
     pub fn peak_rows(&self) -> usize {
         let refinement = if self.refines() { REFINE_ROWS } else { 0 };
-        self.hypotheses.clamp(1, MAX_HYPOTHESES).max(refinement)
+        self.starts().max(refinement)
+    }
+
+    /// The first round's starts: `hypotheses` (at most [`MAX_HYPOTHESES`]) for each prior along
+    /// the axis (one without axis starts or with a prior bound).
+    pub fn starts(&self) -> usize {
+        self.hypotheses.clamp(1, MAX_HYPOTHESES) * self.axis_groups()
+    }
+
+    /// Priors searched along the optical axis: [`AxisStarts::groups`], 1 with a prior bound
+    /// (whose starts and answers stay inside the bound around the request's prior).
+    pub fn axis_groups(&self) -> usize {
+        if self.prior_bound.is_some() { 1 } else { self.axis.groups() }
     }
 
     /// Whether the refinement round runs: `refine`, for a multi-start search (the paper's single
@@ -171,7 +242,7 @@ impl SearchConfig {
 
     /// The paper's procedure: one trajectory from the prior, answered with its last pose.
     pub fn single(max_iterations: usize) -> Self {
-        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0 }
+        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE }
     }
 
     /// How its poses compete for the answer: the prior competes with `keep_prior` or a bound; the
@@ -237,6 +308,35 @@ pub struct SearchTuning {
     /// it keeps answers that the street seen backwards would otherwise take.
     #[arg(long, env = "CMR_PRIOR_MARGIN", default_value_t = DEFAULT_PRIOR_MARGIN, value_parser = parse_margin)]
     pub prior_margin: f32,
+    /// Without a `prior_bound`, also search from the prior moved this many times each way along
+    /// its optical axis, `--axis-step-m` apart, and answer with the best of those searches'
+    /// answers (`AxisStarts`; a request's `axis_starts` replaces all three settings). 0 = off,
+    /// the default: measured on `track`'s small searches (docs/tracking.md, "Starts along the
+    /// optical axis"), not chosen for the full search. Starts × (2·this + 1) may not exceed 16.
+    #[arg(long, env = "CMR_AXIS_STARTS", default_value_t = 0, value_parser = clap::value_parser!(u32).range(0..=MAX_AXIS_STARTS as i64))]
+    pub axis_starts: u32,
+    /// The spacing of `--axis-starts`, metres (0.1..=10).
+    #[arg(long, env = "CMR_AXIS_STEP_M", default_value_t = DEFAULT_AXIS_STEP_M, value_parser = parse_axis_step)]
+    pub axis_step_m: f64,
+    /// With `--axis-starts`, a shifted prior's answer must outscore the unmoved prior's by more
+    /// than this (alignment-score units, 0..=1).
+    #[arg(long, env = "CMR_AXIS_MARGIN", default_value_t = DEFAULT_AXIS_MARGIN, value_parser = parse_margin)]
+    pub axis_margin: f32,
+}
+
+/// Most shifted priors each way along the optical axis ([`AxisStarts::each_way`]).
+pub const MAX_AXIS_STARTS: usize = 7;
+/// The range of [`AxisStarts::step_m`], metres.
+pub const AXIS_STEP_RANGE_M: std::ops::RangeInclusive<f64> = 0.1..=10.0;
+/// `--axis-step-m`'s default: the spacing `track` measured (docs/tracking.md).
+pub const DEFAULT_AXIS_STEP_M: f64 = 1.25;
+/// `--axis-margin`'s default: the margin `track` measured (docs/tracking.md).
+pub const DEFAULT_AXIS_MARGIN: f32 = 0.005;
+
+/// A spacing along the optical axis within [`AXIS_STEP_RANGE_M`].
+fn parse_axis_step(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{e}"))?;
+    if v.is_finite() && AXIS_STEP_RANGE_M.contains(&v) { Ok(v) } else { Err(format!("{v} is not within {:?} m", AXIS_STEP_RANGE_M)) }
 }
 
 /// `--prior-margin`'s default (alignment-score units).
@@ -261,6 +361,17 @@ impl Default for SearchTuning {
 }
 
 impl SearchTuning {
+    /// Whether a search of `hypotheses` starts with these settings stays within
+    /// [`MAX_HYPOTHESES`] starts (`hypotheses` × (2·`axis_starts` + 1)); the error says why not.
+    /// `serve`, `localize`, `track` and `eval` check their defaults with it before they start.
+    pub fn check(&self, hypotheses: u32) -> Result<(), String> {
+        let starts = self.search(hypotheses as usize, 1).starts();
+        if hypotheses as usize > MAX_HYPOTHESES || starts > MAX_HYPOTHESES {
+            return Err(format!("{hypotheses} hypotheses × (2·{} axis starts + 1) = {} starts: at most {MAX_HYPOTHESES}", self.axis_starts, hypotheses as usize * (2 * self.axis_starts as usize + 1)));
+        }
+        Ok(())
+    }
+
     pub fn search(&self, hypotheses: usize, max_iterations: usize) -> SearchConfig {
         SearchConfig {
             hypotheses,
@@ -272,6 +383,7 @@ impl SearchTuning {
             refine: self.refine,
             polish: self.polish,
             prior_margin: self.prior_margin,
+            axis: AxisStarts { each_way: self.axis_starts as usize, step_m: self.axis_step_m, margin: self.axis_margin },
         }
     }
 }
@@ -361,9 +473,14 @@ pub fn answer_at(hypotheses: &[Hypothesis], prior: &Pose, rules: AnswerRules, it
 /// One finished trajectory of a search.
 #[derive(Debug, Clone)]
 pub struct Hypothesis {
-    /// The turn applied to its base (the prior; in the refinement round, the first round's
-    /// answer or that answer turned by 180°) to get this start.
+    /// The turn applied to its base (the prior, moved along its optical axis by
+    /// `start_axis_shift_m`; in the refinement round, the first round's answer or that answer
+    /// turned by 180°) to get this start.
     pub start_yaw_offset_deg: f64,
+    /// Where its base lies along the prior's optical axis (metres, forward positive;
+    /// [`AxisStarts::priors`]): 0 without axis starts; in the refinement round, the shift of the
+    /// first round's answer (whose map it searches).
+    pub start_axis_shift_m: f64,
     /// A start of the refinement round.
     pub refinement: bool,
     pub start: Pose,
@@ -409,21 +526,80 @@ pub fn best_of(scores: impl IntoIterator<Item = f32>) -> usize {
     best.0
 }
 
-/// The answer of a whole search after `iterations` steps: the first round's ([`answer_at`] over
-/// the hypotheses that are not `refinement` ones), then, when `with_refinement`, each refinement
-/// group's ([`REFINE_STARTS`] consecutive hypotheses; [`answer_at`] within [`REFINE_BOUND`] of
-/// the group's first start, which competes) when it scores strictly higher, by
-/// [`AnswerRules::score`] against the request's prior. `None`: the prior.
-pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, rules: AnswerRules, iterations: usize, with_refinement: bool) -> Option<(usize, usize)> {
-    let first = first_round_len(hypotheses);
-    let score = |a: Option<(usize, usize)>| match a {
-        None => hypotheses.first().map_or(f32::NAN, |h| rules.score(prior, prior, h.start_alignment)),
-        Some((h, k)) => {
-            let (pose, alignment) = hypotheses[h].pose_after(k);
-            rules.score(prior, &pose, alignment)
+/// Which pose answers a search: hypothesis `hypothesis` after `steps` steps. `kept`: the start of
+/// a group of the first round answered unmoved because it outscored every pose its group reached
+/// (`keep_prior`; `hypothesis` is then the group's first, `steps` 0): the request's prior for the
+/// first group.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Answer {
+    pub hypothesis: usize,
+    pub steps: usize,
+    pub kept: bool,
+}
+
+impl Answer {
+    /// Hypothesis `hypothesis` after `steps` steps.
+    pub fn at(hypothesis: usize, steps: usize) -> Self {
+        Self { hypothesis, steps, kept: false }
+    }
+
+    /// The start of the group whose first hypothesis is `hypothesis`, kept unmoved.
+    pub fn kept(hypothesis: usize) -> Self {
+        Self { hypothesis, steps: 0, kept: true }
+    }
+
+    /// The answer's pose and alignment score.
+    pub fn pose(&self, hypotheses: &[Hypothesis]) -> (Pose, f32) {
+        hypotheses[self.hypothesis].pose_after(self.steps)
+    }
+}
+
+/// The groups of a first round: runs of consecutive hypotheses with the same
+/// `start_axis_shift_m`, one per prior along the optical axis ([`AxisStarts`]); the whole round
+/// without axis starts.
+pub fn axis_groups(first: &[Hypothesis]) -> Vec<std::ops::Range<usize>> {
+    let mut groups: Vec<std::ops::Range<usize>> = Vec::new();
+    for (h, hypothesis) in first.iter().enumerate() {
+        match groups.last_mut() {
+            Some(g) if first[g.start].start_axis_shift_m == hypothesis.start_axis_shift_m => g.end = h + 1,
+            _ => groups.push(h..h + 1),
         }
+    }
+    groups
+}
+
+/// The first round's answer after `iterations` steps: each group's ([`axis_groups`];
+/// [`answer_at`] with the group's first start, its prior along the axis, as the prior), then the
+/// group whose answer scores highest (alignment, the first group's with `axis_margin` added; the
+/// earlier group on a draw). Without axis starts, the one group's answer.
+pub fn first_round_answer(first: &[Hypothesis], rules: AnswerRules, axis_margin: f32, iterations: usize) -> Answer {
+    let mut best: Option<(Answer, f32)> = None;
+    for group in axis_groups(first) {
+        let hypotheses = &first[group.clone()];
+        let answer = match answer_at(hypotheses, &hypotheses[0].start, rules, iterations) {
+            None => Answer::kept(group.start),
+            Some((h, k)) => Answer::at(group.start + h, k),
+        };
+        let judged = answer.pose(first).1 + if group.start == 0 { axis_margin } else { 0.0 };
+        if best.is_none_or(|(_, b)| outscores(judged, b)) {
+            best = Some((answer, judged));
+        }
+    }
+    best.expect("a search has a start").0
+}
+
+/// The answer of a whole search after `iterations` steps: the first round's
+/// ([`first_round_answer`] over the hypotheses that are not `refinement` ones), then, when
+/// `with_refinement`, each refinement group's ([`REFINE_STARTS`] consecutive hypotheses;
+/// [`answer_at`] within [`REFINE_BOUND`] of the group's first start, which competes) when it
+/// scores strictly higher, by [`AnswerRules::score`] against the request's prior.
+pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, rules: AnswerRules, axis_margin: f32, iterations: usize, with_refinement: bool) -> Answer {
+    let first = first_round_len(hypotheses);
+    let score = |a: Answer| {
+        let (pose, alignment) = a.pose(hypotheses);
+        rules.score(prior, &pose, alignment)
     };
-    let mut best = answer_at(&hypotheses[..first], prior, rules, iterations);
+    let mut best = first_round_answer(&hypotheses[..first], rules, axis_margin, iterations);
     if !with_refinement {
         return best;
     }
@@ -433,12 +609,12 @@ pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, rules: AnswerRules
         let base = group[0].start;
         let group_rules = AnswerRules { bound: Some(REFINE_BOUND), prior_competes: true, prior_margin: 0.0 };
         let answer = match answer_at(group, &base, group_rules, REFINE_ITERATIONS) {
-            None => (offset, 0),
-            Some((h, k)) => (offset + h, k),
+            None => Answer::at(offset, 0),
+            Some((h, k)) => Answer::at(offset + h, k),
         };
-        let s = score(Some(answer));
+        let s = score(answer);
         if outscores(s, best_score) {
-            (best, best_score) = (Some(answer), s);
+            (best, best_score) = (answer, s);
         }
     }
     best
@@ -452,7 +628,7 @@ pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, rules: AnswerRules
 pub const POLISH_CANDIDATES: usize = 6;
 
 /// The poses the polished choice compares: the search's answer first (`answer`: hypothesis and
-/// steps, as [`search_answer`] gives it, (0, 0) for the kept prior), then the final poses of
+/// steps, as [`search_answer`] gives it, (group's first, 0) for a kept start), then the final poses of
 /// other hypotheses, best first by [`AnswerRules::score`] against `prior` (hypothesis order on a
 /// draw; NaN scores left out), each beyond the polish's reach ([`polish::REACH`]) of every pose
 /// taken before it (within it, that pose's polish covers it) and, with a bound, inside it: at
@@ -489,69 +665,114 @@ pub fn first_round_len(hypotheses: &[Hypothesis]) -> usize {
 pub struct Search {
     pub prior: Pose,
     pub episodes: Vec<Episode>,
+    /// The maps the episodes localize in: one shared by all (a whole region), or in a tiled
+    /// region one per prior along the optical axis, each cut around its own prior as a request
+    /// from it would be.
+    pub maps: Vec<Arc<PreparedMap>>,
+    /// Each episode's map: an index into `maps`.
+    pub scenes: Vec<usize>,
+    /// What the image says against each map (`maps[i]`'s frustum probabilities).
+    evidence: Vec<Arc<ImageEvidence>>,
     offsets: Vec<f64>,
+    /// Each episode's shift along the prior's optical axis (the refinement round's: its base's).
+    shifts: Vec<f64>,
     /// Episodes of the first round (the rest, once started, are the refinement round's).
     first_round: usize,
+    /// Starts per prior along the axis: the first round's groups are this long.
+    group_len: usize,
     /// The refinement round is still to start (the first round is running).
     refine_pending: bool,
-    evidence: Arc<ImageEvidence>,
     frame: ActionFrame,
     max_iterations: usize,
-    /// Steps after which only the best-scoring hypothesis goes on; `None` once done (or never).
+    /// Steps after which only the best-scoring hypothesis of each group goes on; `None` once
+    /// done (or never).
     narrow_after: Option<usize>,
     merge_duplicates: bool,
     rules: AnswerRules,
+    axis_margin: f32,
     polish: bool,
 }
 
 impl Search {
-    /// `frame`: the model's action frame, which the starts' turns follow.
-    pub fn new(evidence: ImageEvidence, map: &PreparedMap, prior: Pose, config: SearchConfig, frame: ActionFrame) -> Self {
-        let evidence = Arc::new(evidence);
+    /// `maps`, each with its `evidence`: one, or one per prior along the axis
+    /// (`SearchConfig::axis_groups`, in `AxisStarts::priors` order). `frame`: the model's action
+    /// frame, which the starts' turns follow.
+    pub fn new(evidence: Vec<ImageEvidence>, maps: Vec<Arc<PreparedMap>>, prior: Pose, config: SearchConfig, frame: ActionFrame) -> Self {
+        assert!(!maps.is_empty() && evidence.len() == maps.len(), "one evidence per map");
+        let evidence: Vec<Arc<ImageEvidence>> = evidence.into_iter().map(Arc::new).collect();
         let max_iterations = config.max_iterations;
         let hypotheses = config.hypotheses.clamp(1, MAX_HYPOTHESES);
-        // Unbounded, the starts turn about the map's pivot (like the agent's own steps); within a
-        // bound, about the prior's camera centre, so that every start lies inside it.
-        let (offsets, pivot) = match config.prior_bound {
-            None => (start_yaw_offsets(hypotheses), map.pivot),
-            Some(b) => (bounded_start_yaw_offsets(hypotheses, b.rotation_deg), Point3::from(prior.camera_position_in_map())),
-        };
-        let episodes = offsets
-            .iter()
-            .map(|&yaw_deg| {
-                let start = if yaw_deg == 0.0 { prior } else { apply_motion(frame, &prior, &pivot, yaw_deg, 0.0, 0.0) };
-                Episode::new(evidence.clone(), start, max_iterations)
-            })
-            .collect();
-        let narrow_after = config.narrow_after.filter(|_| offsets.len() > 1);
+        let bases = if config.axis_groups() > 1 { config.axis.priors(&prior) } else { vec![(0.0, prior)] };
+        assert!(maps.len() == 1 || maps.len() == bases.len(), "one map, or one per prior along the axis");
+        let (mut episodes, mut offsets, mut shifts, mut scenes) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let mut yaws_per_group = 0;
+        for (g, (shift, base)) in bases.into_iter().enumerate() {
+            let m = if maps.len() == 1 { 0 } else { g };
+            // Unbounded, the starts turn about the map's pivot (like the agent's own steps);
+            // within a bound, about the prior's camera centre, so that every start lies inside it.
+            let (yaws, pivot) = match config.prior_bound {
+                None => (start_yaw_offsets(hypotheses), maps[m].pivot),
+                Some(b) => (bounded_start_yaw_offsets(hypotheses, b.rotation_deg), Point3::from(base.camera_position_in_map())),
+            };
+            yaws_per_group = yaws.len();
+            for yaw_deg in yaws {
+                let start = if yaw_deg == 0.0 { base } else { apply_motion(frame, &base, &pivot, yaw_deg, 0.0, 0.0) };
+                episodes.push(Episode::new(evidence[m].clone(), start, max_iterations));
+                offsets.push(yaw_deg);
+                shifts.push(shift);
+                scenes.push(m);
+            }
+        }
+        let narrow_after = config.narrow_after.filter(|_| yaws_per_group > 1);
         Self {
             prior,
             episodes,
-            first_round: offsets.len(),
-            offsets,
-            refine_pending: config.refines(),
+            maps,
+            scenes,
             evidence,
+            first_round: offsets.len(),
+            group_len: yaws_per_group,
+            offsets,
+            shifts,
+            refine_pending: config.refines(),
             frame,
             max_iterations,
             narrow_after,
             merge_duplicates: config.merge_duplicates,
             rules: config.answer_rules(),
+            axis_margin: config.axis.margin,
             polish: config.polishes(),
         }
     }
 
-    /// Call after every batched step: stops duplicates and narrows, as configured, and starts the
-    /// refinement round once the first is done.
-    pub fn after_step(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch) {
+    /// The map episode `h` localizes in.
+    pub fn map_of(&self, h: usize) -> &Arc<PreparedMap> {
+        &self.maps[self.scenes[h]]
+    }
+
+    /// Scores the last pose of every episode in `range` that has not been scored yet.
+    fn settle(&mut self, range: std::ops::Range<usize>, layout: &StateLayout, scratch: &mut ScatterScratch) {
+        for h in range {
+            let map = &self.maps[self.scenes[h]];
+            self.episodes[h].settle(map, layout, scratch);
+        }
+    }
+
+    /// Call after every batched step: stops duplicates (within each group of the first round and
+    /// of the refinement round) and narrows, as configured, and starts the refinement round once
+    /// the first is done.
+    pub fn after_step(&mut self, layout: &StateLayout, scratch: &mut ScatterScratch) {
         if self.merge_duplicates {
-            self.drop_duplicates(0..self.first_round);
+            for g in (0..self.first_round).step_by(self.group_len) {
+                self.drop_duplicates(g..g + self.group_len);
+            }
             for g in (self.first_round..self.episodes.len()).step_by(REFINE_STARTS) {
                 self.drop_duplicates(g..(g + REFINE_STARTS).min(self.episodes.len()));
             }
         }
-        self.narrow(map, layout, scratch);
+        self.narrow(layout, scratch);
         if self.refine_pending && self.episodes.iter().all(Episode::is_done) {
-            self.start_refinement(map, layout, scratch);
+            self.start_refinement(layout, scratch);
         }
     }
 
@@ -571,44 +792,43 @@ impl Search {
     }
 
     /// Once every first-round hypothesis has taken `narrow_after` steps (or stopped), all but the
-    /// best-scoring one stop.
-    fn narrow(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch) {
+    /// best-scoring one of each group stop.
+    fn narrow(&mut self, layout: &StateLayout, scratch: &mut ScatterScratch) {
         let Some(after) = self.narrow_after else { return };
-        let first = &mut self.episodes[..self.first_round];
+        let first = &self.episodes[..self.first_round];
         if !first.iter().all(|e| e.is_done() || e.steps.len() >= after) {
             return;
         }
         self.narrow_after = None;
-        for episode in first.iter_mut() {
-            episode.settle(map, layout, scratch);
-        }
-        let leader = best_of(first.iter().map(Episode::alignment));
-        for (h, episode) in first.iter_mut().enumerate() {
-            episode.dropped |= h != leader && !episode.is_done();
+        self.settle(0..self.first_round, layout, scratch);
+        for group in self.episodes[..self.first_round].chunks_mut(self.group_len) {
+            let leader = best_of(group.iter().map(Episode::alignment));
+            for (h, episode) in group.iter_mut().enumerate() {
+                episode.dropped |= h != leader && !episode.is_done();
+            }
         }
     }
 
     /// The refinement round's starts: around the first round's answer and that answer turned by
     /// [`REFINE_TURNS_DEG`] (about its camera centre), [`REFINE_STARTS`] each within
-    /// [`REFINE_BOUND`].
-    fn start_refinement(&mut self, map: &PreparedMap, layout: &StateLayout, scratch: &mut ScatterScratch) {
+    /// [`REFINE_BOUND`], in the answer's map.
+    fn start_refinement(&mut self, layout: &StateLayout, scratch: &mut ScatterScratch) {
         self.refine_pending = false;
-        for episode in &mut self.episodes {
-            episode.settle(map, layout, scratch);
-        }
-        let hypotheses: Vec<Hypothesis> = self.episodes.iter().zip(&self.offsets).map(|(e, &o)| hypothesis_of(e, o, false, e.steps.clone())).collect();
-        let answer = match answer_at(&hypotheses, &self.prior, self.rules, self.max_iterations) {
-            None => self.prior,
-            Some((h, k)) => hypotheses[h].pose_after(k).0,
-        };
+        self.settle(0..self.episodes.len(), layout, scratch);
+        let hypotheses: Vec<Hypothesis> = (0..self.episodes.len()).map(|h| self.hypothesis(h, false, self.episodes[h].steps.clone())).collect();
+        let chosen = first_round_answer(&hypotheses, self.rules, self.axis_margin, self.max_iterations);
+        let answer = chosen.pose(&hypotheses).0;
+        let (m, shift) = (self.scenes[chosen.hypothesis], self.shifts[chosen.hypothesis]);
         let centre = Point3::from(answer.camera_position_in_map());
         for turn in REFINE_TURNS_DEG {
             let base = if turn == 0.0 { answer } else { apply_motion(self.frame, &answer, &centre, turn, 0.0, 0.0) };
             let base_centre = Point3::from(base.camera_position_in_map());
             for yaw_deg in bounded_start_yaw_offsets(REFINE_STARTS, REFINE_BOUND.rotation_deg) {
                 let start = if yaw_deg == 0.0 { base } else { apply_motion(self.frame, &base, &base_centre, yaw_deg, 0.0, 0.0) };
-                self.episodes.push(Episode::new(self.evidence.clone(), start, REFINE_ITERATIONS));
+                self.episodes.push(Episode::new(self.evidence[m].clone(), start, REFINE_ITERATIONS));
                 self.offsets.push(yaw_deg);
+                self.shifts.push(shift);
+                self.scenes.push(m);
             }
         }
     }
@@ -646,40 +866,34 @@ impl Search {
     /// into its result.
     /// The polished choice's candidates climb on several threads (scatter buffers from `pool`);
     /// every pose and score is the same whatever the threads.
-    pub fn finish(mut self, map: &PreparedMap, layout: &StateLayout, pool: &ScratchPool, mut timings: Timings) -> Localization {
-        pool.with(|scratch| {
-            for episode in &mut self.episodes {
-                episode.settle(map, layout, scratch);
-            }
-        });
-        let first_round = self.first_round;
-        let hypotheses: Vec<Hypothesis> = self
-            .episodes
-            .iter_mut()
-            .zip(&self.offsets)
-            .enumerate()
-            .map(|(h, (e, &offset))| {
-                let steps = std::mem::take(&mut e.steps);
-                hypothesis_of(e, offset, h >= first_round, steps)
+    pub fn finish(mut self, layout: &StateLayout, pool: &ScratchPool, mut timings: Timings) -> Localization {
+        pool.with(|scratch| self.settle(0..self.episodes.len(), layout, scratch));
+        let hypotheses: Vec<Hypothesis> = (0..self.episodes.len())
+            .map(|h| {
+                let steps = std::mem::take(&mut self.episodes[h].steps);
+                self.hypothesis(h, h >= self.first_round, steps)
             })
             .collect();
-        let (mut chosen, mut answer_steps, mut kept_prior) = match search_answer(&hypotheses, &self.prior, self.rules, self.max_iterations, true) {
-            None => (0, 0, true),
-            Some((h, k)) => (h, k, false),
-        };
+        let answer = search_answer(&hypotheses, &self.prior, self.rules, self.axis_margin, self.max_iterations, true);
+        let (mut chosen, mut answer_steps, mut kept_prior) = (answer.hypothesis, answer.steps, answer.kept);
         let polish = self.polish.then(|| {
             let started = std::time::Instant::now();
-            let e = &self.evidence;
             let bound = self.rules.bound.map(|b| (&self.prior, b));
             let picked = polish_candidates(&hypotheses, &self.prior, self.rules, (chosen, answer_steps));
             let poses: Vec<(Pose, f32)> = picked.iter().map(|&(h, k)| hypotheses[h].pose_after(k)).collect();
-            // Every pose a candidate's polish scores lies within its reach: only the points seen
-            // from there are projected (the same scores).
+            // Each candidate climbs in its own hypothesis's map. Every pose a candidate's polish
+            // scores lies within its reach: only the points seen from there are projected (the
+            // same scores).
+            let scenes: Vec<usize> = picked.iter().map(|&(h, _)| self.scenes[h]).collect();
             let reach = polish::REACH;
-            let views: Vec<state::NearView> =
-                poses.par_iter().map(|(p, _)| state::NearView::new(layout, &e.intrinsics, &map.points, p, reach.rotation_deg, reach.translation_m)).collect();
+            let views: Vec<state::NearView> = poses
+                .par_iter()
+                .zip(&scenes)
+                .map(|((p, _), &m)| state::NearView::new(layout, &self.evidence[m].intrinsics, &self.maps[m].points, p, reach.rotation_deg, reach.translation_m))
+                .collect();
             let judge = |pose: &Pose, alignment: f32| self.rules.score(&self.prior, pose, alignment);
             let (c, p) = polish::choose(self.frame, &poses, bound, judge, |c, p| {
+                let (map, e) = (&self.maps[scenes[c]], &self.evidence[scenes[c]]);
                 pool.with(|scratch| state::alignment_near(layout, &views[c], &map.features, &e.image_features, &e.intrinsics, p, scratch))
             })
             .expect("the search's answer is a candidate");
@@ -695,7 +909,7 @@ impl Search {
         let best = &hypotheses[chosen];
         let (pose, alignment) = best.pose_after(answer_steps);
         let certainty = best.steps.get(answer_steps).or(best.steps.last()).map_or(0.0, |s| s.confidence);
-        let confidence = self.episodes[chosen].confidence_of(map, layout, &pose, certainty, alignment);
+        let confidence = self.episodes[chosen].confidence_of(&self.maps[self.scenes[chosen]], layout, &pose, certainty, alignment);
         Localization {
             prior: self.prior,
             hypotheses,
@@ -703,6 +917,7 @@ impl Search {
             answer_steps,
             kept_prior,
             rules: self.rules,
+            axis_margin: self.axis_margin,
             confidence,
             max_iterations: self.max_iterations,
             timings,
@@ -712,9 +927,22 @@ impl Search {
     }
 }
 
-/// A finished (or, for choosing the refinement's bases, settled) trajectory as a [`Hypothesis`].
-fn hypothesis_of(e: &Episode, start_yaw_offset_deg: f64, refinement: bool, steps: Vec<Step>) -> Hypothesis {
-    Hypothesis { start_yaw_offset_deg, refinement, start: e.start, start_alignment: e.start_alignment, steps, converged: e.converged, dropped: e.dropped }
+impl Search {
+    /// Episode `h`, finished (or, for choosing the refinement's bases, settled), as a
+    /// [`Hypothesis`] with `steps`.
+    fn hypothesis(&self, h: usize, refinement: bool, steps: Vec<Step>) -> Hypothesis {
+        let e = &self.episodes[h];
+        Hypothesis {
+            start_yaw_offset_deg: self.offsets[h],
+            start_axis_shift_m: self.shifts[h],
+            refinement,
+            start: e.start,
+            start_alignment: e.start_alignment,
+            steps,
+            converged: e.converged,
+            dropped: e.dropped,
+        }
+    }
 }
 
 #[cfg(test)]
@@ -735,7 +963,7 @@ mod tests {
         use nalgebra::Vector3;
         let map = PreparedMap { points: vec![[0.0, 0.0, 5.0]], features: vec![0.0; 64], pivot: Point3::new(0.0, 0.0, 5.0), source_points: 1 };
         let evidence = ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 } };
-        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0 };
+        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE };
         let mut search = Search::new(evidence, &map, Pose::identity(), config, ActionFrame::CameraY);
         let shifted = |dx: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(dx * DUPLICATE_RTE_M, 0.0, 0.0));
         // 0 and 1 meet (half the radius apart); 2 is within the radius of 1 but 1.2 radii from 0;
@@ -801,7 +1029,7 @@ mod tests {
 
     /// A trajectory from `start` (scoring `start_alignment`) through `steps`.
     fn trajectory(start: Pose, start_alignment: f32, steps: Vec<Step>, refinement: bool) -> Hypothesis {
-        Hypothesis { start_yaw_offset_deg: 0.0, refinement, start, start_alignment, steps, converged: false, dropped: false }
+        Hypothesis { start_yaw_offset_deg: 0.0, start_axis_shift_m: 0.0, refinement, start, start_alignment, steps, converged: false, dropped: false }
     }
 
     /// Unbounded: the best final pose (or the prior when it competes and wins). Bounded: the
@@ -846,11 +1074,11 @@ mod tests {
         hs.push(h(10.0, 0.45, vec![step(12.0, 0.7), step(30.0, 0.9)], true));
         hs.extend((0..REFINE_STARTS - 2).map(|_| h(10.0, 0.3, vec![], true)));
         hs.extend((0..REFINE_STARTS).map(|_| h(10.0, 0.4, vec![], true)));
-        assert_eq!(search_answer(&hs, &prior, rules, 1, false), Some((0, 1)));
-        assert_eq!(search_answer(&hs, &prior, rules, 1, true), Some((2, 1)));
+        assert_eq!(search_answer(&hs, &prior, rules, 0.0, 1, false), Answer::at(0, 1));
+        assert_eq!(search_answer(&hs, &prior, rules, 0.0, 1, true), Answer::at(2, 1));
         // A draw keeps the first round's answer.
         hs[2].steps[0].alignment = 0.5;
-        assert_eq!(search_answer(&hs, &prior, rules, 1, true), Some((0, 1)));
+        assert_eq!(search_answer(&hs, &prior, rules, 0.0, 1, true), Answer::at(0, 1));
     }
 
     /// The polished choice's candidates: the answer first, then the best-scoring final poses
@@ -900,8 +1128,50 @@ mod tests {
         let mut search = vec![hypothesis(prior, 0.5, vec![step_to(3.0, 0.60)])];
         search.extend((0..REFINE_STARTS).map(|k| trajectory(shifted(20.0), if k == 0 { 0.62 } else { 0.1 }, vec![], true)));
         search.extend((0..REFINE_STARTS).map(|_| trajectory(shifted(3.0), 0.1, vec![], true)));
-        assert_eq!(search_answer(&search, &prior, rules(0.0, true), 1, true), Some((1, 0)));
-        assert_eq!(search_answer(&search, &prior, rules(0.03, true), 1, true), Some((0, 1)));
+        assert_eq!(search_answer(&search, &prior, rules(0.0, true), 0.0, 1, true), Answer::at(1, 0));
+        assert_eq!(search_answer(&search, &prior, rules(0.03, true), 0.0, 1, true), Answer::at(0, 1));
+    }
+
+    #[test]
+    fn axis_priors_move_the_camera_along_its_optical_axis() {
+        let r = nalgebra::Rotation3::from_euler_angles(0.1, -0.4, 1.2).into_inner();
+        let prior = Pose::from_rt(r, nalgebra::Vector3::new(3.0, -2.0, 0.5));
+        let priors = AxisStarts { each_way: 2, step_m: 1.25, margin: 0.0 }.priors(&prior);
+        let shifts: Vec<f64> = priors.iter().map(|(d, _)| *d).collect();
+        assert_eq!(shifts, [0.0, 1.25, -1.25, 2.5, -2.5]);
+        assert_eq!(priors[0].1, prior);
+        let axis = prior.rotation().transpose() * nalgebra::Vector3::z();
+        for (d, moved) in &priors[1..] {
+            let step = moved.camera_position_in_map() - prior.camera_position_in_map();
+            assert!((step - *d * axis).norm() < 1e-12, "{step:?} for {d}");
+            assert_eq!(moved.rotation(), prior.rotation());
+        }
+        assert_eq!(AxisStarts::NONE.priors(&prior), vec![(0.0, prior)]);
+        assert_eq!(AxisStarts::NONE.groups(), 1);
+    }
+
+    /// Each prior along the axis answers as a search of its own (its start kept when it
+    /// outscores its trajectory); the groups' answers compete by alignment, the unmoved prior's
+    /// with the margin.
+    #[test]
+    fn the_first_round_answers_with_the_best_group() {
+        let rules = AnswerRules { bound: None, prior_competes: true, prior_margin: 0.0 };
+        let group = |shift: f64, start_alignment: f32, end_alignment: f32| Hypothesis {
+            start_axis_shift_m: shift,
+            ..trajectory(shifted(shift), start_alignment, vec![step_to(shift + 1.0, end_alignment)], false)
+        };
+        // The prior's group ends at 0.5; the group 1.25 m ahead keeps its start (0.6 over 0.4);
+        // the group behind ends at 0.55.
+        let first = vec![group(0.0, 0.3, 0.5), group(1.25, 0.6, 0.4), group(-1.25, 0.2, 0.55)];
+        assert_eq!(axis_groups(&first), vec![0..1, 1..2, 2..3]);
+        assert_eq!(first_round_answer(&first, rules, 0.0, 1), Answer::kept(1));
+        assert_eq!(first_round_answer(&first, rules, 0.25, 1), Answer::at(0, 1), "0.6 does not beat 0.5 + 0.25");
+        assert_eq!(first_round_answer(&first, rules, 0.0, 0), Answer::at(1, 0), "after no steps the starts compete");
+        // One group: the answer as before (the prior kept, or its trajectory's end).
+        assert_eq!(first_round_answer(&first[..1], rules, 0.0, 1), Answer::at(0, 1));
+        let kept = vec![group(0.0, 0.7, 0.5)];
+        assert_eq!(first_round_answer(&kept, rules, 0.0, 1), Answer::kept(0));
+        assert_eq!(search_answer(&kept, &shifted(0.0), rules, 0.0, 1, true), Answer::kept(0));
     }
 
     #[test]

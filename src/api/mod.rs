@@ -91,6 +91,7 @@ pub fn metrics_handle() -> PrometheusHandle {
 /// Loads models and maps and starts the workers. Model problems fail here, with one message.
 pub fn build_state(config: ServeArgs) -> Result<Arc<AppState>> {
     let engine = &config.engine;
+    engine.search.check(engine.default_hypotheses).map_err(|e| anyhow::anyhow!("--default-hypotheses and --axis-starts: {e}"))?;
     let options = BackendOptions { intra_threads: config.intra_threads(), ort_lib: engine.ort_lib.clone() };
     crate::model::runtime::environment(engine.ort_lib.as_deref())?;
     let models = ModelSet::load(&engine.models, options).with_context(|| format!("cannot load the models in {}", engine.models.display()))?;

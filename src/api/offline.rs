@@ -79,6 +79,7 @@ impl OfflineLocalizer {
         // One request at a time: one worker, with the cores its threads (unless given); a queue
         // as roomy as serve's default, which one request at a time never fills (a finished
         // job's slot is released by the worker a moment after its answer).
+        engine.search.check(engine.default_hypotheses).map_err(|e| anyhow::anyhow!("--default-hypotheses and --axis-starts: {e}"))?;
         let models = ModelSet::load(&engine.models, BackendOptions { intra_threads: engine.intra_threads_for(1), ort_lib: engine.ort_lib.clone() })?;
         let maps = Arc::new(Maps::new(store, MapCache::new(engine.cache_mb.saturating_mul(1024 * 1024)), Box::new(models.backend()?), engine.regions()));
         let scheduler = Arc::new(Scheduler::start(&models.factory(), engine.scheduler(1, 64))?);

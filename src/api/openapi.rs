@@ -73,6 +73,11 @@ mod tests {
             assert_eq!(bounds(&props["hypotheses"]), hypotheses, "{body}");
             assert_eq!(bounds(&props["radius_m"]), radius, "{body}");
         }
+        let axis = &doc["components"]["schemas"]["AxisStartsBody"]["properties"];
+        assert_eq!(bounds(&axis["each_way"]), (Some(0.0), Some(crate::agent::search::MAX_AXIS_STARTS as f64)));
+        let step = &crate::agent::search::AXIS_STEP_RANGE_M;
+        assert_eq!(bounds(&axis["step_m"]), (Some(*step.start()), Some(*step.end())));
+        assert_eq!(bounds(&axis["margin"]), (Some(0.0), Some(1.0)));
         let voxel = param("/v1/maps/{id}", "put", "voxel_m");
         assert_eq!(bounds(&voxel), (Some(crate::geometry::voxel::MIN_VOXEL_M), Some(crate::geometry::voxel::MAX_VOXEL_M)));
         let max = param("/v1/maps/{id}/points", "get", "max");

@@ -223,6 +223,7 @@ fn read_overlay_request(q: &OverlayParams, headers: &HeaderMap, body: Bytes) -> 
         hypotheses: r.hypotheses,
         radius_m: r.radius_m,
         prior_bound: r.prior_bound,
+        axis_starts: None,
     };
     let payload = ImagePayload::Base64(r.image);
     match r.camera_from_map {

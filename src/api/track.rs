@@ -16,6 +16,8 @@ use crate::geometry::Pose;
 use crate::geometry::pose::Matrix4x4;
 use crate::kitti::{Frame, Sequence};
 use crate::maps::{MapError, MapStore};
+use crate::agent::AxisStarts;
+use crate::serving::request::AxisStartsBody;
 use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest};
 use crate::track::output::TrackRun;
 use crate::track::{FrameAnswer, FrameLocalizer, SearchSize, TrackConfig, coarse_prior, cold_reference, spread, track};
@@ -71,18 +73,19 @@ pub struct TrackArgs {
     /// (`--default-hypotheses` starts, `--default-max-iterations` steps) from the same prior.
     #[arg(long, default_value_t = 0.3)]
     pub fallback_below: f32,
-    /// Small searches of a tracked frame from the prediction moved forward and back along its
-    /// optical axis, each way (0 = the prediction alone); the answer scoring highest is kept
-    /// (docs/tracking.md, "Starts along the optical axis").
+    /// Starts of a tracked frame's search also from the prediction moved forward and back along
+    /// its optical axis, each way (0 = the prediction alone; the request's `axis_starts`); the
+    /// answer scoring highest is kept (docs/tracking.md, "Starts along the optical axis").
+    /// `--tracked-hypotheses` × (2·this + 1) may not exceed 16.
     #[arg(long, env = "CMR_TRACK_AXIS_STARTS", default_value_t = 2)]
-    pub axis_starts: u32,
-    /// Their spacing, metres.
+    pub tracked_axis_starts: u32,
+    /// Their spacing, metres (0.1..=10).
     #[arg(long, env = "CMR_TRACK_AXIS_STEP_M", default_value_t = 1.25)]
-    pub axis_step_m: f64,
+    pub tracked_axis_step_m: f64,
     /// A start along the axis must outscore the prediction's own answer by more than this
-    /// (alignment-score units).
+    /// (alignment-score units, 0..=1).
     #[arg(long, env = "CMR_TRACK_AXIS_MARGIN", default_value_t = 0.005)]
-    pub axis_margin: f32,
+    pub tracked_axis_margin: f32,
     /// After tracking, localize this many frames (spread over the drive) cold: the full search
     /// from a coarse prior, for the summary's latency and accuracy comparison.
     #[arg(long, default_value_t = 0)]
@@ -100,7 +103,7 @@ struct StoredRegion<'a> {
 }
 
 impl FrameLocalizer for StoredRegion<'_> {
-    fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize) -> Result<FrameAnswer> {
+    fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize, axis: AxisStarts) -> Result<FrameAnswer> {
         let frame = &self.frames[position];
         let bytes = std::fs::read(&frame.image_path).with_context(|| format!("reading {}", frame.image_path.display()))?;
         let k = frame.intrinsics;
@@ -112,6 +115,8 @@ impl FrameLocalizer for StoredRegion<'_> {
             hypotheses: Some(search.hypotheses),
             radius_m: None,
             prior_bound: None,
+            // Without starts along the axis (a full search), the engine's `--axis-starts` default.
+            axis_starts: (axis.each_way > 0).then_some(AxisStartsBody { each_way: axis.each_way as u32, step_m: Some(axis.step_m), margin: Some(axis.margin as f64) }),
         };
         let started = std::time::Instant::now();
         let done = self
@@ -120,7 +125,15 @@ impl FrameLocalizer for StoredRegion<'_> {
             .map_err(|e| anyhow!("frame {} ({}): {e}", frame.index, frame.image_path.display()))?;
         let latency_ms = crate::agent::ms(started);
         let loc = &done.localization;
-        Ok(FrameAnswer { camera_from_map: loc.camera_from_map(), confidence: loc.confidence.score, alignment: loc.confidence.alignment, verdict: loc.verdict, iterations: loc.answer_steps().len(), latency_ms })
+        Ok(FrameAnswer {
+            camera_from_map: loc.camera_from_map(),
+            confidence: loc.confidence.score,
+            alignment: loc.confidence.alignment,
+            verdict: loc.verdict,
+            iterations: loc.answer_steps().len(),
+            axis_shift_m: loc.best().start_axis_shift_m,
+            latency_ms,
+        })
     }
 }
 
@@ -145,9 +158,9 @@ pub fn run(args: TrackArgs) -> Result<()> {
         tracked: SearchSize { hypotheses: args.tracked_hypotheses, max_iterations: args.tracked_iterations },
         full: SearchSize { hypotheses: args.engine.default_hypotheses, max_iterations: args.engine.default_max_iterations },
         fallback_below: args.fallback_below,
-        axis_starts: args.axis_starts,
-        axis_step_m: args.axis_step_m,
-        axis_margin: args.axis_margin,
+        axis_starts: args.tracked_axis_starts,
+        axis_step_m: args.tracked_axis_step_m,
+        axis_margin: args.tracked_axis_margin,
     };
 
     let (offline, id, name) = match (&args.map, &args.id) {

@@ -126,6 +126,9 @@ pub struct HypothesisBody {
     /// the refinement round the first round's answer or that answer turned by 180° (about its
     /// camera centre).
     pub start_yaw_offset_deg: f64,
+    /// Where its base lies along the prior's optical axis, metres, forward positive: 0 but for
+    /// the starts of a request's `axis_starts` (the prior moved along the axis, then turned).
+    pub start_axis_shift_m: f64,
     /// A start of the refinement round (the server's `--refine`; docs/server.md).
     pub refinement: bool,
     /// Alignment score of the start and of the final pose.
@@ -206,8 +209,9 @@ pub struct LocalizeResponse {
     /// Index into `hypotheses` of the answer (0 when the prior was kept).
     pub chosen_hypothesis: usize,
     /// The search's answer is the prior, unmoved: its alignment score beat every hypothesis's
-    /// final pose (the server's `--keep-prior`, on by default); `polish` may still have moved
-    /// `pose` from it.
+    /// final pose (the server's `--keep-prior`, on by default); with `axis_starts`, the chosen
+    /// hypothesis's start (the prior moved by its `start_axis_shift_m`); `polish` may still have
+    /// moved `pose` from it.
     pub kept_prior: bool,
     /// How the search's answer was polished into `pose` (the server's `--polish`, on by
     /// default); null when the polish did not run.
@@ -268,6 +272,7 @@ impl LocalizeResponse {
                 .iter()
                 .map(|h| HypothesisBody {
                     start_yaw_offset_deg: h.start_yaw_offset_deg,
+                    start_axis_shift_m: h.start_axis_shift_m,
                     refinement: h.refinement,
                     start_alignment: h.start_alignment,
                     alignment: h.alignment(),
@@ -446,6 +451,7 @@ impl RawLocalizeParams {
             hypotheses: self.hypotheses,
             radius_m: self.radius_m,
             prior_bound: None,
+            axis_starts: None,
         })
     }
 }

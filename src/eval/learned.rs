@@ -83,6 +83,7 @@ impl Learned {
             "converged": best.converged,
             "confidence": loc.confidence.score,
             "chosen_start_yaw_offset_deg": best.start_yaw_offset_deg,
+            "chosen_start_axis_shift_m": best.start_axis_shift_m,
             "kept_prior": loc.kept_prior,
             // The answer (polished, when the search polished) and the truth, camera_from_map,
             // map frame, row-major 3x4: for error breakdowns (along the heading, sideways, up).
@@ -252,6 +253,7 @@ fn hypothesis_trajectories(loc: &agent::Localization, truth: &Pose, frustum_iou:
         .map(|h| {
             json!({
                 "start_yaw_offset_deg": h.start_yaw_offset_deg,
+                "start_axis_shift_m": h.start_axis_shift_m,
                 "refinement": h.refinement,
                 "start": at(&h.start, h.start_alignment),
                 "steps": h.steps.iter().map(|s| policy_step(at(&s.camera_from_map, s.alignment), s)).collect::<Vec<_>>(),

@@ -125,6 +125,7 @@ pub fn peak_rss_bytes() -> Option<u64> {
 
 /// The whole command: load, evaluate, write `eval.json`, `cases.json`, `tables.md` and the plots.
 pub fn run(config: &EvalConfig) -> Result<EvalReport> {
+    config.tuning.check(config.hypotheses as u32).map_err(|e| anyhow::anyhow!("--hypotheses and --axis-starts: {e}"))?;
     // The model set first: a run that cannot load it fails before it writes anything.
     let models = match &config.models {
         Some(dir) => Some(ModelSet::load(dir, BackendOptions { intra_threads: config.threads, ort_lib: config.ort_lib.clone() }).with_context(|| {
@@ -363,7 +364,7 @@ pub(crate) mod tests {
             threads: 1,
             iterations: 10,
             hypotheses: 1,
-            tuning: SearchTuning { narrow_after: 0, merge_duplicates: false, keep_prior: false, refine: false, polish: false, prior_margin: 0.0 },
+            tuning: SearchTuning { narrow_after: 0, merge_duplicates: false, keep_prior: false, refine: false, polish: false, prior_margin: 0.0, ..SearchTuning::default() },
             prior_bound: None,
             seed: 3,
             frame_stride: 1,

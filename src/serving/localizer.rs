@@ -138,7 +138,7 @@ impl Localizer {
                 decode_payload(image, &manifest, limits)
             })
             .await?;
-            let map = self.prepared(&valid).await?;
+            let map = self.prepared(&valid, false).await?.swap_remove(0);
             Ok(PictureInput { image: decoded, intrinsics: valid.intrinsics, map, frame: valid.frame })
         };
         let result = tokio::time::timeout_at(deadline.into(), work).await.map_err(|_| LocalizeError::DeadlineExceeded)?;
@@ -170,10 +170,10 @@ impl Localizer {
         let decode_ms = ms(t);
         metrics::histogram!("cmr_phase_seconds", "phase" => "decode").record(decode_ms / 1000.0);
 
-        let map = self.prepared(&valid).await?;
+        let maps = self.prepared(&valid, true).await?;
         let (reply, answer) = oneshot::channel();
-        let picture = decoded.map(|image| PictureInput { image, intrinsics, map: map.clone(), frame: valid.frame });
-        let start = Start { map, image_tensor: tensor, intrinsics: crop_k, prior: valid.prior, search: valid.search };
+        let picture = decoded.map(|image| PictureInput { image, intrinsics, map: maps[0].clone(), frame: valid.frame });
+        let start = Start { maps, image_tensor: tensor, intrinsics: crop_k, prior: valid.prior, search: valid.search };
         self.scheduler.submit(Job { start, deadline, span, reply }, admission.slot)?;
         let wait = deadline.saturating_duration_since(Instant::now()) + Duration::from_millis(500);
         let finished = match tokio::time::timeout(wait, answer).await {
@@ -204,21 +204,32 @@ impl Localizer {
 
     /// The points and embeddings this request uses, in the region's local frame: a whole
     /// region's prepared sample (cache, else `<id>.emb`, else the point encoder), or a tiled
-    /// region's crop around the prior (422 when it holds fewer than the agent's M points).
-    async fn prepared(&self, valid: &ValidLocalizeRequest) -> Result<Arc<PreparedMap>, LocalizeError> {
+    /// region's crops (`ValidLocalizeRequest::crops`: around the prior, and with starts along the
+    /// optical axis around each shifted prior; the first only unless `every_crop`); 422 when a
+    /// crop holds fewer than the agent's M points.
+    async fn prepared(&self, valid: &ValidLocalizeRequest, every_crop: bool) -> Result<Vec<Arc<PreparedMap>>, LocalizeError> {
         let maps = self.maps.clone();
         let entry = valid.map.clone();
-        let crop = valid.crop;
+        let crops = valid.crops[..if every_crop { valid.crops.len() } else { valid.crops.len().min(1) }].to_vec();
         let min_points = self.manifest.points.num_state_points;
         blocking(move || {
             let prepared = maps.prepared_for(&entry).map_err(LocalizeError::from)?;
-            let Some(c) = crop else { return prepared.around([0.0; 3], 0.0, 0, true).map_err(|e| LocalizeError::Internal(e.to_string())) };
-            let stored = maps.config.crop_embeddings == CropEmbeddings::Stored;
-            let map = prepared.around(c.sensor, c.radius_m, min_points, stored).map_err(|e| LocalizeError::Invalid(format!("prior_camera_from_map: {e}")))?;
-            match maps.config.crop_embeddings {
-                CropEmbeddings::Stored => Ok(map),
-                CropEmbeddings::Encode => maps.reencode(&map).map(Arc::new).map_err(LocalizeError::from),
+            if crops.is_empty() {
+                return Ok(vec![prepared.around([0.0; 3], 0.0, 0, true).map_err(|e| LocalizeError::Internal(e.to_string()))?]);
             }
+            let stored = maps.config.crop_embeddings == CropEmbeddings::Stored;
+            crops
+                .iter()
+                .enumerate()
+                .map(|(g, c)| {
+                    let field = if g == 0 { "prior_camera_from_map" } else { "axis_starts" };
+                    let map = prepared.around(c.sensor, c.radius_m, min_points, stored).map_err(|e| LocalizeError::Invalid(format!("{field}: {e}")))?;
+                    match maps.config.crop_embeddings {
+                        CropEmbeddings::Stored => Ok(map),
+                        CropEmbeddings::Encode => maps.reencode(&map).map(Arc::new).map_err(LocalizeError::from),
+                    }
+                })
+                .collect()
         })
         .await
     }

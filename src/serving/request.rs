@@ -5,7 +5,7 @@
 use serde::Deserialize;
 use utoipa::ToSchema;
 
-use crate::agent::search::{MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, SearchConfig, SearchTuning};
+use crate::agent::search::{AXIS_STEP_RANGE_M, AxisStarts, MAX_AXIS_STARTS, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, SearchConfig, SearchTuning};
 use crate::geometry::pose::Matrix4x4;
 use crate::geometry::{Intrinsics, LocalFrame, Pose};
 use crate::maps::MapEntry;
@@ -39,6 +39,29 @@ pub struct PriorBoundBody {
     /// in (0, 500].
     #[schema(exclusive_minimum = 0.0, maximum = 500.0)]
     pub translation_m: f64,
+}
+
+/// Starts along the prior's optical axis: the search runs from the prior and from it moved
+/// ±k·`step_m` along the camera's optical axis (k = 1..=`each_way`), each as a request of its own
+/// would run, and answers with the best-scoring of their answers, the unmoved prior's winning
+/// unless another outscores it by more than `margin` (docs/tracking.md, "Starts along the optical
+/// axis"). For a prior whose error lies along the heading: a tracked frame's prediction, a fleet
+/// prior at an unknown speed.
+#[derive(Debug, Clone, Copy, serde::Serialize, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct AxisStartsBody {
+    /// Shifted priors each way, 0..=7 (0: the prior alone). `hypotheses` × (2·each_way + 1)
+    /// may not exceed 16.
+    #[schema(minimum = 0, maximum = 7)]
+    pub each_way: u32,
+    /// Their spacing, metres, 0.1..=10; default: the server's `--axis-step-m` (1.25).
+    #[serde(default)]
+    #[schema(minimum = 0.1, maximum = 10.0)]
+    pub step_m: Option<f64>,
+    /// Alignment-score units, 0..=1; default: the server's `--axis-margin` (0.005).
+    #[serde(default)]
+    #[schema(minimum = 0.0, maximum = 1.0)]
+    pub margin: Option<f64>,
 }
 
 /// The range of `prior_bound.rotation_deg` (its lower end excluded), degrees.
@@ -84,6 +107,10 @@ pub struct LocalizeRequest {
     /// so it never lies outside. Absent: the whole circle (docs/server.md, "A bounded prior").
     #[serde(default)]
     pub prior_bound: Option<PriorBoundBody>,
+    /// Also start from the prior moved forward and back along its optical axis (see the
+    /// schema). Not with `prior_bound`. Default: the server's `--axis-starts` (0: none).
+    #[serde(default)]
+    pub axis_starts: Option<AxisStartsBody>,
 }
 
 /// The range of `radius_m`, metres.
@@ -132,8 +159,10 @@ pub struct ValidLocalizeRequest {
     /// Where `prior` came from (the response's `prior_source`).
     pub prior_source: PriorSource,
     pub search: SearchConfig,
-    /// Set for a tiled region.
-    pub crop: Option<Crop>,
+    /// For a tiled region: the crop around the prior, then (with starts along the optical axis)
+    /// one around each shifted prior, in `AxisStarts::priors` order, as a request from it would
+    /// get. Empty for a whole region.
+    pub crops: Vec<Crop>,
 }
 
 impl ValidLocalizeRequest {
@@ -184,7 +213,7 @@ impl ValidLocalizeRequest {
             }
         };
         let frame = map.frame();
-        let crop = if tiled {
+        if tiled {
             let c = prior.camera_position_in_map();
             if !map.extent.contains_xy(c.x, c.y) {
                 return Err(invalid(
@@ -192,9 +221,10 @@ impl ValidLocalizeRequest {
                     format!("the prior camera position ({:.2}, {:.2}) m lies outside map {:?}'s extent ({})", c.x, c.y, map.id, map.extent),
                 ));
             }
-            Some(Crop { sensor: [c.x - frame.origin.x, c.y - frame.origin.y, c.z - frame.origin.z], radius_m })
-        } else {
-            None
+        }
+        let crop_around = |p: &Pose| {
+            let c = p.camera_position_in_map();
+            Crop { sensor: [c.x - frame.origin.x, c.y - frame.origin.y, c.z - frame.origin.z], radius_m }
         };
         let prior_bound = match request.prior_bound {
             None => None,
@@ -212,8 +242,39 @@ impl ValidLocalizeRequest {
         // chose for it (the region's initial pose, the map origin).
         let stated = prior_source == PriorSource::Request;
         let tuned = defaults.search.search(hypotheses, max_iterations as usize);
-        let search = SearchConfig { prior_bound, prior_margin: if stated { tuned.prior_margin } else { 0.0 }, ..tuned };
-        Ok(Self { map, intrinsics, frame, prior: frame.camera_from_local(&prior), prior_source, search, crop })
+        let axis = match request.axis_starts {
+            None => tuned.axis,
+            Some(a) => {
+                if a.each_way as usize > MAX_AXIS_STARTS {
+                    return Err(invalid("axis_starts.each_way", format!("must be in 0..={MAX_AXIS_STARTS}, got {}", a.each_way)));
+                }
+                let step_m = a.step_m.unwrap_or(tuned.axis.step_m);
+                if !(step_m.is_finite() && AXIS_STEP_RANGE_M.contains(&step_m)) {
+                    return Err(invalid("axis_starts.step_m", format!("must be within {}..={} m, got {step_m}", AXIS_STEP_RANGE_M.start(), AXIS_STEP_RANGE_M.end())));
+                }
+                // Checked before it becomes an f32, which would round 1 + 1e-9 to 1.
+                let margin = a.margin.unwrap_or(tuned.axis.margin as f64);
+                if !(margin.is_finite() && (0.0..=1.0).contains(&margin)) {
+                    return Err(invalid("axis_starts.margin", format!("must be within 0..=1, got {margin}")));
+                }
+                let margin = margin as f32;
+                if a.each_way > 0 && prior_bound.is_some() {
+                    return Err(invalid("axis_starts", "cannot be combined with prior_bound: a bounded search's starts and answer stay inside the bound around the prior".into()));
+                }
+                AxisStarts { each_way: a.each_way as usize, step_m, margin }
+            }
+        };
+        let search = SearchConfig { prior_bound, prior_margin: if stated { tuned.prior_margin } else { 0.0 }, axis, ..tuned };
+        if search.starts() > MAX_HYPOTHESES {
+            let each_way = search.axis.each_way;
+            return Err(invalid("axis_starts", format!("hypotheses × (2·each_way + 1) must be at most {MAX_HYPOTHESES}, got {hypotheses} × {} (each_way {each_way})", search.axis_groups())));
+        }
+        let crops = match (tiled, search.axis_groups()) {
+            (false, _) => Vec::new(),
+            (true, 1) => vec![crop_around(&prior)],
+            (true, _) => search.axis.priors(&prior).iter().map(|(_, p)| crop_around(p)).collect(),
+        };
+        Ok(Self { map, intrinsics, frame, prior: frame.camera_from_local(&prior), prior_source, search, crops })
     }
 }
 
@@ -242,6 +303,14 @@ mod tests {
         let bounded = serde_json::json!({"image": "", "intrinsics": k, "prior_bound": {"rotation_deg": 30.0, "translation_m": 5.0}});
         let bounded = ValidLocalizeRequest::new(&request(bounded), &defaults(), entry(), false).unwrap();
         assert_eq!(bounded.search.prior_bound, Some(PriorBound { rotation_deg: 30.0, translation_m: 5.0 }));
+        // Starts along the axis: the server's spacing and margin unless the request states them.
+        assert_eq!(ok.search.axis.each_way, 0);
+        let axis = serde_json::json!({"image": "", "intrinsics": k, "hypotheses": 1, "axis_starts": {"each_way": 2}});
+        let axis = ValidLocalizeRequest::new(&request(axis), &defaults(), entry(), false).unwrap();
+        assert_eq!((axis.search.axis, axis.search.starts()), (AxisStarts { each_way: 2, step_m: 1.25, margin: 0.005 }, 5));
+        let stated = serde_json::json!({"image": "", "intrinsics": k, "hypotheses": 3, "axis_starts": {"each_way": 2, "step_m": 2.0, "margin": 0.0}});
+        let stated = ValidLocalizeRequest::new(&request(stated), &defaults(), entry(), false).unwrap();
+        assert_eq!((stated.search.axis, stated.search.starts()), (AxisStarts { each_way: 2, step_m: 2.0, margin: 0.0 }, 15));
         // No prior anywhere: the level camera at the map's origin, looking along +x.
         assert_eq!((ok.prior, ok.prior_source, ok.search.prior_margin), (Pose::level_camera_along_x(nalgebra::Vector3::zeros()), PriorSource::Default, 0.0));
         let mut far = entry();
@@ -266,6 +335,11 @@ mod tests {
             (serde_json::json!({"image": "", "intrinsics": k, "prior_bound": {"rotation_deg": 0.0, "translation_m": 5.0}}), "prior_bound.rotation_deg"),
             (serde_json::json!({"image": "", "intrinsics": k, "prior_bound": {"rotation_deg": 181.0, "translation_m": 5.0}}), "prior_bound.rotation_deg"),
             (serde_json::json!({"image": "", "intrinsics": k, "prior_bound": {"rotation_deg": 30.0, "translation_m": 501.0}}), "prior_bound.translation_m"),
+            (serde_json::json!({"image": "", "intrinsics": k, "axis_starts": {"each_way": 8}}), "axis_starts.each_way"),
+            (serde_json::json!({"image": "", "intrinsics": k, "axis_starts": {"each_way": 1, "step_m": 0.05}}), "axis_starts.step_m"),
+            (serde_json::json!({"image": "", "intrinsics": k, "axis_starts": {"each_way": 1, "margin": 1.000000001}}), "axis_starts.margin"),
+            (serde_json::json!({"image": "", "intrinsics": k, "axis_starts": {"each_way": 1}, "prior_bound": {"rotation_deg": 30.0, "translation_m": 5.0}}), "cannot be combined with prior_bound"),
+            (serde_json::json!({"image": "", "intrinsics": k, "axis_starts": {"each_way": 2}}), "hypotheses × (2·each_way + 1) must be at most 16, got 4 × 5"),
         ];
         for (json, needle) in cases {
             let e = ValidLocalizeRequest::new(&request(json), &defaults(), entry(), false).unwrap_err();
@@ -298,7 +372,8 @@ mod tiled_tests {
         let prior = Pose::from_rt(r, -(r * c));
         let json = serde_json::json!({"image": "", "intrinsics": k, "prior_camera_from_map": prior.to_rows(), "radius_m": 30.0});
         let ok = ValidLocalizeRequest::new(&request(json), &defaults, entry.clone(), true).unwrap();
-        let crop = ok.crop.unwrap();
+        let crop = ok.crops[0];
+        assert_eq!(ok.crops.len(), 1);
         assert!((crop.sensor[0] - 10.0).abs() < 1e-6 && (crop.sensor[1] - 20.0).abs() < 1e-6 && (crop.sensor[2] - 100.0).abs() < 1e-6 && crop.radius_m == 30.0, "{crop:?}");
         let local = ok.prior.camera_position_in_map();
         assert!((local - nalgebra::Vector3::new(10.0, 20.0, 100.0)).norm() < 1e-6, "{local}");

@@ -5,8 +5,9 @@
 //!   multi-start search (a cold localize).
 //! - Every later frame starts from the [`predict`]ed pose and runs a small search (by default
 //!   one start, three policy steps) from it and from it moved along its optical axis by
-//!   ±k·[`TrackConfig::axis_step_m`], k = 1..=[`TrackConfig::axis_starts`] ([`axis_priors`]),
-//!   keeping the answer whose alignment score is highest (the prediction's own with
+//!   ±k·[`TrackConfig::axis_step_m`], k = 1..=[`TrackConfig::axis_starts`], in one request
+//!   (`agent::AxisStarts`: each shifted prior searched as a request of its own would be, the
+//!   answer whose alignment score is highest kept, the prediction's own with
 //!   [`TrackConfig::axis_margin`] added). Why: the small search corrects heading and sideways
 //!   errors but does not move the camera along its optical axis, and a constant-velocity
 //!   prediction is off exactly there (the speed is unknown at the second frame, and noisy
@@ -16,7 +17,7 @@
 //!   `model::calibrator`) and its confidence score (`agent::Confidence::score` = sqrt(frustum
 //!   IoU × the last step's policy certainty), in [0, 1]) at least
 //!   [`TrackConfig::fallback_below`]. Otherwise the frame is localized again with the full search
-//!   from the prior the kept small search started from ([`Mode::Fallback`]); when that answer is
+//!   from the prior the small search's answer started from ([`Mode::Fallback`]); when that answer is
 //!   not `localized` either, the frame is dead-reckoned: its estimate is the prediction
 //!   ([`Mode::DeadReckoning`]).
 //! - A model set without a calibrator gives no verdict (`p_registered: None`): then the score
@@ -40,6 +41,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
+use crate::agent::AxisStarts;
 use crate::geometry::Pose;
 use crate::model::Verdict;
 
@@ -61,27 +63,21 @@ pub struct TrackConfig {
     /// A tracked answer whose confidence score is below this (or that is not `localized`) falls
     /// back to the full search. Anything above 1 always does.
     pub fallback_below: f32,
-    /// Small searches from the prediction moved forward and back along its optical axis, each
-    /// way (0: the prediction alone).
+    /// Starts of the small search from the prediction moved forward and back along its optical
+    /// axis, each way (0: the prediction alone; `agent::AxisStarts::each_way`).
     pub axis_starts: u32,
     /// Their spacing, metres.
     pub axis_step_m: f64,
-    /// What the prediction's own answer adds to its alignment score when the small searches are
-    /// compared: a start along the axis must outscore it by more than this.
+    /// What the prediction's own answer adds to its alignment score when the answers from the
+    /// shifted priors are compared: a start along the axis must outscore it by more than this.
     pub axis_margin: f32,
 }
 
-/// The priors a tracked frame's small searches start from, each with its shift along the optical
-/// axis (metres, forward positive): `predicted` (camera_from_map, 0), then the camera moved along
-/// its own optical axis by +k·`step_m` and −k·`step_m` for k = 1..=`each_way`.
-pub fn axis_priors(predicted: &Pose, each_way: u32, step_m: f64) -> Vec<(f64, Pose)> {
-    let moved = |d: f64| (d, Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(0.0, 0.0, -d)).compose(predicted));
-    let mut priors = vec![(0.0, *predicted)];
-    for k in 1..=each_way {
-        let d = k as f64 * step_m;
-        priors.extend([moved(d), moved(-d)]);
+impl TrackConfig {
+    /// The small search's starts along the optical axis.
+    pub fn axis(&self) -> AxisStarts {
+        AxisStarts { each_way: self.axis_starts as usize, step_m: self.axis_step_m, margin: self.axis_margin }
     }
-    priors
 }
 
 /// One frame's answer from a [`FrameLocalizer`].
@@ -91,21 +87,25 @@ pub struct FrameAnswer {
     pub camera_from_map: Pose,
     /// `agent::Confidence::score` of the answer, in [0, 1].
     pub confidence: f32,
-    /// Its alignment score (`agent::state::alignment`): how the tracker compares the small
-    /// searches of one frame.
+    /// Its alignment score (`agent::state::alignment`): how a search with starts along the axis
+    /// compares the answers from its shifted priors.
     pub alignment: f32,
     /// The calibrated verdict (`p_registered: None, localized: false` without a calibrator).
     pub verdict: Verdict,
     /// Steps of the chosen hypothesis.
     pub iterations: usize,
+    /// Where the chosen hypothesis's prior lay along the optical axis of the prior asked for
+    /// (metres, forward positive; 0 without axis starts).
+    pub axis_shift_m: f64,
     /// Time the localization took as the caller sees it (the localize call, or the HTTP round
     /// trip), milliseconds; reading the frame from disk is not part of it.
     pub latency_ms: f64,
 }
 
-/// Localizes frame `position` (0-based position in the drive, not the file index) from `prior`.
+/// Localizes frame `position` (0-based position in the drive, not the file index) from `prior`
+/// with a search of `search`'s size and `axis`'s starts along the optical axis (one request).
 pub trait FrameLocalizer {
-    fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize) -> anyhow::Result<FrameAnswer>;
+    fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize, axis: AxisStarts) -> anyhow::Result<FrameAnswer>;
 }
 
 /// How a frame was localized.
@@ -151,11 +151,11 @@ pub struct TrackedFrame {
     pub tracked_confidence: Option<f32>,
     /// Steps of the kept answer's chosen hypothesis.
     pub iterations: usize,
-    /// Sum of the localizations' latencies for this frame (every small search, and the full one
-    /// on a fallback), ms.
+    /// Sum of the localizations' latencies for this frame (the small search, and the full one on
+    /// a fallback), ms.
     pub latency_ms: f64,
-    /// Where the kept small search started along the prediction's optical axis (metres, forward
-    /// positive; [`axis_priors`]); `None` for the first frame.
+    /// Where the small search's answer started along the prediction's optical axis (metres,
+    /// forward positive; `agent::AxisStarts::priors`); `None` for the first frame.
     pub axis_shift_m: Option<f64>,
 }
 
@@ -205,28 +205,21 @@ pub fn track(
     for position in 0..frames {
         let at = || format!("frame {position} of the drive");
         let frame = if position == 0 {
-            let answer = localizer.localize(0, &first_prior, config.full).with_context(at)?;
+            let answer = localizer.localize(0, &first_prior, config.full, AxisStarts::NONE).with_context(at)?;
             tracked_frame(0, Mode::Cold, first_prior, &answer, None, answer.latency_ms)
         } else {
             let last = &done[position - 1].estimate;
             let before_last = position.checked_sub(2).map(|i| &done[i].estimate);
             let prior = predict(before_last, last);
-            // The small searches along the axis; the first of the highest alignment wins.
-            let (mut start, mut shift, mut small, mut small_ms) = (prior, 0.0, None::<(FrameAnswer, f32)>, 0.0);
-            for (i, (d, candidate)) in axis_priors(&prior, config.axis_starts, config.axis_step_m).into_iter().enumerate() {
-                let answer = localizer.localize(position, &candidate, config.tracked).with_context(at)?;
-                small_ms += answer.latency_ms;
-                let judged = answer.alignment + if i == 0 { config.axis_margin } else { 0.0 };
-                if small.is_none_or(|(_, best)| judged > best) {
-                    (start, shift, small) = (candidate, d, Some((answer, judged)));
-                }
-            }
-            let (small, _) = small.expect("the prediction is a candidate");
+            let small = localizer.localize(position, &prior, config.tracked, config.axis()).with_context(at)?;
+            let (shift, small_ms) = (small.axis_shift_m, small.latency_ms);
+            // Where the answer's start lay: a fallback starts there too.
+            let start = AxisStarts::along_axis(&prior, shift);
             let calibrated = small.verdict.p_registered.is_some();
             if small.confidence >= config.fallback_below && (small.verdict.localized || !calibrated) {
                 tracked_frame(position, Mode::Tracked, start, &small, Some((small.confidence, shift)), small_ms)
             } else {
-                let full = localizer.localize(position, &start, config.full).with_context(at)?;
+                let full = localizer.localize(position, &start, config.full, AxisStarts::NONE).with_context(at)?;
                 let latency_ms = small_ms + full.latency_ms;
                 if full.verdict.localized || full.verdict.p_registered.is_none() {
                     tracked_frame(position, Mode::Fallback, start, &full, Some((small.confidence, shift)), latency_ms)
@@ -242,7 +235,7 @@ pub fn track(
     Ok(done)
 }
 
-/// `small`: the kept small search's confidence score and its start's shift along the axis
+/// `small`: the small search's confidence score and its answer's start's shift along the axis
 /// (`None` for the first frame).
 fn tracked_frame(position: usize, mode: Mode, prior: Pose, answer: &FrameAnswer, small: Option<(f32, f64)>, latency_ms: f64) -> TrackedFrame {
     TrackedFrame {
@@ -283,7 +276,7 @@ pub fn cold_reference(
         .iter()
         .map(|&position| {
             let prior = coarse_prior(&truth[position], noise_m, noise_deg, seed.wrapping_add(position as u64));
-            let answer = localizer.localize(position, &prior, config.full)?;
+            let answer = localizer.localize(position, &prior, config.full, AxisStarts::NONE)?;
             Ok(ColdFrame { position, prior, answer })
         })
         .collect()
@@ -337,15 +330,15 @@ mod tests {
     struct Basin {
         truth: Vec<Pose>,
         reach_m: f64,
-        calls: Vec<(usize, SearchSize)>,
+        calls: Vec<(usize, SearchSize, usize)>,
         /// Gives a verdict (localized when it reached the truth); else none, like a model set
         /// without a calibrator.
         calibrated: bool,
     }
 
-    impl FrameLocalizer for Basin {
-        fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize) -> anyhow::Result<FrameAnswer> {
-            self.calls.push((position, search));
+    impl Basin {
+        /// One search from `prior`.
+        fn answer(&self, position: usize, prior: &Pose, search: SearchSize) -> FrameAnswer {
             let truth = self.truth[position];
             let off = (prior.camera_position_in_map() - truth.camera_position_in_map()).norm();
             // The full search reaches 3 times as far.
@@ -355,7 +348,26 @@ mod tests {
                 true => Verdict { p_registered: Some(confidence as f64), localized: confidence > 0.5 },
                 false => Verdict::default(),
             };
-            Ok(FrameAnswer { camera_from_map: pose, confidence, alignment: confidence, verdict, iterations: 3, latency_ms: search.hypotheses as f64 })
+            FrameAnswer { camera_from_map: pose, confidence, alignment: confidence, verdict, iterations: 3, axis_shift_m: 0.0, latency_ms: search.hypotheses as f64 }
+        }
+    }
+
+    impl FrameLocalizer for Basin {
+        /// With axis starts, one search from each shifted prior, the best alignment winning (the
+        /// unmoved prior's with the margin), as `agent::search::first_round_answer` chooses; the
+        /// latency counts every start.
+        fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize, axis: AxisStarts) -> anyhow::Result<FrameAnswer> {
+            self.calls.push((position, search, axis.groups()));
+            let mut best: Option<(FrameAnswer, f32)> = None;
+            for (d, start) in axis.priors(prior) {
+                let answer = FrameAnswer { axis_shift_m: d, ..self.answer(position, &start, search) };
+                let judged = answer.alignment + if d == 0.0 { axis.margin } else { 0.0 };
+                if best.is_none_or(|(_, b)| judged > b) {
+                    best = Some((answer, judged));
+                }
+            }
+            let answer = best.expect("the prior is searched").0;
+            Ok(FrameAnswer { latency_ms: (search.hypotheses as usize * axis.groups()) as f64, ..answer })
         }
     }
 
@@ -401,7 +413,7 @@ mod tests {
         assert_eq!(frames[0].mode, Mode::Cold);
         assert!(frames[1..].iter().all(|f| f.mode == Mode::Tracked));
         assert_eq!(basin.calls.len(), 6);
-        assert_eq!(basin.calls[0].1, CONFIG.full);
+        assert_eq!((basin.calls[0].1, basin.calls[0].2), (CONFIG.full, 1));
         let e = PoseError::between(&frames[3].prior, &truth[3]);
         assert!(e.rte_m < 1e-9 && e.rre_geodesic_deg < 1e-9, "exact prediction from exact estimates: {e:?}");
         // 0.5 m reach (1.5 m for the full search): frame 1 (predicted standing still, 1 m off)
@@ -415,7 +427,7 @@ mod tests {
         assert_eq!(frames[1].estimate, truth[1]);
         assert_eq!(frames[1].latency_ms, 1.0 + 4.0, "both searches count");
         assert!(frames[2..].iter().all(|f| f.mode == Mode::Tracked));
-        assert_eq!(basin.calls[1..3], [(1, CONFIG.tracked), (1, CONFIG.full)]);
+        assert_eq!(basin.calls[1..3], [(1, CONFIG.tracked, 1), (1, CONFIG.full, 1)]);
     }
 
     /// With a verdict: an unlocalized small search falls back, and an unlocalized full search
@@ -445,22 +457,6 @@ mod tests {
         assert!(frames[1..].iter().all(|f| f.mode == Mode::Fallback));
     }
 
-    #[test]
-    fn axis_priors_move_the_camera_along_its_optical_axis() {
-        let predicted = drive(1)[0];
-        let priors = axis_priors(&predicted, 2, 1.25);
-        let shifts: Vec<f64> = priors.iter().map(|(d, _)| *d).collect();
-        assert_eq!(shifts, [0.0, 1.25, -1.25, 2.5, -2.5]);
-        assert_eq!(priors[0].1, predicted);
-        let axis = predicted.rotation().transpose() * Vector3::z();
-        for (d, prior) in &priors[1..] {
-            let moved = prior.camera_position_in_map() - predicted.camera_position_in_map();
-            assert!((moved - *d * axis).norm() < 1e-12, "{moved:?} for {d}");
-            assert_eq!(prior.rotation(), predicted.rotation());
-        }
-        assert_eq!(axis_priors(&predicted, 0, 1.25), vec![(0.0, predicted)]);
-    }
-
     /// Frame 1's prediction (standing still) is 1 m behind the truth: beyond a 0.5 m basin, so
     /// without starts along the axis the frame falls back; with one each way, the start 1 m ahead
     /// lands in the basin and wins on its alignment, and the frame is tracked.
@@ -476,8 +472,8 @@ mod tests {
         let ahead = frames[1].prior.camera_position_in_map() - frames[0].estimate.camera_position_in_map();
         assert!((ahead.norm() - 1.0).abs() < 1e-9, "frame 1 started from the prediction moved 1 m: {ahead:?}");
         assert_eq!((frames[0].axis_shift_m, frames[1].axis_shift_m), (None, Some(1.0)));
-        assert_eq!(frames[1].latency_ms, 3.0, "the three small searches count");
-        assert_eq!(basin.calls.len(), 1 + 3 * 3);
+        assert_eq!(frames[1].latency_ms, 3.0, "the three starts count");
+        assert_eq!(basin.calls[1..], [(1, CONFIG.tracked, 3), (2, CONFIG.tracked, 3), (3, CONFIG.tracked, 3)], "one request per tracked frame");
         // A margin larger than the start ahead wins by (0.9 against 0.1) keeps the prediction's
         // answer, which then falls back.
         let wide = TrackConfig { axis_margin: 1.0, ..axis };

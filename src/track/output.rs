@@ -50,8 +50,8 @@ pub struct FrameRow {
     pub latency_ms: f64,
     /// How far the search's start was from the truth (camera centres), metres.
     pub prior_error_m: f64,
-    /// Where the kept small search started along the prediction's optical axis, metres (empty for
-    /// the first frame; `track::axis_priors`).
+    /// Where the small search's answer started along the prediction's optical axis, metres (empty for
+    /// the first frame; `agent::AxisStarts::priors`).
     pub axis_shift_m: Option<f64>,
     pub position_error_m: f64,
     pub heading_error_deg: f64,
