@@ -964,7 +964,7 @@ mod tests {
         let map = PreparedMap { points: vec![[0.0, 0.0, 5.0]], features: vec![0.0; 64], pivot: Point3::new(0.0, 0.0, 5.0), source_points: 1 };
         let evidence = ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 } };
         let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE };
-        let mut search = Search::new(evidence, &map, Pose::identity(), config, ActionFrame::CameraY);
+        let mut search = Search::new(vec![evidence], vec![Arc::new(map.clone())], Pose::identity(), config, ActionFrame::CameraY);
         let shifted = |dx: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(dx * DUPLICATE_RTE_M, 0.0, 0.0));
         // 0 and 1 meet (half the radius apart); 2 is within the radius of 1 but 1.2 radii from 0;
         // 3 is far from all.
@@ -973,7 +973,7 @@ mod tests {
         search.episodes[2].pose = shifted(1.2);
         search.episodes[3].pose = shifted(9.0);
         let (layout, mut scratch) = (StateLayout { dim: 64, stride: 4, grid_height: 1, grid_width: 1, image_width: 4, image_height: 4, num_state_points: 1, xyz_scale_m: 1.0, form: crate::agent::state::Form2d::Features }, ScatterScratch::default());
-        search.after_step(&map, &layout, &mut scratch);
+        search.after_step(&layout, &mut scratch);
         let dropped: Vec<bool> = search.episodes.iter().map(|e| e.dropped).collect();
         assert_eq!(dropped, vec![false, true, false, false], "a dropped hypothesis drops nobody");
         // A turn of 1.2 times the angle is not a duplicate, 0.8 times is (about the pivot, 5 m
@@ -982,7 +982,7 @@ mod tests {
         search.episodes[0].converged = true;
         search.episodes[3].pose = apply_motion(ActionFrame::CameraY, &shifted(0.0), &map.pivot, 0.8 * DUPLICATE_RRE_DEG, 0.0, 0.0);
         search.episodes[2].pose = apply_motion(ActionFrame::CameraY, &shifted(0.0), &Point3::origin(), 1.2 * DUPLICATE_RRE_DEG, 0.0, 0.0);
-        search.after_step(&map, &layout, &mut scratch);
+        search.after_step(&layout, &mut scratch);
         let dropped: Vec<bool> = search.episodes.iter().map(|e| e.dropped).collect();
         assert_eq!(dropped, vec![false, true, false, true]);
     }
