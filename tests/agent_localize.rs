@@ -247,7 +247,7 @@ fn batched_workers_match_the_synchronous_loop() {
     let mut answers = Vec::new();
     for (tensor, crop_k, prior, search) in cases {
         let (reply, answer) = tokio::sync::oneshot::channel();
-        let start = agent::Start { map: map.clone(), image_tensor: tensor, intrinsics: crop_k, prior, search };
+        let start = agent::Start { maps: vec![map.clone()], image_tensor: tensor, intrinsics: crop_k, prior, search };
         let job = Job { start, deadline: Instant::now() + Duration::from_secs(30), span: tracing::Span::none(), reply };
         let slot = scheduler.reserve().ok().expect("room");
         scheduler.submit(job, slot).ok().expect("queued");
