@@ -147,6 +147,13 @@ fn body_with_pose(plain: &image::RgbImage) -> serde_json::Value {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn bad_overlay_requests_get_localize_errors() {
+    let extend = |base: &serde_json::Value, more: serde_json::Value| {
+        let mut r = base.clone();
+        for (k, v) in more.as_object().unwrap() {
+            r[k] = v.clone();
+        }
+        r
+    };
     let maps = maps_dir_with_street();
     let server = TestServer::start(&tiny_model(), maps.path(), &[]).await;
     let jpeg = jpeg_bytes(&test_image(1241, 376));
@@ -161,6 +168,9 @@ async fn bad_overlay_requests_get_localize_errors() {
         ("unknown map", "nowhere", kitti_request(2), 404, "not_found"),
         ("bad intrinsics", "street", json!({"image": kitti_request(1)["image"], "intrinsics": {"fx": -1.0, "fy": 700.0, "cx": 1.0, "cy": 1.0}}), 422, "invalid_input"),
         ("too many iterations", "street", with(&jpeg).as_object().unwrap().clone().into_iter().chain([("max_iterations".to_string(), json!(99))]).collect(), 422, "invalid_input"),
+        ("axis starts with a bound", "street", extend(&with(&jpeg), json!({"axis_starts": {"each_way": 1}, "prior_bound": {"rotation_deg": 30, "translation_m": 5}})), 422, "invalid_input"),
+        ("too many starts along the axis", "street", extend(&with(&jpeg), json!({"hypotheses": 4, "axis_starts": {"each_way": 2}})), 422, "invalid_input"),
+        ("a drawn pose with axis starts", "street", json!({"image": b64(&jpeg), "intrinsics": kitti_request(1)["intrinsics"], "camera_from_map": [[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]], "axis_starts": {"each_way": 1}}), 422, "invalid_input"),
     ];
     for (name, map, body, status, kind) in cases {
         let (got, headers, bytes) = post_overlay(&server, map, "", &body).await;

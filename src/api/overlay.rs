@@ -55,9 +55,12 @@ pub struct OverlayRequest {
     /// How far the prior can be from the truth (as in localize).
     #[serde(default)]
     pub prior_bound: Option<crate::serving::request::PriorBoundBody>,
+    /// Starts along the prior's optical axis (as in localize).
+    #[serde(default)]
+    pub axis_starts: Option<crate::serving::request::AxisStartsBody>,
     /// Draw this pose (a rigid camera_from_map within ±1e7 m, validated as the prior is) and do
-    /// not run the agent; leave `prior_camera_from_map`, `max_iterations`, `hypotheses` and
-    /// `prior_bound` out with it.
+    /// not run the agent; leave `prior_camera_from_map`, `max_iterations`, `hypotheses`,
+    /// `prior_bound` and `axis_starts` out with it.
     #[serde(default)]
     pub camera_from_map: Option<Matrix4x4>,
 }
@@ -223,15 +226,16 @@ fn read_overlay_request(q: &OverlayParams, headers: &HeaderMap, body: Bytes) -> 
         hypotheses: r.hypotheses,
         radius_m: r.radius_m,
         prior_bound: r.prior_bound,
-        axis_starts: None,
+        axis_starts: r.axis_starts,
     };
     let payload = ImagePayload::Base64(r.image);
     match r.camera_from_map {
         None => Ok((Wanted::Localize(request), payload)),
         Some(m) => {
-            if request.prior_camera_from_map.is_some() || request.max_iterations.is_some() || request.hypotheses.is_some() || request.prior_bound.is_some() {
+            let search = request.max_iterations.is_some() || request.hypotheses.is_some() || request.prior_bound.is_some() || request.axis_starts.is_some();
+            if request.prior_camera_from_map.is_some() || search {
                 return Err(ApiError::Invalid(
-                    "camera_from_map draws that pose without running the agent: leave out prior_camera_from_map, max_iterations, hypotheses and prior_bound".into(),
+                    "camera_from_map draws that pose without running the agent: leave out prior_camera_from_map, max_iterations, hypotheses, prior_bound and axis_starts".into(),
                 ));
             }
             let pose = m.pose().map_err(|e| ApiError::Invalid(format!("camera_from_map: {e}")))?;
