@@ -121,20 +121,20 @@ pub struct ConfidenceBody {
 /// One start of the multi-start search.
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct HypothesisBody {
-    /// The turn applied to its base to get this start, degrees: in the first round the prior
-    /// (about the map's centroid; within a `prior_bound`, about the prior's camera centre), in
-    /// the refinement round the first round's answer or that answer turned by 180° (about its
-    /// camera centre).
+    /// The turn applied to its base to get this start, degrees: in the first round the prior,
+    /// moved by `start_axis_shift_m` along its optical axis (about the map's centroid; within a
+    /// `prior_bound`, about the prior's camera centre), in the refinement round the first
+    /// round's answer or that answer turned by 180° (about its camera centre).
     pub start_yaw_offset_deg: f64,
-    /// Where its base lies along the prior's optical axis, metres, forward positive: 0 but for
-    /// the starts of a request's `axis_starts` (the prior moved along the axis, then turned).
+    /// Where its base lies along the prior's optical axis, metres, forward positive: 0 without a
+    /// request's `axis_starts`; in the refinement round, that of the first round's answer.
     pub start_axis_shift_m: f64,
     /// A start of the refinement round (the server's `--refine`; docs/server.md).
     pub refinement: bool,
     /// Alignment score of the start and of the final pose.
     pub start_alignment: f32,
     pub alignment: f32,
-    /// The start: the prior turned by `start_yaw_offset_deg` (camera_from_map, row-major).
+    /// The start: its base turned by `start_yaw_offset_deg` (camera_from_map, row-major).
     #[schema(value_type = Matrix4x4)]
     pub start_camera_from_map: Rows4x4,
     /// The hypothesis's final pose.
