@@ -154,8 +154,7 @@ pub struct SearchConfig {
     /// adds to its alignment score when the search chooses its answer: a pose away from the
     /// prior must outscore the best one near it by more than this (0 = off; the module's docs).
     pub prior_margin: f32,
-    /// Starts along the prior's optical axis ([`AxisStarts`]; `each_way` 0 = none); ignored with
-    /// a prior bound.
+    /// Starts along the prior's optical axis ([`AxisStarts`]; `each_way` 0 = none).
     pub axis: AxisStarts,
 }
 
@@ -164,7 +163,8 @@ pub struct SearchConfig {
 /// such prior is searched as a request of its own would be (its `hypotheses` starts turned about
 /// the map pivot, its own start competing with `keep_prior`, the prior's margin judged against
 /// it), and the first round answers with the best of their answers by alignment score, the
-/// unmoved prior's with `margin` added ([`first_round_answer`]). Why: the policy corrects heading
+/// unmoved prior's with `margin` added ([`first_round_answer`]; with a prior bound, the best pose
+/// any start visited inside the bound around the request's prior). Why: the policy corrects heading
 /// and sideways errors but hardly moves the camera along its optical axis, while the alignment
 /// score does peak there (docs/tracking.md, "Starts along the optical axis"); a tracked frame's
 /// constant-velocity prediction and a fleet prior are off exactly there.
@@ -217,15 +217,14 @@ impl SearchConfig {
     }
 
     /// The first round's starts: `hypotheses` (at most [`MAX_HYPOTHESES`]) for each prior along
-    /// the axis (one without axis starts or with a prior bound).
+    /// the axis (one without axis starts).
     pub fn starts(&self) -> usize {
         self.hypotheses.clamp(1, MAX_HYPOTHESES) * self.axis_groups()
     }
 
-    /// Priors searched along the optical axis: [`AxisStarts::groups`], 1 with a prior bound
-    /// (whose starts and answers stay inside the bound around the request's prior).
+    /// Priors searched along the optical axis: [`AxisStarts::groups`].
     pub fn axis_groups(&self) -> usize {
-        if self.prior_bound.is_some() { 1 } else { self.axis.groups() }
+        self.axis.groups()
     }
 
     /// Whether the refinement round runs: `refine`, for a multi-start search (the paper's single
@@ -308,8 +307,7 @@ pub struct SearchTuning {
     /// it keeps answers that the street seen backwards would otherwise take.
     #[arg(long, env = "CMR_PRIOR_MARGIN", default_value_t = DEFAULT_PRIOR_MARGIN, value_parser = parse_margin)]
     pub prior_margin: f32,
-    /// Without a `prior_bound`, also search from the prior moved this many times each way along
-    /// its optical axis, `--axis-step-m` apart, and answer with the best of those searches'
+    /// Also search from the prior moved this many times each way along its optical axis, `--axis-step-m` apart, and answer with the best of those searches'
     /// answers (`AxisStarts`; a request's `axis_starts` replaces all three settings). 0 = off,
     /// the default: measured on `track`'s small searches (docs/tracking.md, "Starts along the
     /// optical axis"), not chosen for the full search. Starts × (2·this + 1) may not exceed 16.
@@ -571,8 +569,16 @@ pub fn axis_groups(first: &[Hypothesis]) -> Vec<std::ops::Range<usize>> {
 /// The first round's answer after `iterations` steps: each group's ([`axis_groups`];
 /// [`answer_at`] with the group's first start, its prior along the axis, as the prior), then the
 /// group whose answer scores highest (alignment, the first group's with `axis_margin` added; the
-/// earlier group on a draw). Without axis starts, the one group's answer.
-pub fn first_round_answer(first: &[Hypothesis], rules: AnswerRules, axis_margin: f32, iterations: usize) -> Answer {
+/// earlier group on a draw). Without axis starts, the one group's answer. With a bound
+/// (`rules.bound`), every start of every group competes as one search does: the best pose visited
+/// inside the bound around the request's `prior`, the prior winning a draw.
+pub fn first_round_answer(first: &[Hypothesis], prior: &Pose, rules: AnswerRules, axis_margin: f32, iterations: usize) -> Answer {
+    if rules.bound.is_some() {
+        return match answer_at(first, prior, rules, iterations) {
+            None => Answer::kept(0),
+            Some((h, k)) => Answer::at(h, k),
+        };
+    }
     let mut best: Option<(Answer, f32)> = None;
     for group in axis_groups(first) {
         let hypotheses = &first[group.clone()];
@@ -599,7 +605,7 @@ pub fn search_answer(hypotheses: &[Hypothesis], prior: &Pose, rules: AnswerRules
         let (pose, alignment) = a.pose(hypotheses);
         rules.score(prior, &pose, alignment)
     };
-    let mut best = first_round_answer(&hypotheses[..first], rules, axis_margin, iterations);
+    let mut best = first_round_answer(&hypotheses[..first], prior, rules, axis_margin, iterations);
     if !with_refinement {
         return best;
     }
@@ -816,7 +822,7 @@ impl Search {
         self.refine_pending = false;
         self.settle(0..self.episodes.len(), layout, scratch);
         let hypotheses: Vec<Hypothesis> = (0..self.episodes.len()).map(|h| self.hypothesis(h, false, self.episodes[h].steps.clone())).collect();
-        let chosen = first_round_answer(&hypotheses, self.rules, self.axis_margin, self.max_iterations);
+        let chosen = first_round_answer(&hypotheses, &self.prior, self.rules, self.axis_margin, self.max_iterations);
         let answer = chosen.pose(&hypotheses).0;
         let (m, shift) = (self.scenes[chosen.hypothesis], self.shifts[chosen.hypothesis]);
         let centre = Point3::from(answer.camera_position_in_map());
@@ -1164,14 +1170,22 @@ mod tests {
         // the group behind ends at 0.55.
         let first = vec![group(0.0, 0.3, 0.5), group(1.25, 0.6, 0.4), group(-1.25, 0.2, 0.55)];
         assert_eq!(axis_groups(&first), vec![0..1, 1..2, 2..3]);
-        assert_eq!(first_round_answer(&first, rules, 0.0, 1), Answer::kept(1));
-        assert_eq!(first_round_answer(&first, rules, 0.25, 1), Answer::at(0, 1), "0.6 does not beat 0.5 + 0.25");
-        assert_eq!(first_round_answer(&first, rules, 0.0, 0), Answer::at(1, 0), "after no steps the starts compete");
+        assert_eq!(first_round_answer(&first, &shifted(0.0), rules, 0.0, 1), Answer::kept(1));
+        assert_eq!(first_round_answer(&first, &shifted(0.0), rules, 0.25, 1), Answer::at(0, 1), "0.6 does not beat 0.5 + 0.25");
+        assert_eq!(first_round_answer(&first, &shifted(0.0), rules, 0.0, 0), Answer::at(1, 0), "after no steps the starts compete");
         // One group: the answer as before (the prior kept, or its trajectory's end).
-        assert_eq!(first_round_answer(&first[..1], rules, 0.0, 1), Answer::at(0, 1));
+        assert_eq!(first_round_answer(&first[..1], &shifted(0.0), rules, 0.0, 1), Answer::at(0, 1));
         let kept = vec![group(0.0, 0.7, 0.5)];
-        assert_eq!(first_round_answer(&kept, rules, 0.0, 1), Answer::kept(0));
+        assert_eq!(first_round_answer(&kept, &shifted(0.0), rules, 0.0, 1), Answer::kept(0));
         assert_eq!(search_answer(&kept, &shifted(0.0), rules, 0.0, 1, true), Answer::kept(0));
+        // With a bound, every visited pose of every group inside it competes: the start 1.25 m
+        // ahead (0.6) answers, as a pose, not as a kept prior; a larger score outside the bound
+        // does not.
+        let bounded = AnswerRules { bound: Some(PriorBound { rotation_deg: 30.0, translation_m: 5.0 }), ..rules };
+        assert_eq!(first_round_answer(&first, &shifted(0.0), bounded, 0.0, 1), Answer::at(1, 0));
+        let mut far = first.clone();
+        far[2].steps[0] = step_to(9.0, 0.9);
+        assert_eq!(first_round_answer(&far, &shifted(0.0), bounded, 0.0, 1), Answer::at(1, 0));
     }
 
     #[test]

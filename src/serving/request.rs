@@ -108,7 +108,9 @@ pub struct LocalizeRequest {
     #[serde(default)]
     pub prior_bound: Option<PriorBoundBody>,
     /// Also start from the prior moved forward and back along its optical axis (see the
-    /// schema). Not with `prior_bound`. Default: the server's `--axis-starts` (0: none).
+    /// schema). With `prior_bound`, every start of every shifted prior competes as the bounded
+    /// search's do (the best pose visited inside the bound around the prior). Default: the
+    /// server's `--axis-starts` (0: none).
     #[serde(default)]
     pub axis_starts: Option<AxisStartsBody>,
 }
@@ -258,9 +260,6 @@ impl ValidLocalizeRequest {
                     return Err(invalid("axis_starts.margin", format!("must be within 0..=1, got {margin}")));
                 }
                 let margin = margin as f32;
-                if a.each_way > 0 && prior_bound.is_some() {
-                    return Err(invalid("axis_starts", "cannot be combined with prior_bound: a bounded search's starts and answer stay inside the bound around the prior".into()));
-                }
                 AxisStarts { each_way: a.each_way as usize, step_m, margin }
             }
         };
@@ -311,6 +310,9 @@ mod tests {
         let stated = serde_json::json!({"image": "", "intrinsics": k, "hypotheses": 3, "axis_starts": {"each_way": 2, "step_m": 2.0, "margin": 0.0}});
         let stated = ValidLocalizeRequest::new(&request(stated), &defaults(), entry(), false).unwrap();
         assert_eq!((stated.search.axis, stated.search.starts()), (AxisStarts { each_way: 2, step_m: 2.0, margin: 0.0 }, 15));
+        let both = serde_json::json!({"image": "", "intrinsics": k, "hypotheses": 2, "axis_starts": {"each_way": 1}, "prior_bound": {"rotation_deg": 30.0, "translation_m": 5.0}});
+        let both = ValidLocalizeRequest::new(&request(both), &defaults(), entry(), false).unwrap();
+        assert_eq!((both.search.starts(), both.search.prior_bound.is_some()), (6, true), "a bound and starts along the axis together");
         // No prior anywhere: the level camera at the map's origin, looking along +x.
         assert_eq!((ok.prior, ok.prior_source, ok.search.prior_margin), (Pose::level_camera_along_x(nalgebra::Vector3::zeros()), PriorSource::Default, 0.0));
         let mut far = entry();
@@ -338,7 +340,6 @@ mod tests {
             (serde_json::json!({"image": "", "intrinsics": k, "axis_starts": {"each_way": 8}}), "axis_starts.each_way"),
             (serde_json::json!({"image": "", "intrinsics": k, "axis_starts": {"each_way": 1, "step_m": 0.05}}), "axis_starts.step_m"),
             (serde_json::json!({"image": "", "intrinsics": k, "axis_starts": {"each_way": 1, "margin": 1.000000001}}), "axis_starts.margin"),
-            (serde_json::json!({"image": "", "intrinsics": k, "axis_starts": {"each_way": 1}, "prior_bound": {"rotation_deg": 30.0, "translation_m": 5.0}}), "cannot be combined with prior_bound"),
             (serde_json::json!({"image": "", "intrinsics": k, "axis_starts": {"each_way": 2}}), "hypotheses × (2·each_way + 1) must be at most 16, got 4 × 5"),
         ];
         for (json, needle) in cases {
