@@ -164,12 +164,14 @@ async fn track_a_drive_offline_and_over_http() {
     assert!(ate <= TRACKED_ATE_M, "ATE {ate} m over the drive");
     assert_eq!(summary["cold_reference"]["registration_recall"], 1.0, "every cold localization registers");
     check_outputs(&sequence, &out, &summary, frames);
-    // A region the store does not hold, or frames the sequence does not have: a clear error.
-    for (flags, needle) in [(["--id", "nowhere"], "nowhere"), (["--first", "100"], "no frames from 100")] {
+    // A region the store does not hold, frames the sequence does not have, or more starts per
+    // tracked frame than a request may have: a clear error.
+    let cases = [(["--id", "nowhere"], "nowhere"), (["--first", "100"], "no frames from 100"), (["--tracked-hypotheses", "4"], "= 20 starts per tracked frame: at most 16")];
+    for (flags, needle) in cases {
         let mut bad = cmr_agent();
         bad.args(["track"]).args(flags).arg("--maps").arg(&maps).arg("--sequence").arg(&sequence);
         bad.arg("--out").arg(root.path().join("bad")).arg("--models").arg(default_model());
-        if flags[0] == "--first" {
+        if flags[0] != "--id" {
             bad.args(["--id", "drive"]);
         }
         let output = bad.output().unwrap();
