@@ -166,7 +166,7 @@ async fn track_a_drive_offline_and_over_http() {
     check_outputs(&sequence, &out, &summary, frames);
     // A region the store does not hold, frames the sequence does not have, or more starts per
     // tracked frame than a request may have: a clear error.
-    let cases = [(["--id", "nowhere"], "nowhere"), (["--first", "100"], "no frames from 100"), (["--tracked-hypotheses", "4"], "= 20 starts per tracked frame: at most 16")];
+    let cases = [(["--id", "nowhere"], "nowhere"), (["--first", "100"], "no frames from 100"), (["--tracked-hypotheses", "4"], "--tracked-hypotheses and --tracked-axis-starts: 4 hypotheses × (2·2 axis starts + 1) = 20 starts: at most 16 per tracked frame")];
     for (flags, needle) in cases {
         let mut bad = cmr_agent();
         bad.args(["track"]).args(flags).arg("--maps").arg(&maps).arg("--sequence").arg(&sequence);

@@ -168,8 +168,8 @@ impl<T: Send> Batch<T> {
                 r.failed = Some(StepError::NonFinite(format!("the policy answered non-finite values for hypothesis {h}")));
                 continue;
             }
-            let map = r.search.map_of(h).clone();
-            r.search.episodes[h].advance(&map, &self.actions, logits, output.value[slot]);
+            let (episode, map) = r.search.episodes_with_maps().nth(h).expect("a running hypothesis");
+            episode.advance(map, &self.actions, logits, output.value[slot]);
         }
     }
 
@@ -183,8 +183,7 @@ impl<T: Send> Batch<T> {
         let mut jobs = Vec::with_capacity(rows.len());
         for (i, r) in self.running.iter_mut().enumerate() {
             let wanted: Vec<usize> = rows.iter().filter(|(j, _)| *j == i).map(|(_, h)| *h).collect();
-            let maps: Vec<Arc<PreparedMap>> = (0..r.search.episodes.len()).map(|h| r.search.map_of(h).clone()).collect();
-            for ((h, episode), map) in r.search.episodes.iter_mut().enumerate().zip(maps) {
+            for (h, (episode, map)) in r.search.episodes_with_maps().enumerate() {
                 if wanted.contains(&h) {
                     let (s2, s3) = (slots_2d.next().expect("one slot per row"), slots_3d.next().expect("one slot per row"));
                     jobs.push((i, map, episode, s2, s3));
@@ -196,7 +195,7 @@ impl<T: Send> Batch<T> {
             .into_par_iter()
             .map(|(i, map, episode, s2, s3)| {
                 let t = Instant::now();
-                pool.with(|scratch| episode.write_state(&map, layout, scratch, s2, s3));
+                pool.with(|scratch| episode.write_state(map, layout, scratch, s2, s3));
                 (i, ms(t))
             })
             .collect();

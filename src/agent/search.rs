@@ -217,14 +217,9 @@ impl SearchConfig {
     }
 
     /// The first round's starts: `hypotheses` (at most [`MAX_HYPOTHESES`]) for each prior along
-    /// the axis (one without axis starts).
+    /// the axis ([`AxisStarts::groups`]; one without axis starts).
     pub fn starts(&self) -> usize {
-        self.hypotheses.clamp(1, MAX_HYPOTHESES) * self.axis_groups()
-    }
-
-    /// Priors searched along the optical axis: [`AxisStarts::groups`].
-    pub fn axis_groups(&self) -> usize {
-        self.axis.groups()
+        self.hypotheses.clamp(1, MAX_HYPOTHESES) * self.axis.groups()
     }
 
     /// Whether the refinement round runs: `refine`, for a multi-start search (the paper's single
@@ -700,15 +695,15 @@ pub struct Search {
 }
 
 impl Search {
-    /// `maps`, each with its `evidence`: one, or one per prior along the axis
-    /// (`SearchConfig::axis_groups`, in `AxisStarts::priors` order). `frame`: the model's action
+    /// `maps`, each with its `evidence`: one, or one per prior along the axis (in
+    /// `AxisStarts::priors` order). `frame`: the model's action
     /// frame, which the starts' turns follow.
     pub fn new(evidence: Vec<ImageEvidence>, maps: Vec<Arc<PreparedMap>>, prior: Pose, config: SearchConfig, frame: ActionFrame) -> Self {
         assert!(!maps.is_empty() && evidence.len() == maps.len(), "one evidence per map");
         let evidence: Vec<Arc<ImageEvidence>> = evidence.into_iter().map(Arc::new).collect();
         let max_iterations = config.max_iterations;
         let hypotheses = config.hypotheses.clamp(1, MAX_HYPOTHESES);
-        let bases = if config.axis_groups() > 1 { config.axis.priors(&prior) } else { vec![(0.0, prior)] };
+        let bases = config.axis.priors(&prior);
         assert!(maps.len() == 1 || maps.len() == bases.len(), "one map, or one per prior along the axis");
         let (mut episodes, mut offsets, mut shifts, mut scenes) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let mut yaws_per_group = 0;
@@ -751,16 +746,16 @@ impl Search {
         }
     }
 
-    /// The map episode `h` localizes in.
-    pub fn map_of(&self, h: usize) -> &Arc<PreparedMap> {
-        &self.maps[self.scenes[h]]
+    /// Every episode, in order, with the map it localizes in.
+    pub fn episodes_with_maps(&mut self) -> impl Iterator<Item = (&mut Episode, &PreparedMap)> {
+        let (maps, scenes) = (&self.maps, &self.scenes);
+        self.episodes.iter_mut().zip(scenes).map(move |(episode, &m)| (episode, &*maps[m]))
     }
 
-    /// Scores the last pose of every episode in `range` that has not been scored yet.
-    fn settle(&mut self, range: std::ops::Range<usize>, layout: &StateLayout, scratch: &mut ScatterScratch) {
-        for h in range {
-            let map = &self.maps[self.scenes[h]];
-            self.episodes[h].settle(map, layout, scratch);
+    /// Scores the last pose of each of the first `count` episodes that has not been scored yet.
+    fn settle(&mut self, count: usize, layout: &StateLayout, scratch: &mut ScatterScratch) {
+        for (episode, map) in self.episodes_with_maps().take(count) {
+            episode.settle(map, layout, scratch);
         }
     }
 
@@ -806,7 +801,7 @@ impl Search {
             return;
         }
         self.narrow_after = None;
-        self.settle(0..self.first_round, layout, scratch);
+        self.settle(self.first_round, layout, scratch);
         for group in self.episodes[..self.first_round].chunks_mut(self.group_len) {
             let leader = best_of(group.iter().map(Episode::alignment));
             for (h, episode) in group.iter_mut().enumerate() {
@@ -820,7 +815,7 @@ impl Search {
     /// [`REFINE_BOUND`], in the answer's map.
     fn start_refinement(&mut self, layout: &StateLayout, scratch: &mut ScatterScratch) {
         self.refine_pending = false;
-        self.settle(0..self.episodes.len(), layout, scratch);
+        self.settle(self.episodes.len(), layout, scratch);
         let hypotheses: Vec<Hypothesis> = (0..self.episodes.len()).map(|h| self.hypothesis(h, false, self.episodes[h].steps.clone())).collect();
         let chosen = first_round_answer(&hypotheses, &self.prior, self.rules, self.axis_margin, self.max_iterations);
         let answer = chosen.pose(&hypotheses).0;
@@ -873,7 +868,7 @@ impl Search {
     /// The polished choice's candidates climb on several threads (scatter buffers from `pool`);
     /// every pose and score is the same whatever the threads.
     pub fn finish(mut self, layout: &StateLayout, pool: &ScratchPool, mut timings: Timings) -> Localization {
-        pool.with(|scratch| self.settle(0..self.episodes.len(), layout, scratch));
+        pool.with(|scratch| self.settle(self.episodes.len(), layout, scratch));
         let hypotheses: Vec<Hypothesis> = (0..self.episodes.len())
             .map(|h| {
                 let steps = std::mem::take(&mut self.episodes[h].steps);

@@ -152,15 +152,8 @@ pub fn run(args: TrackArgs) -> Result<()> {
     if file_indices.is_empty() {
         bail!("{}: no frames from {} on", args.sequence.display(), args.first);
     }
-    let tracked_starts = args.tracked_hypotheses as usize * (2 * args.tracked_axis_starts as usize + 1);
-    if tracked_starts > crate::agent::MAX_HYPOTHESES {
-        bail!(
-            "--tracked-hypotheses {} × (2·--tracked-axis-starts {} + 1) = {tracked_starts} starts per tracked frame: at most {}",
-            args.tracked_hypotheses,
-            args.tracked_axis_starts,
-            crate::agent::MAX_HYPOTHESES
-        );
-    }
+    let tracked = crate::agent::SearchTuning { axis_starts: args.tracked_axis_starts, ..args.engine.search };
+    tracked.check(args.tracked_hypotheses).map_err(|e| anyhow!("--tracked-hypotheses and --tracked-axis-starts: {e} per tracked frame"))?;
     let frames = file_indices.iter().map(|&i| sequence.frame(i)).collect::<Result<Vec<_>>>()?;
     let truth = file_indices.iter().map(|&i| sequence.camera_from_map(i)).collect::<Result<Vec<_>>>()?;
     let config = TrackConfig {

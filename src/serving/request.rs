@@ -266,13 +266,9 @@ impl ValidLocalizeRequest {
         let search = SearchConfig { prior_bound, prior_margin: if stated { tuned.prior_margin } else { 0.0 }, axis, ..tuned };
         if search.starts() > MAX_HYPOTHESES {
             let each_way = search.axis.each_way;
-            return Err(invalid("axis_starts", format!("hypotheses × (2·each_way + 1) must be at most {MAX_HYPOTHESES}, got {hypotheses} × {} (each_way {each_way})", search.axis_groups())));
+            return Err(invalid("axis_starts", format!("hypotheses × (2·each_way + 1) must be at most {MAX_HYPOTHESES}, got {hypotheses} × {} (each_way {each_way})", search.axis.groups())));
         }
-        let crops = match (tiled, search.axis_groups()) {
-            (false, _) => Vec::new(),
-            (true, 1) => vec![crop_around(&prior)],
-            (true, _) => search.axis.priors(&prior).iter().map(|(_, p)| crop_around(p)).collect(),
-        };
+        let crops = if tiled { search.axis.priors(&prior).iter().map(|(_, p)| crop_around(p)).collect() } else { Vec::new() };
         Ok(Self { map, intrinsics, frame, prior: frame.camera_from_local(&prior), prior_source, search, crops })
     }
 }
