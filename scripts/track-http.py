@@ -4,7 +4,8 @@
 The same loop as `cmr-agent track` (src/track/mod.rs), over HTTP: the first frame is localized
 with the full search from a coarse prior (the truth moved --prior-noise-m in the ground plane and
 turned --prior-noise-deg about the vertical), every later frame from the previous estimate moved
-by a constant-velocity prediction with a small search (--tracked-hypotheses starts,
+by a constant-velocity prediction (the last measured motion per frame: steps from a dead-reckoned
+frame, or into a fallback after a tracked frame, are corrections, not motion) with a small search (--tracked-hypotheses starts,
 --tracked-iterations steps) from the prediction and from it moved along its optical axis by
 +-k * --tracked-axis-step-m, k = 1..--tracked-axis-starts, in one request (its `axis_starts`:
 the server keeps the answer with the highest alignment score, the prediction's own with
@@ -129,8 +130,26 @@ def coarse_prior(truth, noise_m, noise_deg, rng):
     return perturbed(truth, noise_m, direction, yaw)
 
 
-def predict(before_last, last):
-    return last if before_last is None else mul(mul(last, inv(before_last)), last)
+def predict(motion, last):
+    """The last estimate moved again by the camera's motion per frame (standing still without one)."""
+    return last if motion is None else mul(motion, last)
+
+
+def measures_motion(earlier, later):
+    """Whether the step between two consecutive frames' modes is motion, not a correction
+    (src/track/mod.rs, `measures_motion`)."""
+    if "dead_reckoning" in (earlier, later) or later == "cold":
+        return False
+    return later == "tracked" or earlier in ("cold", "fallback")
+
+
+def last_motion(modes, estimates):
+    """T_j T_{j-1}^-1 of the latest consecutive pair whose step is motion (src/track/mod.rs,
+    `last_motion`); None before there is one."""
+    for j in range(len(modes) - 1, 0, -1):
+        if measures_motion(modes[j - 1], modes[j]):
+            return mul(estimates[j], inv(estimates[j - 1]))
+    return None
 
 
 def along_axis(pose, d):
@@ -199,7 +218,7 @@ def main():
     if not frames:
         raise SystemExit(f"{args.sequence}: no frames from {args.first} on")
     rng = random.Random(args.seed)
-    rows, estimates = [], []
+    rows, estimates, modes = [], [], []
     for position, (index, path) in enumerate(frames):
         with open(path, "rb") as f:
             image_b64 = base64.b64encode(f.read()).decode()
@@ -210,7 +229,7 @@ def main():
             pose, answer, latency, _ = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
             mode, tracked_confidence, shift = "cold", None, None
         else:
-            prior = predict(estimates[-2] if position >= 2 else None, estimates[-1])
+            prior = predict(last_motion(modes, estimates), estimates[-1])
             axis = {"each_way": args.tracked_axis_starts, "step_m": args.tracked_axis_step_m, "margin": args.tracked_axis_margin}
             pose, answer, latency, shift = localize(
                 args.server, args.id, image_b64, seq["intrinsics"], prior, args.tracked_hypotheses, args.tracked_iterations, axis
@@ -224,6 +243,7 @@ def main():
                     pose, mode = prior, "dead_reckoning"
         confidence = answer["score"]
         estimates.append(pose)
+        modes.append(mode)
         est, gt = centre(pose), centre(truth)
         row = {
             "position": position, "frame": index, "mode": mode, "confidence": confidence,

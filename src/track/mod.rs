@@ -3,7 +3,9 @@
 //!
 //! - The first frame starts from a coarse prior (GNSS-like: [`coarse_prior`]) and runs the full
 //!   multi-start search (a cold localize).
-//! - Every later frame starts from the [`predict`]ed pose and runs a small search (by default
+//! - Every later frame starts from the [`predict`]ed pose (the last estimate moved by the last
+//!   measured motion per frame, [`last_motion`]: a step from a dead-reckoned frame, or into a
+//!   fallback after a tracked frame, is a correction, not motion) and runs a small search (by default
 //!   one start, three policy steps) from it and from it moved along its optical axis by
 //!   ±k·[`TrackConfig::axis_step_m`], k = 1..=[`TrackConfig::axis_starts`], in one request
 //!   (`agent::AxisStarts`: each shifted prior searched as a request of its own would be, the
@@ -159,17 +161,47 @@ pub struct TrackedFrame {
     pub axis_shift_m: Option<f64>,
 }
 
-/// Constant-velocity prediction of the next camera_from_map from the last two estimates
-/// (`before_last` = frame k−2, `last` = frame k−1): the camera moves again by the motion it made
-/// between them, in its own frame: T_k = (T_{k−1}·T_{k−2}⁻¹)·T_{k−1}. With one estimate only,
-/// the camera is predicted to stand still.
-pub fn predict(before_last: Option<&Pose>, last: &Pose) -> Pose {
-    match before_last {
+/// Constant-velocity prediction of the next camera_from_map: the last estimate moved again by
+/// the camera's `motion` per frame (M = T_j·T_{j−1}⁻¹ on camera_from_map, in the camera's own
+/// frame; [`last_motion`]): T_k = M·T_{k−1}. Without a measured motion the camera is predicted to
+/// stand still.
+pub fn predict(motion: Option<&Pose>, last: &Pose) -> Pose {
+    match motion {
         // Renormalised: a dead-reckoned drive composes predictions of predictions, and the
         // rotation's rounding error grows with every one (after 30 frames RᵀR was 1.2e-3 off the
         // identity, beyond what a request's prior may be).
-        Some(before) => last.compose(&before.inverse()).compose(last).renormalized(),
+        Some(motion) => motion.compose(last).renormalized(),
         None => *last,
+    }
+}
+
+/// The camera's motion per frame, T_j·T_{j−1}⁻¹, from the latest pair of consecutive frames whose
+/// estimates both answer the image and whose step is motion, not a correction ([`measures_motion`]);
+/// `None` before there is one (the camera is then predicted to stand still).
+///
+/// Why not simply the last two estimates: a dead-reckoned estimate is the prediction itself, so the
+/// step from it to the next answer carries every error the prediction piled up; and a fallback
+/// after a tracked frame is there because the prediction missed, so its step is mostly the
+/// correction of the frame before. Repeated as a velocity, such a jump ran the tracker away from
+/// the car (README drive seed 8: a 4.4 m correction became a 7.9 m miss the frame after, 20 m by
+/// frame 8; seed 9: a 16 m, 30° fallback correction became a turn of 27° per frame;
+/// docs/tracking.md, "A velocity from motion, not corrections").
+pub fn last_motion(done: &[TrackedFrame]) -> Option<Pose> {
+    done.windows(2)
+        .rev()
+        .find(|pair| measures_motion(pair[0].mode, pair[1].mode))
+        .map(|pair| pair[1].estimate.compose(&pair[0].estimate.inverse()))
+}
+
+/// Whether the step between two consecutive frames (modes `earlier`, `later`) measures the
+/// camera's motion: neither is dead-reckoned, and the later one is a tracked answer, or a
+/// fallback after a frame that was itself answered by the full search (cold or fallback).
+pub fn measures_motion(earlier: Mode, later: Mode) -> bool {
+    match (earlier, later) {
+        (Mode::DeadReckoning, _) | (_, Mode::DeadReckoning) | (_, Mode::Cold) => false,
+        (_, Mode::Tracked) => true,
+        (Mode::Cold | Mode::Fallback, Mode::Fallback) => true,
+        (Mode::Tracked, Mode::Fallback) => false,
     }
 }
 
@@ -208,9 +240,7 @@ pub fn track(
             let answer = localizer.localize(0, &first_prior, config.full, AxisStarts::NONE).with_context(at)?;
             tracked_frame(0, Mode::Cold, first_prior, &answer, None, answer.latency_ms)
         } else {
-            let last = &done[position - 1].estimate;
-            let before_last = position.checked_sub(2).map(|i| &done[i].estimate);
-            let prior = predict(before_last, last);
+            let prior = predict(last_motion(&done).as_ref(), &done[position - 1].estimate);
             let small = localizer.localize(position, &prior, config.tracked, config.axis()).with_context(at)?;
             let (shift, small_ms) = (small.axis_shift_m, small.latency_ms);
             // Where the answer's start lay: a fallback starts there too.
@@ -318,9 +348,9 @@ mod tests {
     #[test]
     fn a_long_chain_of_predictions_stays_a_rotation() {
         let truth = drive(2);
-        let (mut before, mut last) = (truth[0], truth[1]);
+        let (motion, mut last) = (truth[1].compose(&truth[0].inverse()), truth[1]);
         for _ in 0..200 {
-            (before, last) = (last, predict(Some(&before), &last));
+            last = predict(Some(&motion), &last);
         }
         Pose::from_matrix(&last.to_rows()).expect("a valid prior after 200 predictions");
     }
@@ -383,11 +413,48 @@ mod tests {
     #[test]
     fn constant_velocity_continues_the_last_motion() {
         let truth = drive(4);
-        let predicted = predict(Some(&truth[1]), &truth[2]);
+        let predicted = predict(Some(&truth[2].compose(&truth[1].inverse())), &truth[2]);
         // The drive's motion is constant, so the prediction is the next truth.
         let e = PoseError::between(&predicted, &truth[3]);
         assert!(e.rte_m < 1e-9 && e.rre_geodesic_deg < 1e-9, "{e:?}");
         assert_eq!(predict(None, &truth[2]), truth[2]);
+    }
+
+    /// The motion comes from the latest step between two answers that is not a correction: steps
+    /// from or to a dead-reckoned frame and into a fallback after a tracked frame are passed over.
+    #[test]
+    fn the_motion_is_measured_between_answers_not_across_corrections() {
+        let truth = drive(6);
+        let frame = |position: usize, mode: Mode, estimate: Pose| TrackedFrame {
+            position,
+            mode,
+            prior: estimate,
+            estimate,
+            confidence: 0.9,
+            verdict: Verdict::default(),
+            tracked_confidence: None,
+            iterations: 3,
+            latency_ms: 1.0,
+            axis_shift_m: None,
+        };
+        let step = |a: &Pose, b: &Pose| b.compose(&a.inverse());
+        let off = |pose: &Pose, metres: f64| pose.compose(&Pose::ground_motion(0.0, metres, 0.0).inverse());
+        let mut done = vec![frame(0, Mode::Cold, truth[0])];
+        assert_eq!(last_motion(&done), None, "one estimate: standing still");
+        done.push(frame(1, Mode::Tracked, truth[1]));
+        let walked = step(&truth[0], &truth[1]);
+        assert_eq!(last_motion(&done), Some(walked));
+        // A dead-reckoned frame 4 m off, then the fallback that corrects it: neither step is motion.
+        done.push(frame(2, Mode::DeadReckoning, off(&truth[2], 4.0)));
+        done.push(frame(3, Mode::Fallback, truth[3]));
+        assert_eq!(last_motion(&done), Some(walked));
+        done.push(frame(4, Mode::Tracked, truth[4]));
+        assert_eq!(last_motion(&done), Some(step(&truth[3], &truth[4])));
+        // A fallback after a tracked frame corrects it; fallbacks in a row are motion again.
+        done.push(frame(5, Mode::Fallback, off(&truth[5], -3.0)));
+        assert_eq!(last_motion(&done), Some(step(&truth[3], &truth[4])));
+        assert!(measures_motion(Mode::Fallback, Mode::Fallback) && measures_motion(Mode::Cold, Mode::Fallback));
+        assert!(!measures_motion(Mode::Tracked, Mode::Fallback) && !measures_motion(Mode::Fallback, Mode::DeadReckoning));
     }
 
     #[test]
