@@ -405,6 +405,48 @@ async fn large_region_refusals_name_the_rule_and_change_nothing() {
     server.stop().await;
 }
 
+/// A tiled region's `<id>.emb` holds per-point embeddings only for a server that reads them
+/// (`--crop-embeddings stored`); the default server encodes every crop itself, so its file is the
+/// cell table and the points alone (no point-encoder pass over the region at upload). A stored-mode
+/// server given such a file computes the embeddings once and answers; an encode-mode server
+/// takes a file with embeddings as it is.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tiled_region_stores_embeddings_only_where_crops_read_them() {
+    let bin = cmr_agent::maps::formats::write_kitti_bin(&street_cloud());
+    let maps = tempfile::tempdir().unwrap();
+    let emb_bytes = || std::fs::metadata(maps.path().join("yard.emb")).unwrap().len();
+    let tiled = ["--tile-above-points", "5000"];
+    let server = TestServer::start(&tiny_model(), maps.path(), &tiled).await;
+    let r = server.client.put(server.url("/v1/maps/yard?voxel_m=0.05")).body(bin).send().await.unwrap();
+    assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+    let summary: serde_json::Value = server.client.get(server.url("/v1/maps/yard")).send().await.unwrap().json().await.unwrap();
+    let (points, cells) = (summary["num_points"].as_u64().unwrap(), summary["tiles"].as_u64().unwrap());
+    assert!(points > 5000 && cells >= 2, "{summary}");
+    // Header, cell table, points: no embeddings.
+    let bare = 184 + cells * 24 + points * 12;
+    assert_eq!((emb_bytes(), summary["memory"]["embeddings_file_bytes"].as_u64()), (bare, Some(bare)));
+    let mut request = kitti_request(2);
+    request["prior_camera_from_map"] = serde_json::json!(rig_matrix());
+    request["radius_m"] = serde_json::json!(30.0);
+    let (status, encoded, _) = server.localize("yard", &request).await;
+    assert_eq!(status, 200, "{encoded}");
+    server.stop().await;
+
+    let mut stored = tiled.to_vec();
+    stored.extend(["--crop-embeddings", "stored"]);
+    let server = TestServer::start(&tiny_model(), maps.path(), &stored).await;
+    let (status, body, _) = server.localize("yard", &request).await;
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(emb_bytes(), bare + points * 64 * 2, "float16 embeddings added for the stored crops");
+    server.stop().await;
+
+    let server = TestServer::start(&tiny_model(), maps.path(), &tiled).await;
+    let (status, again, _) = server.localize("yard", &request).await;
+    assert_eq!((status, &again["camera_from_map"]), (200, &encoded["camera_from_map"]), "{again}");
+    assert_eq!(emb_bytes(), bare + points * 64 * 2, "a file with embeddings serves encoded crops as it is");
+    server.stop().await;
+}
+
 /// A 10 M-point region through a real `cmr-agent serve` process: upload (tiled encode) and
 /// localizes keep the server's peak RSS (VmHWM) under 1.5 GB. Slow (minutes): run with
 /// `cargo test --release --test fleet_maps -- --ignored --nocapture`.

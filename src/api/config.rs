@@ -93,9 +93,10 @@ pub struct EngineArgs {
     /// Most points an uploaded map file may hold (before any `voxel_m` downsampling); more is 413.
     #[arg(long, env = "CMR_MAX_MAP_POINTS", default_value_t = 10_000_000)]
     pub max_map_points: usize,
-    /// Regions with more points than this are tiled: embeddings computed once per 20 m ground
-    /// cell at upload (stored as float16, memory-mapped), and each localize uses the points
-    /// within `radius_m` of its prior. Smaller regions are sampled whole, as one scan.
+    /// Regions with more points than this are tiled: grouped into 20 m ground cells at upload
+    /// (`<id>.emb`, memory-mapped; with `--crop-embeddings stored` also each point's float16
+    /// embedding), and each localize uses the points within `radius_m` of its prior. Smaller
+    /// regions are sampled whole, as one scan.
     #[arg(long, env = "CMR_TILE_ABOVE_POINTS", default_value_t = 300_000)]
     pub tile_above_points: usize,
     /// Default crop radius of a localize in a tiled region, metres: the virtual scan from the
@@ -104,7 +105,8 @@ pub struct EngineArgs {
     #[arg(long, env = "CMR_DEFAULT_RADIUS_M", default_value_t = 60.0)]
     pub default_radius_m: f64,
     /// Where a tiled region's crop gets its embeddings: `encode` (the point encoder on each
-    /// request's crop) or `stored` (the per-tile float16 embeddings computed at upload).
+    /// request's crop; the region's file then holds no embeddings) or `stored` (per-tile float16
+    /// embeddings computed at upload, or when this server first reads a region stored without).
     #[arg(long, env = "CMR_CROP_EMBEDDINGS", value_enum, default_value_t = CropEmbeddings::Encode)]
     pub crop_embeddings: CropEmbeddings,
     /// Largest accepted image width or height, pixels.

@@ -318,7 +318,7 @@ pub struct MapSummary {
     /// Whether the region is tiled (more points than one scan: a localize crops `radius_m`
     /// around its prior, and needs one).
     pub tiled: bool,
-    /// Ground cells with embeddings (1 for a whole region; 0 when none are stored yet).
+    /// Ground cells stored in `<id>.emb` (1 for a whole region; 0 when it is not written yet).
     pub tiles: usize,
     pub memory: MapMemory,
 }
@@ -329,8 +329,9 @@ pub struct MapMemory {
     /// Heap held by the prepared-map cache for it now (a tiled region's embeddings are
     /// memory-mapped, not heap: only its cell table counts).
     pub cache_bytes: u64,
-    /// Bytes of `<id>.emb` (embeddings, float32 for a whole region's sample, float16 per point
-    /// for a tiled one); 0 when absent.
+    /// Bytes of `<id>.emb` (a whole region's sample with float32 embeddings; a tiled one's cell
+    /// table and points, with float16 embeddings per point only for `--crop-embeddings stored`);
+    /// 0 when absent.
     pub embeddings_file_bytes: u64,
 }
 
@@ -372,6 +373,8 @@ pub struct RegisterResponse {
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct RegisterTimingsMs {
     pub parse: f64,
+    /// A whole region's point-encoder pass; for a tiled region, grouping its points into cells
+    /// (and, with `--crop-embeddings stored`, encoding them).
     pub point_encoder: f64,
     pub store: f64,
     pub total: f64,

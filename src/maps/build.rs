@@ -203,8 +203,9 @@ pub fn build(args: &BuildArgs) -> Result<BuildSummary> {
 
 /// Stores the PLY bytes `ply` as region `id` of the store in `dir` (created if missing), as
 /// `PUT /v1/maps/{id}` would store them: [`super::ingest`] (default origin, no voxel), then
-/// stage and commit with `metadata`, each file atomic. No embeddings are written: `serve` and
-/// `track` compute them when they first prepare the region. Returns the entry and whether it
+/// stage and commit with `metadata`, each file atomic. No `<id>.emb` is written (it depends on the
+/// model set): `serve` and `track` write it when they first prepare the region (a tiled region's
+/// cell table and points, about a second for 2.5 M points). Returns the entry and whether it
 /// replaced a region.
 fn store_region(dir: &Path, id: &str, ply: &[u8], metadata: MapMetadata, max_points: usize) -> Result<(MapEntry, bool)> {
     let (store, warnings) = MapStore::open(dir).map_err(|e| anyhow!("{e}"))?;

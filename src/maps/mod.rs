@@ -183,6 +183,13 @@ impl Maps {
         }
     }
 
+    /// Whether a tiled region's file must hold embeddings: only when crops read them
+    /// (`CropEmbeddings::Stored`); a server that encodes every crop needs the cell table and the
+    /// points alone.
+    fn needs_tile_embeddings(&self) -> bool {
+        self.config.crop_embeddings == CropEmbeddings::Stored
+    }
+
     /// Whether a region of `num_points` points is tiled.
     pub fn is_tiled(&self, num_points: usize) -> bool {
         num_points > self.config.tile_above_points
@@ -204,7 +211,7 @@ impl Maps {
         let (cloud, source_sha, _) = self.store.read_cloud(id)?;
         self.prepared_from.lock().expect("prepared_from").insert(id.to_string(), source_sha.clone());
         if self.is_tiled(cloud.len()) {
-            if let Some(tiled) = self.store.load_tiles(id, &self.model_sha, &source_sha, self.config.tiles) {
+            if let Some(tiled) = self.store.load_tiles(id, &self.model_sha, &source_sha, self.config.tiles, self.needs_tile_embeddings()) {
                 self.loaded_from_disk.fetch_add(1, Ordering::Relaxed);
                 metrics::counter!("cmr_embeddings_loaded_total").increment(1);
                 return Ok(Prepared::Tiled(Arc::new(tiled)));
@@ -214,7 +221,7 @@ impl Maps {
             emb.commit().map_err(|e| MapError::Io(e.to_string()))?;
             self.computed.fetch_add(1, Ordering::Relaxed);
             metrics::counter!("cmr_embeddings_computed_total").increment(1);
-            let tiled = self.store.load_tiles(id, &self.model_sha, &source_sha, self.config.tiles).ok_or_else(|| MapError::Io(format!("{id}.emb: cannot read back the tiles just written")))?;
+            let tiled = self.store.load_tiles(id, &self.model_sha, &source_sha, self.config.tiles, self.needs_tile_embeddings()).ok_or_else(|| MapError::Io(format!("{id}.emb: cannot read back the tiles just written")))?;
             return Ok(Prepared::Tiled(Arc::new(tiled)));
         }
         // A registration's own file may still be queued (evicted right after it was made).
@@ -269,8 +276,8 @@ impl Maps {
     fn encode_tiles(&self, cloud: &[[f32; 3]], source_sha: &str, out: &mut dyn std::io::Write) -> Result<tiles::BuildStats, MapError> {
         let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
         let t = Instant::now();
-        let stats = tiles::build(encoder.as_mut(), cloud, self.config.tiles, &self.model_sha, source_sha, out).map_err(|e| MapError::Inference(format!("{e:#}")))?;
-        tracing::info!(points = stats.points, cells = stats.cells, passes = stats.passes, ms = ms(t), "encoded a tiled region");
+        let stats = tiles::build(encoder.as_mut(), cloud, self.config.tiles, self.needs_tile_embeddings(), &self.model_sha, source_sha, out).map_err(|e| MapError::Inference(format!("{e:#}")))?;
+        tracing::info!(points = stats.points, cells = stats.cells, encoder_passes = stats.passes, ms = ms(t), "tiled a region");
         Ok(stats)
     }
 
@@ -310,7 +317,7 @@ impl Maps {
                 self.cache.insert(id, Prepared::Whole(prepared.clone()));
                 self.writer.submit(id, prepared, &self.model_sha, &entry.source_sha256);
             }
-            None => match self.store.load_tiles(id, &self.model_sha, &entry.source_sha256, self.config.tiles) {
+            None => match self.store.load_tiles(id, &self.model_sha, &entry.source_sha256, self.config.tiles, self.needs_tile_embeddings()) {
                 Some(tiled) => self.cache.insert(id, Prepared::Tiled(Arc::new(tiled))),
                 None => self.cache.invalidate(id),
             },

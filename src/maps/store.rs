@@ -453,10 +453,15 @@ impl MapStore {
     }
 
     /// The persisted tiles of a large region, memory-mapped, when they match this model, the
-    /// stored cloud and `config`.
-    pub fn load_tiles(&self, id: &str, model_sha: &str, source_sha: &str, config: super::tiles::TileConfig) -> Option<super::tiles::TiledMap> {
-        match super::tiles::TiledMap::open(&self.path(id, "emb"), model_sha, source_sha) {
-            Ok(Some(t)) if t.config == config => Some(t),
+    /// stored cloud and `config`, and hold embeddings when `embeddings` (a file of points alone
+    /// serves a server that encodes its crops).
+    pub fn load_tiles(&self, id: &str, model_sha: &str, source_sha: &str, config: super::tiles::TileConfig, embeddings: bool) -> Option<super::tiles::TiledMap> {
+        let path = self.path(id, "emb");
+        if !path.exists() {
+            return None; // not written yet (`map build --store` leaves it to the first reader)
+        }
+        match super::tiles::TiledMap::open(&path, model_sha, source_sha) {
+            Ok(Some(t)) if t.config == config && (t.d > 0 || !embeddings) => Some(t),
             Ok(_) => None,
             Err(e) => {
                 tracing::warn!("{id}.emb: {e:#}; recomputing");

@@ -151,12 +151,15 @@ fn sample_indices(candidates: &[u32], n: usize, seed: u64) -> Vec<u32> {
     out
 }
 
-/// Encodes a region (`points` in its local frame) tile by tile and writes the `CMRTIL01` file to
-/// `out`. Memory: the points twice (as given and grouped by cell), a cell's context indices and
-/// one encoder pass. Errors: the encoder's, or the writer's.
-pub fn build(backend: &mut dyn Backend, points: &[[f32; 3]], config: TileConfig, model_sha: &str, source_sha: &str, out: &mut dyn Write) -> Result<BuildStats> {
+/// Groups a region (`points` in its local frame) into tiles and writes the `CMRTIL01` file to
+/// `out`; with `embeddings`, each tile's points are encoded too (D = the model's feature size),
+/// else the file holds the cell table and the points only (D = 0: what a server that encodes
+/// every crop itself, `CropEmbeddings::Encode`, reads, without a point-encoder pass over the
+/// whole region). Memory: the points twice (as given and grouped by cell), a cell's context
+/// indices and one encoder pass. Errors: the encoder's, or the writer's.
+pub fn build(backend: &mut dyn Backend, points: &[[f32; 3]], config: TileConfig, embeddings: bool, model_sha: &str, source_sha: &str, out: &mut dyn Write) -> Result<BuildStats> {
     let n = backend.manifest().points.num_points;
-    let d = backend.manifest().features.dim;
+    let d = if embeddings { backend.manifest().features.dim } else { 0 };
     if points.is_empty() {
         bail!("the region has no points");
     }
@@ -200,11 +203,15 @@ pub fn build(backend: &mut dyn Backend, points: &[[f32; 3]], config: TileConfig,
         }
     }
 
+    let mut stats = BuildStats { points: sorted.len(), cells: cells.len(), passes: 0 };
+    if !embeddings {
+        out.flush()?;
+        return Ok(stats);
+    }
     let core_max = (n / 2).max(1);
     let mut context = Vec::new();
     let mut input: Vec<[f32; 3]> = Vec::with_capacity(n);
     let mut row = vec![0u8; core_max * d * 2];
-    let mut stats = BuildStats { points: sorted.len(), cells: cells.len(), passes: 0 };
     for (k, cell) in cells.iter().enumerate() {
         let centre = [(cell.ix as f64 + 0.5) * config.tile_m, (cell.iy as f64 + 0.5) * config.tile_m];
         within(&lookup, |i| sorted[i], config.tile_m, centre, config.context_m, &mut context);
@@ -239,6 +246,7 @@ pub struct TiledMap {
     map: memmap2::Mmap,
     cells: HashMap<(i32, i32), Cell>,
     pub n: usize,
+    /// Features per stored embedding; 0 when the file holds no embeddings ([`build`] without).
     pub d: usize,
     pub points: usize,
     pub config: TileConfig,
@@ -383,7 +391,7 @@ mod tests {
         let path = dir.path().join("r.emb");
         let mut file = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
         let config = TileConfig { tile_m: 10.0, context_m: 12.0 };
-        let stats = build(&mut backend, &points, config, "aa", "bb", &mut file).unwrap();
+        let stats = build(&mut backend, &points, config, true, "aa", "bb", &mut file).unwrap();
         drop(file);
         assert_eq!((stats.points, stats.cells), (900, 6));
         assert!(stats.passes >= 6);
@@ -406,5 +414,21 @@ mod tests {
         assert_eq!(tiled.around([15.0, 10.0, 1.0], 6.0, 10, false).unwrap().points, crop.points, "deterministic");
         let sparse = tiled.around([500.0, 500.0, 1.0], 40.0, 10, true).unwrap_err();
         assert_eq!(sparse.found, 0);
+
+        // Without embeddings: no encoder pass, the cell table and points alone (D = 0), and the
+        // same crops to the bit.
+        let bare = dir.path().join("bare.emb");
+        let mut file = std::io::BufWriter::new(std::fs::File::create(&bare).unwrap());
+        let stats = build(&mut backend, &points, config, false, "aa", "bb", &mut file).unwrap();
+        drop(file);
+        assert_eq!((stats.points, stats.cells, stats.passes), (900, 6, 0));
+        let points_only = TiledMap::open(&bare, "aa", "bb").unwrap().unwrap();
+        assert_eq!((points_only.d, points_only.points, points_only.cells(), points_only.n), (0, 900, 6, 64));
+        assert_eq!(points_only.file_bytes(), HEADER + 6 * CELL_BYTES + 900 * 12);
+        assert_eq!(points_only.file_bytes() + 900 * tiled.d * 2, tiled.file_bytes());
+        for sensor in [[15.0, 10.0, 1.0], [3.0, 4.0, 0.5], [28.0, 18.0, 2.0]] {
+            let (a, b) = (points_only.around(sensor, 9.0, 10, false).unwrap(), tiled.around(sensor, 9.0, 10, false).unwrap());
+            assert_eq!((a.points, a.source_points), (b.points, b.source_points));
+        }
     }
 }
