@@ -164,7 +164,9 @@ def along_axis(pose, d):
 
 
 def localize(server, map_id, image_b64, intrinsics, prior, hypotheses, iterations, axis_starts=None):
-    """(pose, confidence, latency in ms, the answer's start's shift along the axis in metres)."""
+    """(pose, confidence, latency in ms, the answer's start's shift along the axis in metres), or
+    None when the server refuses the request's values (422: in a drive, the prior or a start along
+    its axis outside the region, or too few points around it; `cmr-agent track` does the same)."""
     request = {
         "image": image_b64,
         "intrinsics": intrinsics,
@@ -181,7 +183,11 @@ def localize(server, map_id, image_b64, intrinsics, prior, hypotheses, iteration
         with urllib.request.urlopen(request, timeout=60) as response:
             answer = json.load(response)
     except urllib.error.HTTPError as e:
-        raise SystemExit(f"localize failed: HTTP {e.code}: {e.read().decode(errors='replace')}")
+        detail = e.read().decode(errors="replace")
+        if e.code == 422:
+            print(f"refused: {detail}", file=sys.stderr)
+            return None
+        raise SystemExit(f"localize failed: HTTP {e.code}: {detail}")
     latency_ms = (time.perf_counter() - started) * 1000.0
     shift = answer["hypotheses"][answer["chosen_hypothesis"]]["start_axis_shift_m"]
     return answer["pose"]["camera_from_map"], answer["confidence"], latency_ms, shift
@@ -226,21 +232,28 @@ def main():
         full = (args.full_hypotheses, args.full_iterations)
         if position == 0:
             prior = coarse_prior(truth, args.prior_noise_m, args.prior_noise_deg, rng)
-            pose, answer, latency, _ = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
+            first = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, *full)
+            if first is None:
+                raise SystemExit("the first frame's prior was refused (outside the mapped area?)")
+            pose, answer, latency, _ = first
             mode, tracked_confidence, shift = "cold", None, None
         else:
             prior = predict(last_motion(modes, estimates), estimates[-1])
             axis = {"each_way": args.tracked_axis_starts, "step_m": args.tracked_axis_step_m, "margin": args.tracked_axis_margin}
-            pose, answer, latency, shift = localize(
-                args.server, args.id, image_b64, seq["intrinsics"], prior, args.tracked_hypotheses, args.tracked_iterations, axis
-            )
-            start = along_axis(prior, shift)
-            mode, tracked_confidence = "tracked", answer["score"]
-            if answer["score"] < args.fallback_below or trusted(answer) is False:
-                pose, answer, more, _ = localize(args.server, args.id, image_b64, seq["intrinsics"], start, *full)
-                mode, latency = "fallback", latency + more
-                if trusted(answer) is False:
+            small = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, args.tracked_hypotheses, args.tracked_iterations, axis)
+            mode, tracked_confidence, shift, start, latency = "tracked", None, None, prior, 0.0
+            if small is not None:
+                pose, answer, latency, shift = small
+                start, tracked_confidence = along_axis(prior, shift), answer["score"]
+            if small is None or answer["score"] < args.fallback_below or trusted(answer) is False:
+                again = localize(args.server, args.id, image_b64, seq["intrinsics"], start, *full)
+                mode = "fallback"
+                if again is not None:
+                    pose, answer, more, _ = again
+                    latency += more
+                if again is None or trusted(answer) is False:
                     pose, mode = prior, "dead_reckoning"
+                    answer = answer if again is not None else {"score": 0.0, "p_registered": None, "localized": False}
         confidence = answer["score"]
         estimates.append(pose)
         modes.append(mode)

@@ -18,7 +18,7 @@ use crate::kitti::{Frame, Sequence};
 use crate::maps::{MapError, MapStore};
 use crate::agent::AxisStarts;
 use crate::serving::request::AxisStartsBody;
-use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeRequest};
+use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeError, LocalizeRequest};
 use crate::track::output::TrackRun;
 use crate::track::{FrameAnswer, FrameLocalizer, SearchSize, TrackConfig, coarse_prior, cold_reference, spread, track};
 
@@ -103,7 +103,10 @@ struct StoredRegion<'a> {
 }
 
 impl FrameLocalizer for StoredRegion<'_> {
-    fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize, axis: AxisStarts) -> Result<FrameAnswer> {
+    /// `Ok(None)` for a request the localize path refuses for its values (`LocalizeError::Invalid`,
+    /// the server's 422: in a drive, a prior or a start along its axis outside the region or with
+    /// too few points around it), logged as a warning.
+    fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize, axis: AxisStarts) -> Result<Option<FrameAnswer>> {
         let frame = &self.frames[position];
         let bytes = std::fs::read(&frame.image_path).with_context(|| format!("reading {}", frame.image_path.display()))?;
         let k = frame.intrinsics;
@@ -119,13 +122,17 @@ impl FrameLocalizer for StoredRegion<'_> {
             axis_starts: (axis.each_way > 0).then_some(AxisStartsBody { each_way: axis.each_way as u32, step_m: Some(axis.step_m), margin: Some(axis.margin as f64) }),
         };
         let started = std::time::Instant::now();
-        let done = self
-            .offline
-            .localize(self.id, &request, ImagePayload::Raw(Bytes::from(bytes)))
-            .map_err(|e| anyhow!("frame {} ({}): {e}", frame.index, frame.image_path.display()))?;
+        let done = match self.offline.localize(self.id, &request, ImagePayload::Raw(Bytes::from(bytes))) {
+            Ok(done) => done,
+            Err(LocalizeError::Invalid(why)) => {
+                tracing::warn!(frame = frame.index, "refused: {why}");
+                return Ok(None);
+            }
+            Err(e) => bail!("frame {} ({}): {e}", frame.index, frame.image_path.display()),
+        };
         let latency_ms = crate::agent::ms(started);
         let loc = &done.localization;
-        Ok(FrameAnswer {
+        Ok(Some(FrameAnswer {
             camera_from_map: loc.camera_from_map(),
             confidence: loc.confidence.score,
             alignment: loc.confidence.alignment,
@@ -133,7 +140,7 @@ impl FrameLocalizer for StoredRegion<'_> {
             iterations: loc.answer_steps().len(),
             axis_shift_m: loc.best().start_axis_shift_m,
             latency_ms,
-        })
+        }))
     }
 }
 

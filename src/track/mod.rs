@@ -106,8 +106,12 @@ pub struct FrameAnswer {
 
 /// Localizes frame `position` (0-based position in the drive, not the file index) from `prior`
 /// with a search of `search`'s size and `axis`'s starts along the optical axis (one request).
+/// `Ok(None)`: the localizer refused the prior itself (the server's 422 for a request's values:
+/// e.g. the prior, or a start along its axis, outside the mapped area or its crop too sparse),
+/// which a drifting track can reach; the tracker goes on without that search. `Err`: anything
+/// else (unreadable frame, model failure), which stops the drive.
 pub trait FrameLocalizer {
-    fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize, axis: AxisStarts) -> anyhow::Result<FrameAnswer>;
+    fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize, axis: AxisStarts) -> anyhow::Result<Option<FrameAnswer>>;
 }
 
 /// How a frame was localized.
@@ -237,25 +241,38 @@ pub fn track(
     for position in 0..frames {
         let at = || format!("frame {position} of the drive");
         let frame = if position == 0 {
-            let answer = localizer.localize(0, &first_prior, config.full, AxisStarts::NONE).with_context(at)?;
+            let answer = localizer
+                .localize(0, &first_prior, config.full, AxisStarts::NONE)
+                .with_context(at)?
+                .ok_or_else(|| anyhow::anyhow!("the first frame's prior was refused (outside the mapped area?)"))
+                .with_context(at)?;
             tracked_frame(0, Mode::Cold, first_prior, &answer, None, answer.latency_ms)
         } else {
             let prior = predict(last_motion(&done).as_ref(), &done[position - 1].estimate);
             let small = localizer.localize(position, &prior, config.tracked, config.axis()).with_context(at)?;
-            let (shift, small_ms) = (small.axis_shift_m, small.latency_ms);
+            let small_ms = small.map_or(0.0, |s| s.latency_ms);
+            let tracked = small.map(|s| (s.confidence, s.axis_shift_m));
             // Where the answer's start lay: a fallback starts there too.
-            let start = AxisStarts::along_axis(&prior, shift);
-            let calibrated = small.verdict.p_registered.is_some();
-            if small.confidence >= config.fallback_below && (small.verdict.localized || !calibrated) {
-                tracked_frame(position, Mode::Tracked, start, &small, Some((small.confidence, shift)), small_ms)
-            } else {
-                let full = localizer.localize(position, &start, config.full, AxisStarts::NONE).with_context(at)?;
-                let latency_ms = small_ms + full.latency_ms;
-                if full.verdict.localized || full.verdict.p_registered.is_none() {
-                    tracked_frame(position, Mode::Fallback, start, &full, Some((small.confidence, shift)), latency_ms)
-                } else {
-                    let predicted = FrameAnswer { camera_from_map: prior, ..full };
-                    tracked_frame(position, Mode::DeadReckoning, prior, &predicted, Some((small.confidence, shift)), latency_ms)
+            let start = small.map_or(prior, |s| AxisStarts::along_axis(&prior, s.axis_shift_m));
+            match small {
+                Some(small) if small.confidence >= config.fallback_below && (small.verdict.localized || small.verdict.p_registered.is_none()) => {
+                    tracked_frame(position, Mode::Tracked, start, &small, tracked, small_ms)
+                }
+                _ => {
+                    let full = localizer.localize(position, &start, config.full, AxisStarts::NONE).with_context(at)?;
+                    let latency_ms = small_ms + full.map_or(0.0, |f| f.latency_ms);
+                    match full {
+                        Some(full) if full.verdict.localized || full.verdict.p_registered.is_none() => {
+                            tracked_frame(position, Mode::Fallback, start, &full, tracked, latency_ms)
+                        }
+                        _ => {
+                            // Both searches unsure, or refused: the prediction, with the full search's
+                            // confidence and verdict when it answered (none and not localized when not).
+                            let refused = FrameAnswer { camera_from_map: prior, confidence: 0.0, alignment: f32::NAN, verdict: Verdict::default(), iterations: 0, axis_shift_m: 0.0, latency_ms };
+                            let predicted = FrameAnswer { camera_from_map: prior, ..full.unwrap_or(refused) };
+                            tracked_frame(position, Mode::DeadReckoning, prior, &predicted, tracked, latency_ms)
+                        }
+                    }
                 }
             }
         };
@@ -306,7 +323,9 @@ pub fn cold_reference(
         .iter()
         .map(|&position| {
             let prior = coarse_prior(&truth[position], noise_m, noise_deg, seed.wrapping_add(position as u64));
-            let answer = localizer.localize(position, &prior, config.full, AxisStarts::NONE)?;
+            let answer = localizer
+                .localize(position, &prior, config.full, AxisStarts::NONE)?
+                .ok_or_else(|| anyhow::anyhow!("frame {position}: the coarse prior was refused (outside the mapped area?)"))?;
             Ok(ColdFrame { position, prior, answer })
         })
         .collect()
@@ -364,6 +383,9 @@ mod tests {
         /// Gives a verdict (localized when it reached the truth); else none, like a model set
         /// without a calibrator.
         calibrated: bool,
+        /// Refuses a search any of whose priors has its camera beyond this map x (`Ok(None)`,
+        /// like the server's 422 for a prior outside the mapped area).
+        map_x_max: Option<f64>,
     }
 
     impl Basin {
@@ -386,8 +408,12 @@ mod tests {
         /// With axis starts, one search from each shifted prior, the best alignment winning (the
         /// unmoved prior's with the margin), as `agent::search::first_round_answer` chooses; the
         /// latency counts every start.
-        fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize, axis: AxisStarts) -> anyhow::Result<FrameAnswer> {
+        fn localize(&mut self, position: usize, prior: &Pose, search: SearchSize, axis: AxisStarts) -> anyhow::Result<Option<FrameAnswer>> {
             self.calls.push((position, search, axis.groups()));
+            let off_map = |p: &Pose| self.map_x_max.is_some_and(|x| p.camera_position_in_map().x > x);
+            if axis.priors(prior).iter().any(|(_, p)| off_map(p)) {
+                return Ok(None);
+            }
             let mut best: Option<(FrameAnswer, f32)> = None;
             for (d, start) in axis.priors(prior) {
                 let answer = FrameAnswer { axis_shift_m: d, ..self.answer(position, &start, search) };
@@ -397,7 +423,7 @@ mod tests {
                 }
             }
             let answer = best.expect("the prior is searched").0;
-            Ok(FrameAnswer { latency_ms: (search.hypotheses as usize * axis.groups()) as f64, ..answer })
+            Ok(Some(FrameAnswer { latency_ms: (search.hypotheses as usize * axis.groups()) as f64, ..answer }))
         }
     }
 
@@ -474,7 +500,7 @@ mod tests {
         let truth = drive(6);
         // 1.5 m reach: every prediction is reached by the small search (frame 1's, standing
         // still, is 1 m behind; later ones are exact).
-        let mut basin = Basin { truth: truth.clone(), reach_m: 1.5, calls: vec![], calibrated: false };
+        let mut basin = Basin { truth: truth.clone(), reach_m: 1.5, calls: vec![], calibrated: false, map_x_max: None };
         let first = coarse_prior(&truth[0], 3.0, 0.0, 1);
         let frames = track(&mut basin, 6, first, &CONFIG, |_| {}).unwrap();
         assert_eq!(frames[0].mode, Mode::Cold);
@@ -485,7 +511,7 @@ mod tests {
         assert!(e.rte_m < 1e-9 && e.rre_geodesic_deg < 1e-9, "exact prediction from exact estimates: {e:?}");
         // 0.5 m reach (1.5 m for the full search): frame 1 (predicted standing still, 1 m off)
         // needs the full search.
-        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: false };
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: false, map_x_max: None };
         let first = coarse_prior(&truth[0], 1.0, 0.0, 1);
         let frames = track(&mut basin, 6, first, &CONFIG, |_| {}).unwrap();
         assert_eq!(frames[0].estimate, truth[0]);
@@ -504,14 +530,14 @@ mod tests {
         let truth = drive(5);
         // 0.5 m reach (1.5 m for the full search): frame 1's prediction (1 m off) needs the full
         // search; its answer is then exact, so later predictions are reached by the small one.
-        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true };
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: None };
         let frames = track(&mut basin, 5, coarse_prior(&truth[0], 1.0, 0.0, 1), &CONFIG, |_| {}).unwrap();
         let modes: Vec<Mode> = frames.iter().map(|f| f.mode).collect();
         assert_eq!(modes, [Mode::Cold, Mode::Fallback, Mode::Tracked, Mode::Tracked, Mode::Tracked]);
         assert!(frames[1].verdict.localized && frames[1].verdict.p_registered == Some(0.9f32 as f64));
         // 0.2 m reach (0.6 m for the full search): frame 1 is out of both; it is dead-reckoned at
         // the prediction (the first estimate, standing still), and so is every later frame.
-        let mut basin = Basin { truth: truth.clone(), reach_m: 0.2, calls: vec![], calibrated: true };
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.2, calls: vec![], calibrated: true, map_x_max: None };
         let frames = track(&mut basin, 3, coarse_prior(&truth[0], 0.5, 0.0, 1), &CONFIG, |_| {}).unwrap();
         assert_eq!(frames[0].estimate, truth[0]);
         assert!(frames[1..].iter().all(|f| f.mode == Mode::DeadReckoning && f.estimate == f.prior && !f.verdict.localized));
@@ -519,7 +545,7 @@ mod tests {
         assert_eq!(basin.calls.len(), 1 + 2 * 2);
         // Without a verdict the same drive keeps the full search's answers (as before the calibrator).
         let first = coarse_prior(&truth[0], 0.5, 0.0, 1);
-        let mut basin = Basin { truth, reach_m: 0.2, calls: vec![], calibrated: false };
+        let mut basin = Basin { truth, reach_m: 0.2, calls: vec![], calibrated: false, map_x_max: None };
         let frames = track(&mut basin, 3, first, &CONFIG, |_| {}).unwrap();
         assert!(frames[1..].iter().all(|f| f.mode == Mode::Fallback));
     }
@@ -531,7 +557,7 @@ mod tests {
     fn starts_along_the_axis_catch_an_unknown_speed() {
         let truth = drive(4);
         let axis = TrackConfig { axis_starts: 1, axis_step_m: 1.0, ..CONFIG };
-        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true };
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: None };
         let frames = track(&mut basin, 4, coarse_prior(&truth[0], 1.0, 0.0, 1), &axis, |_| {}).unwrap();
         let modes: Vec<Mode> = frames.iter().map(|f| f.mode).collect();
         assert_eq!(modes, [Mode::Cold, Mode::Tracked, Mode::Tracked, Mode::Tracked]);
@@ -544,14 +570,41 @@ mod tests {
         // A margin larger than the start ahead wins by (0.9 against 0.1) keeps the prediction's
         // answer, which then falls back.
         let wide = TrackConfig { axis_margin: 1.0, ..axis };
-        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true };
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: None };
         let frames = track(&mut basin, 2, coarse_prior(&truth[0], 1.0, 0.0, 1), &wide, |_| {}).unwrap();
         assert_eq!((frames[1].mode, frames[1].prior), (Mode::Fallback, frames[0].estimate));
         // The same drive without them: frame 1 needs the full search.
         let first = coarse_prior(&truth[0], 1.0, 0.0, 1);
-        let mut basin = Basin { truth, reach_m: 0.5, calls: vec![], calibrated: true };
+        let mut basin = Basin { truth, reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: None };
         let frames = track(&mut basin, 2, first, &CONFIG, |_| {}).unwrap();
         assert_eq!(frames[1].mode, Mode::Fallback);
+    }
+
+    /// A drive that leaves the mapped area: a search the localizer refuses (a start along the
+    /// axis beyond the map, then the prediction itself) does not stop the drive: the frame goes to
+    /// the full search, then to dead reckoning. A refused first prior stops it, saying so.
+    #[test]
+    fn refused_priors_fall_back_then_dead_reckon_instead_of_stopping_the_drive() {
+        let truth = drive(6);
+        let axis = TrackConfig { axis_starts: 1, axis_step_m: 1.0, ..CONFIG };
+        // Cameras at x ≈ 0.27 + k (frame k); the map ends at x = 3.5.
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: Some(3.5) };
+        let frames = track(&mut basin, 6, coarse_prior(&truth[0], 1.0, 0.0, 1), &axis, |_| {}).unwrap();
+        let modes: Vec<Mode> = frames.iter().map(|f| f.mode).collect();
+        assert_eq!(modes, [Mode::Cold, Mode::Tracked, Mode::Tracked, Mode::Fallback, Mode::DeadReckoning, Mode::DeadReckoning]);
+        // Frame 3: its start 1 m ahead lies off the map, so the small search is refused; the full
+        // search from the prediction (without axis starts) answers.
+        assert_eq!((frames[3].tracked_confidence, frames[3].estimate, frames[3].latency_ms), (None, truth[3], 4.0));
+        assert_eq!(basin.calls[3..5], [(3, CONFIG.tracked, 3), (3, CONFIG.full, 1)]);
+        // Frames 4 and 5: the prediction itself is off the map; the estimate is the prediction.
+        for f in &frames[4..] {
+            assert!(f.estimate == f.prior && !f.verdict.localized && f.verdict.p_registered.is_none() && f.tracked_confidence.is_none(), "{f:?}");
+        }
+        let e = PoseError::between(&frames[4].estimate, &truth[4]);
+        assert!(e.rte_m < 1e-9, "the motion before the fallback carries the prediction: {e:?}");
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: Some(-1.0) };
+        let e = track(&mut basin, 2, truth[0], &CONFIG, |_| {}).unwrap_err();
+        assert!(format!("{e:#}").contains("frame 0 of the drive: the first frame's prior was refused"), "{e:#}");
     }
 
     #[test]
