@@ -1,10 +1,12 @@
-//! Regions larger than one scan: point embeddings computed once for the whole region, tile by
-//! tile, stored as float16 next to the region (`<id>.emb`, magic `CMRTIL01`) and memory-mapped;
-//! a localize takes a virtual LiDAR scan of the points within a radius of its prior camera
-//! position, sampled to the model's N ([`TiledMap::around`]), with their stored embeddings or
-//! (the server's default, `CropEmbeddings::Encode`) embeddings the point encoder computes for
-//! that crop: the shipped encoder's embeddings depend on where its input's centre is, so the
-//! stored ones, computed around each cell's centre, do not serve it (measured in docs/server.md).
+//! Regions larger than one scan: the points grouped into ground cells, stored next to the region
+//! (`<id>.emb`, magic `CMRTIL01`) and memory-mapped, with (for `CropEmbeddings::Stored` only)
+//! point embeddings computed once for the whole region, tile by tile, as float16; a localize
+//! takes a virtual LiDAR scan of the points within a radius of its prior camera position, sampled
+//! to the model's N ([`TiledMap::around`]), with their stored embeddings or (the server's
+//! default, `CropEmbeddings::Encode`, whose file holds none) embeddings the point encoder
+//! computes for that crop: the shipped encoder's embeddings depend on where its input's centre
+//! is, so the stored ones, computed around each cell's centre, do not serve it (measured in
+//! docs/server.md).
 //!
 //! Why tiles, and what a tile's context is: the point encoder (`training/cmr/models.py`,
 //! `PointEncoder`) centres its input on the input's mean and scatters it into a 96 × 0.8 m
@@ -21,7 +23,7 @@
 //! Layout (little-endian): magic `CMRTIL01`, 64 ASCII hex model sha, 64 ASCII hex source sha,
 //! u64 N, u64 D, u64 point count P, u64 cell count C, f64 tile_m, f64 context_m; C cells of
 //! (i32 ix, i32 iy, u64 first point, u64 count) sorted by (ix, iy); P × 3 f32 points (local frame,
-//! grouped by cell; within a cell in a seeded random order); P × D f16 embeddings, same order.
+//! grouped by cell; within a cell in a seeded random order); P × D f16 embeddings, same order (D = 0: none).
 
 use std::collections::HashMap;
 use std::io::Write;
