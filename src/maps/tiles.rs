@@ -121,8 +121,9 @@ pub const SCAN_ELEVATION_DEG: (f64, f64) = (-25.0, 3.0);
 /// and the grids merged in chunk order keeping the earlier point on equal ranges, which is the
 /// sequential scan's answer exactly; a point whose elevation's tangent lies clearly outside the
 /// grid's span (by far more than the rounding of the angle computed below) is dropped before
-/// its two arc tangents, as the row test would drop it (the README's fused region: 2.5 M
-/// candidates in 186 ms before, docs/server.md "Large regions").
+/// its two arc tangents, as the row test would drop it, and most others are binned without
+/// them ([`ScanBins`]). The README's fused region: 2.5 M candidates in 186 ms before, about a
+/// third of that now (docs/server.md, "Large regions at real-world coordinates").
 pub fn virtual_scan(candidates: &[u32], point: impl Fn(u32) -> [f32; 3] + Sync, sensor: [f64; 3]) -> Vec<u32> {
     use rayon::prelude::*;
     const CHUNK: usize = 1 << 18;
@@ -155,6 +156,7 @@ fn scan_into(nearest: &mut [(f32, u32)], candidates: &[u32], point: &impl Fn(u32
     // The row test below keeps elevations in [low, high) up to roundings of ~1e-14°; a tangent
     // beyond these by 1e-9 is outside for certain.
     let (tan_low, tan_high) = (low.to_radians().tan() - 1e-9, high.to_radians().tan() + 1e-9);
+    let bins = ScanBins::get();
     for &i in candidates {
         let p = point(i);
         let d = [p[0] as f64 - sensor[0], p[1] as f64 - sensor[1], p[2] as f64 - sensor[2]];
@@ -162,17 +164,115 @@ fn scan_into(nearest: &mut [(f32, u32)], candidates: &[u32], point: &impl Fn(u32
         if ground > 0.0 && !(tan_low..=tan_high).contains(&(d[2] / ground)) {
             continue;
         }
-        let elevation = d[2].atan2(ground).to_degrees();
-        let row = ((elevation - low) / (high - low) * SCAN_BEAMS as f64).floor();
-        if !(0.0..SCAN_BEAMS as f64).contains(&row) {
-            continue;
-        }
-        let column = (((d[1].atan2(d[0]) + std::f64::consts::PI) / std::f64::consts::TAU * SCAN_COLUMNS as f64) as usize).min(SCAN_COLUMNS - 1);
+        let (row, column) = match bins.cell(d, ground) {
+            Some(cell) => cell,
+            None => {
+                let elevation = d[2].atan2(ground).to_degrees();
+                let row = ((elevation - low) / (high - low) * SCAN_BEAMS as f64).floor();
+                if !(0.0..SCAN_BEAMS as f64).contains(&row) {
+                    continue;
+                }
+                (row as usize, (((d[1].atan2(d[0]) + std::f64::consts::PI) / std::f64::consts::TAU * SCAN_COLUMNS as f64) as usize).min(SCAN_COLUMNS - 1))
+            }
+        };
         let range = (ground * ground + d[2] * d[2]).sqrt() as f32;
-        let cell = &mut nearest[row as usize * SCAN_COLUMNS + column];
+        let cell = &mut nearest[row * SCAN_COLUMNS + column];
         if range < cell.0 {
             *cell = (range, i);
         }
+    }
+}
+
+/// The virtual scan's cell of most points without an arc tangent: a row's lower edge as the
+/// tangent of its elevation, a column's first edge as the "diamond angle" of its azimuth (a
+/// function of x and y alone, increasing with the angle, [`diamond`]), each found from a lookup
+/// table and a step or two. Where a point's key lies within [`ScanBins::MARGIN`] of an edge
+/// (or outside the grid, or at the azimuth's wrap), [`ScanBins::cell`] gives no answer and the
+/// scan computes the angles: the margin is far wider than the roundings of either computation
+/// (both keys change by at most as much as the angle in radians), so a cell it gives is the
+/// cell the angles give. Checked against the angles in `the_chunked_virtual_scan_keeps_the_sequential_scans_points`.
+struct ScanBins {
+    /// tan of row r's lower elevation, r = 0..=SCAN_BEAMS.
+    row_tan: Vec<f64>,
+    /// A row at or below the one of each of [`Self::BUCKETS`] equal slices of `row_tan`'s span.
+    row_start: Vec<usize>,
+    /// [`diamond`] of column c's first azimuth + π (the scan's angle), c = 0..=SCAN_COLUMNS.
+    column_key: Vec<f64>,
+    /// A column at or below the one of each of [`Self::BUCKETS`] equal slices of 0..4.
+    column_start: Vec<usize>,
+}
+
+impl ScanBins {
+    const MARGIN: f64 = 1e-9;
+    const BUCKETS: usize = 8192;
+
+    fn get() -> &'static ScanBins {
+        static BINS: std::sync::OnceLock<ScanBins> = std::sync::OnceLock::new();
+        BINS.get_or_init(|| {
+            let (low, high) = SCAN_ELEVATION_DEG;
+            let row_tan: Vec<f64> = (0..=SCAN_BEAMS).map(|r| (low + (high - low) * r as f64 / SCAN_BEAMS as f64).to_radians().tan()).collect();
+            let column_key: Vec<f64> = (0..=SCAN_COLUMNS)
+                .map(|c| match c {
+                    0 => 0.0,
+                    SCAN_COLUMNS => 4.0,
+                    _ => {
+                        let angle = std::f64::consts::TAU * c as f64 / SCAN_COLUMNS as f64;
+                        diamond(angle.cos(), angle.sin())
+                    }
+                })
+                .collect();
+            let starts = |edges: &[f64], from: f64, to: f64| -> Vec<usize> {
+                (0..Self::BUCKETS).map(|b| edges.iter().rposition(|&e| e <= from + (to - from) * b as f64 / Self::BUCKETS as f64).unwrap_or(0).min(edges.len() - 2)).collect()
+            };
+            let row_start = starts(&row_tan, row_tan[0], row_tan[SCAN_BEAMS]);
+            let column_start = starts(&column_key, 0.0, 4.0);
+            ScanBins { row_tan, row_start, column_key, column_start }
+        })
+    }
+
+    /// (row, column) of the camera-frame offset `d` (ground distance `ground`), or `None` where
+    /// only the angles can tell.
+    #[inline]
+    fn cell(&self, d: [f64; 3], ground: f64) -> Option<(usize, usize)> {
+        if !(ground > 0.0) {
+            return None;
+        }
+        let row = Self::find(&self.row_tan, &self.row_start, d[2] / ground)?;
+        // The scan's azimuth is atan2(y, x) + π: the direction (−x, −y)'s angle.
+        let column = Self::find(&self.column_key, &self.column_start, diamond(-d[0], -d[1]))?;
+        Some((row, column))
+    }
+
+    /// The slice k of `edges` with edges[k] + MARGIN <= key < edges[k + 1] − MARGIN.
+    #[inline]
+    fn find(edges: &[f64], start: &[usize], key: f64) -> Option<usize> {
+        let (first, last) = (edges[0], edges[edges.len() - 1]);
+        if !(key >= first + Self::MARGIN && key < last - Self::MARGIN) {
+            return None;
+        }
+        let bucket = (((key - first) / (last - first) * Self::BUCKETS as f64) as usize).min(Self::BUCKETS - 1);
+        let mut k = start[bucket];
+        while key >= edges[k + 1] {
+            k += 1;
+        }
+        while key < edges[k] {
+            k -= 1;
+        }
+        (key - edges[k] >= Self::MARGIN && edges[k + 1] - key >= Self::MARGIN).then_some(k)
+    }
+}
+
+/// The "diamond angle" of the direction (x, y): 0..4 once round, increasing with the direction's
+/// angle from +x towards +y (0 at +x, 1 at +y, 2 at −x, 3 at −y), changing by at most the angle's
+/// change in radians. No arc tangent: one division.
+#[inline]
+fn diamond(x: f64, y: f64) -> f64 {
+    if y >= 0.0 {
+        if x >= 0.0 { y / (x + y) } else { 1.0 - x / (y - x) }
+    } else if x < 0.0 {
+        2.0 - y / (-x - y)
+    } else {
+        3.0 + x / (x - y)
     }
 }
 
@@ -461,12 +561,36 @@ mod tests {
                 }
             }
         }
+        // On and beside every column's edge (the azimuth), and on the quadrants' axes.
+        for c in 0..SCAN_COLUMNS {
+            let edge = -std::f64::consts::PI + std::f64::consts::TAU * c as f64 / SCAN_COLUMNS as f64;
+            for nudge in [-1e-10, 0.0, 1e-10] {
+                let (ground, bearing) = (5.0 + (c % 40) as f64, edge + nudge);
+                points.push([(sensor[0] + ground * bearing.cos()) as f32, (sensor[1] + ground * bearing.sin()) as f32, (sensor[2] - 0.5) as f32]);
+            }
+        }
+        for (x, y) in [(7.0, 0.0), (-7.0, 0.0), (0.0, 7.0), (0.0, -7.0)] {
+            points.push([(sensor[0] + x) as f32, (sensor[1] + y) as f32, (sensor[2] - 0.5) as f32]);
+        }
         // Duplicates far apart in the candidate order (different chunks): equal ranges.
         for k in 0..1000 {
             points.push(points[k * 7]);
         }
         let candidates: Vec<u32> = (0..points.len() as u32).collect();
         assert!(candidates.len() > 2 << 18, "more than two chunks");
+        // The tables bin nearly every point in the span without the angles.
+        let (bins, (low, high)) = (ScanBins::get(), SCAN_ELEVATION_DEG);
+        let (mut in_span, mut binned) = (0, 0);
+        for p in &points[..100_000] {
+            let d = [p[0] as f64 - sensor[0], p[1] as f64 - sensor[1], p[2] as f64 - sensor[2]];
+            let ground = d[0].hypot(d[1]);
+            let elevation = d[2].atan2(ground).to_degrees();
+            if elevation > low + 0.01 && elevation < high - 0.01 {
+                in_span += 1;
+                binned += bins.cell(d, ground).is_some() as usize;
+            }
+        }
+        assert!(in_span > 20_000 && binned as f64 > 0.999 * in_span as f64, "{binned} of {in_span}");
         let kept = virtual_scan(&candidates, |i| points[i as usize], sensor);
         assert_eq!(kept, oracle(&candidates, |i| points[i as usize], sensor));
         assert!(kept.len() > 50_000, "{}", kept.len());
