@@ -519,10 +519,10 @@ mod tests {
     use super::*;
     use crate::model::{FakeBackend, Manifest};
 
-    /// The chunked scan with its tangent pre-test keeps exactly the points of the plain sequential
-    /// scan (the oracle below, the function as it was): a cloud of more than one chunk, with
-    /// points on and just beside the elevation span's edges and duplicates whose tie the first
-    /// must win.
+    /// The chunked scan with its tangent pre-test and its tables ([`ScanBins`]) keeps exactly the
+    /// points of the plain sequential scan (the oracle below, the function as it was): a cloud of
+    /// more than one chunk, with points on and just beside the elevation span's edges and every
+    /// column's edge, and duplicates whose tie the first must win.
     #[test]
     fn the_chunked_virtual_scan_keeps_the_sequential_scans_points() {
         fn oracle(candidates: &[u32], point: impl Fn(u32) -> [f32; 3], sensor: [f64; 3]) -> Vec<u32> {
