@@ -302,7 +302,8 @@ pub struct SearchTuning {
     /// it keeps answers that the street seen backwards would otherwise take.
     #[arg(long, env = "CMR_PRIOR_MARGIN", default_value_t = DEFAULT_PRIOR_MARGIN, value_parser = parse_margin)]
     pub prior_margin: f32,
-    /// Also search from the prior moved this many times each way along its optical axis, `--axis-step-m` apart, and answer with the best of those searches'
+    /// Also search from the prior moved this many times each way along its optical axis,
+    /// `--axis-step-m` apart, and answer with the best of those searches'
     /// answers (`AxisStarts`; a request's `axis_starts` replaces all three settings). 0 = off,
     /// the default: measured on `track`'s small searches (docs/tracking.md, "Starts along the
     /// optical axis"), not chosen for the full search. Starts × (2·this + 1) may not exceed 16.

@@ -154,17 +154,19 @@ pub fn virtual_scan(candidates: &[u32], point: impl Fn(u32) -> [f32; 3] + Sync, 
 fn scan_into(nearest: &mut [(f32, u32)], candidates: &[u32], point: &impl Fn(u32) -> [f32; 3], sensor: [f64; 3]) {
     let (low, high) = SCAN_ELEVATION_DEG;
     // The row test below keeps elevations in [low, high) up to roundings of ~1e-14°; a tangent
-    // beyond these by 1e-9 is outside for certain.
-    let (tan_low, tan_high) = (low.to_radians().tan() - 1e-9, high.to_radians().tan() + 1e-9);
+    // beyond these by the tables' margin is outside for certain.
+    let (tan_low, tan_high) = (low.to_radians().tan() - ScanBins::MARGIN, high.to_radians().tan() + ScanBins::MARGIN);
     let bins = ScanBins::get();
     for &i in candidates {
         let p = point(i);
         let d = [p[0] as f64 - sensor[0], p[1] as f64 - sensor[1], p[2] as f64 - sensor[2]];
         let ground = d[0].hypot(d[1]);
-        if ground > 0.0 && !(tan_low..=tan_high).contains(&(d[2] / ground)) {
+        // Infinite or NaN straight above or below the sensor (ground 0): then the angles decide.
+        let tangent = d[2] / ground;
+        if ground > 0.0 && !(tan_low..=tan_high).contains(&tangent) {
             continue;
         }
-        let (row, column) = match bins.cell(d, ground) {
+        let (row, column) = match bins.cell(tangent, d[0], d[1]) {
             Some(cell) => cell,
             None => {
                 let elevation = d[2].atan2(ground).to_degrees();
@@ -230,16 +232,14 @@ impl ScanBins {
         })
     }
 
-    /// (row, column) of the camera-frame offset `d` (ground distance `ground`), or `None` where
-    /// only the angles can tell.
+    /// (row, column) of the offset (`x`, `y`) from the sensor whose elevation's tangent is
+    /// `tangent` (height over ground distance; not finite at ground distance 0, which gives
+    /// `None`), or `None` where only the angles can tell.
     #[inline]
-    fn cell(&self, d: [f64; 3], ground: f64) -> Option<(usize, usize)> {
-        if !(ground > 0.0) {
-            return None;
-        }
-        let row = Self::find(&self.row_tan, &self.row_start, d[2] / ground)?;
+    fn cell(&self, tangent: f64, x: f64, y: f64) -> Option<(usize, usize)> {
+        let row = Self::find(&self.row_tan, &self.row_start, tangent)?;
         // The scan's azimuth is atan2(y, x) + π: the direction (−x, −y)'s angle.
-        let column = Self::find(&self.column_key, &self.column_start, diamond(-d[0], -d[1]))?;
+        let column = Self::find(&self.column_key, &self.column_start, diamond(-x, -y))?;
         Some((row, column))
     }
 
@@ -587,7 +587,7 @@ mod tests {
             let elevation = d[2].atan2(ground).to_degrees();
             if elevation > low + 0.01 && elevation < high - 0.01 {
                 in_span += 1;
-                binned += bins.cell(d, ground).is_some() as usize;
+                binned += bins.cell(d[2] / ground, d[0], d[1]).is_some() as usize;
             }
         }
         assert!(in_span > 20_000 && binned as f64 > 0.999 * in_span as f64, "{binned} of {in_span}");
