@@ -167,7 +167,7 @@ async fn bad_overlay_requests_get_localize_errors() {
         ("not base64", "street", json!({"image": "%%%", "intrinsics": kitti_request(1)["intrinsics"]}), 400, "bad_request"),
         ("unknown map", "nowhere", kitti_request(2), 404, "not_found"),
         ("bad intrinsics", "street", json!({"image": kitti_request(1)["image"], "intrinsics": {"fx": -1.0, "fy": 700.0, "cx": 1.0, "cy": 1.0}}), 422, "invalid_input"),
-        ("too many iterations", "street", with(&jpeg).as_object().unwrap().clone().into_iter().chain([("max_iterations".to_string(), json!(99))]).collect(), 422, "invalid_input"),
+        ("too many iterations", "street", extend(&with(&jpeg), json!({"max_iterations": 99})), 422, "invalid_input"),
         ("too many starts along the axis", "street", extend(&with(&jpeg), json!({"hypotheses": 4, "axis_starts": {"each_way": 2}})), 422, "invalid_input"),
         ("a drawn pose with axis starts", "street", json!({"image": b64(&jpeg), "intrinsics": kitti_request(1)["intrinsics"], "camera_from_map": [[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1]], "axis_starts": {"each_way": 1}}), 422, "invalid_input"),
     ];
