@@ -64,7 +64,7 @@ train() {
     checkpoint_every=50 log_every=20 threads=2 loader_workers=1
 }
 
-# Exported and quantised as the shipped set is (int8 Conv layers, calibrated on the rig's training
+# Exported and quantised as the shipped set is (the agent's Conv layers in int8, calibrated on the rig's training
 # frames), then both sets on the same frozen cases, 8 per frame, in both regimes (the paper's
 # protocol and a fleet-grade prior): the held-out drive (committed cases files) and, for contrast,
 # the training drive. The fine-tuned set is the run's last checkpoint: picking the best validation

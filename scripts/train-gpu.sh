@@ -106,7 +106,7 @@ stamp "evaluated: $("$PYTHON" -c "import json,sys; r=json.load(open(sys.argv[1])
   > "$OUT/logs/export.log" 2>&1
 "$PYTHON" -m cmr.plots "$RUN" --out "$OUT/training_curves.png" > "$OUT/logs/plots.log" 2>&1 || stamp "plots skipped (see logs/plots.log)"
 stamp "exported to $OUT/models"
-# The served form: Conv layers in int8, calibrated on the validation frames (judge both sets with
+# The served form: the agent's Conv layers in int8 (7-bit weights), calibrated on the validation frames (judge both sets with
 # `cmr-agent eval` before shipping either; docs: training/README.md, "Quantised graphs").
 if "$PYTHON" -m cmr.quantize --models "$OUT/models" --calibration "$WORK/val-flat" --out "$OUT/models-int8" \
     > "$OUT/logs/quantize.log" 2>&1; then
