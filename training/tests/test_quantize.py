@@ -72,8 +72,8 @@ def test_int8_weights_fit_seven_bits_so_every_cpu_computes_the_same(sets):
     products pairwise in int16, which saturates beyond 32,767: with weights within 7 bits it cannot,
     and ONNX Runtime's fused integer kernels compute exactly what the QDQ graph says (what ONNX
     Runtime computes with its optimisations off, in float, to rounding: an activation rounded the
-    other way now and then, which deeper graphs carry on). On this AVX2 machine the same set with
-    8-bit weights is off by 1.2-1.4 % RMS in the image encoder; with 7 bits by 0.004-0.07 %."""
+    other way now and then, which deeper graphs carry on). On an AVX2-only CPU (2026-12-07) the same
+    set with 8-bit weights was off by 1.2-1.4 % RMS in the image encoder; with 7 bits by 0.004-0.07 %."""
     float_dir, int8_dir, frames = sets
     models, _ = import_models(float_dir)
     feeds = calibration_inputs(models, frames, hypotheses=2, steps=2, max_rows=16)
