@@ -43,6 +43,9 @@ impl ModelSet {
     /// real inputs and outputs match the contract. Any problem becomes one start-up error.
     pub fn load(dir: &Path, options: BackendOptions) -> Result<Self> {
         let manifest = Arc::new(Manifest::load(dir)?);
+        if let Some(warning) = manifest.int8_saturation_warning() {
+            tracing::warn!(models = %dir.display(), "{warning}");
+        }
         runtime::environment(options.ort_lib.as_deref())?;
         let set = ModelSet { dir: dir.to_path_buf(), manifest, options };
         set.backend()?;

@@ -339,6 +339,33 @@ impl Manifest {
         self.actions.rotation_deg.len()
     }
 
+    /// A warning when this set's int8 graphs answer worse on this CPU than on the one they were
+    /// judged on: `provenance.quantized` (written by `python -m cmr.quantize`) names int8 weights
+    /// without saying they are "within 7 bits" (sets quantised before 2026-12-07), and the CPU is
+    /// x86-64 without VNNI, where ONNX Runtime's u8 × s8 kernels add pairs of products in int16
+    /// and saturate with 8-bit weights (training/README.md, "Quantised graphs"). `None` otherwise,
+    /// and for float sets.
+    pub fn int8_saturation_warning(&self) -> Option<String> {
+        self.int8_saturation_warning_on(cpu_has_vnni())
+    }
+
+    /// [`Self::int8_saturation_warning`] for a CPU with (`true`) or without VNNI.
+    pub fn int8_saturation_warning_on(&self, cpu_has_vnni: bool) -> Option<String> {
+        let quantized = self.provenance.get("quantized")?;
+        let format = quantized.get("format").and_then(|f| f.as_str()).unwrap_or_default();
+        if cpu_has_vnni || format.contains("within 7 bits") {
+            return None;
+        }
+        let graphs: Vec<&str> = quantized.get("graphs").and_then(|g| g.as_array()).map(|g| g.iter().filter_map(|n| n.as_str()).collect()).unwrap_or_default();
+        Some(format!(
+            "the {} graph(s) of this model set hold 8-bit int8 weights, and this CPU has no VNNI: ONNX Runtime's integer \
+             kernels saturate with them here and the answers are not the ones the set was judged with (measured: the \
+             8-bit v11 set registered 20 fewer of 712 cases on an AVX2-only CPU); requantise it with `python -m \
+             cmr.quantize` (7-bit weights) or serve its float graphs",
+            graphs.join(", ")
+        ))
+    }
+
     /// The sha256 of the point encoder: cached map embeddings are valid only for this value.
     pub fn point_encoder_sha256(&self) -> &str {
         &self.graphs["point_encoder"].sha256
@@ -419,6 +446,19 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
     hex(&Sha256::digest(bytes))
 }
 
+/// Whether this CPU has a VNNI instruction set (AVX512-VNNI or AVX-VNNI), with which ONNX
+/// Runtime's u8 × s8 kernels sum in int32; `true` off x86-64, where the question does not arise.
+fn cpu_has_vnni() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::is_x86_feature_detected!("avx512vnni") || std::is_x86_feature_detected!("avxvnni")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        true
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -481,6 +521,21 @@ mod tests {
 
     /// A calibrator section survives load and write unchanged (the Python fitter writes it, the
     /// server reads it), is absent when absent, and a malformed one stops the load.
+    #[test]
+    fn an_eight_bit_int8_set_is_flagged_only_on_a_cpu_without_vnni() {
+        let mut m = Manifest::load(&fixture_dir()).unwrap();
+        assert_eq!(m.int8_saturation_warning_on(false), None, "a float set");
+        m.provenance = serde_json::json!({"quantized": {"graphs": ["image_encoder", "agent"],
+            "format": "QDQ: Conv layers with uint8 activations and per-channel int8 weights"}});
+        let warning = m.int8_saturation_warning_on(false).expect("8-bit weights without VNNI");
+        assert!(warning.contains("image_encoder, agent") && warning.contains("cmr.quantize"), "{warning}");
+        assert_eq!(m.int8_saturation_warning_on(true), None, "with VNNI nothing saturates");
+        m.provenance["quantized"]["format"] = "QDQ: Conv layers with uint8 activations and per-channel int8 weights within 7 bits (reduce_range)".into();
+        assert_eq!(m.int8_saturation_warning_on(false), None, "7-bit weights");
+        let shipped = Manifest::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("models")).unwrap();
+        assert_eq!(shipped.int8_saturation_warning_on(false), None, "the shipped set");
+    }
+
     #[test]
     fn the_calibrator_round_trips_and_is_checked() {
         let m = Manifest::load(&fixture_dir()).unwrap();
