@@ -34,7 +34,6 @@ RTE and every answer's median RTE.
 
 import argparse
 import json
-import math
 import sys
 from collections import defaultdict
 from pathlib import Path
