@@ -519,8 +519,8 @@ mod tests {
         }
     }
 
-    /// A calibrator section survives load and write unchanged (the Python fitter writes it, the
-    /// server reads it), is absent when absent, and a malformed one stops the load.
+    /// A set quantised with 8-bit weights warns on a CPU without VNNI only; float sets, 7-bit sets
+    /// (the format `cmr.quantize` writes since 2026-12-07) and the shipped set never do.
     #[test]
     fn an_eight_bit_int8_set_is_flagged_only_on_a_cpu_without_vnni() {
         let mut m = Manifest::load(&fixture_dir()).unwrap();
@@ -536,6 +536,8 @@ mod tests {
         assert_eq!(shipped.int8_saturation_warning_on(false), None, "the shipped set");
     }
 
+    /// A calibrator section survives load and write unchanged (the Python fitter writes it, the
+    /// server reads it), is absent when absent, and a malformed one stops the load.
     #[test]
     fn the_calibrator_round_trips_and_is_checked() {
         let m = Manifest::load(&fixture_dir()).unwrap();

@@ -210,6 +210,8 @@ def quantize_set(model_dir: Path, out_dir: Path, frames: list, graphs: tuple[str
             files[spec["file"]] = src.read_bytes()
             spec["sha256"] = hashlib.sha256(files[spec["file"]]).hexdigest()
     doc.setdefault("provenance", {})["quantized"] = dict(
+        # "within 7 bits" is what the server reads (`Manifest::int8_saturation_warning`): without it, a
+        # quantised set warns on CPUs without VNNI.
         graphs=list(graphs), format="QDQ: Conv layers with uint8 activations and per-channel int8 weights "
                                     "within 7 bits (reduce_range: no int16 saturation on CPUs without VNNI)",
         recipes={name: recipe_text(name) for name in graphs},

@@ -122,6 +122,7 @@ def test_the_set_names_its_files_and_keeps_the_other_graphs(sets):
             assert data == (float_dir / spec["file"]).read_bytes()
     assert doc["provenance"]["quantized"]["graphs"] == list(QUANTIZED)
     assert "Percentile 99.9" in doc["provenance"]["quantized"]["recipes"]["image_encoder"]
+    assert "within 7 bits" in doc["provenance"]["quantized"]["format"]  # the server's start-up check reads it
     with pytest.raises(ValueError, match="--out must differ"):
         quantize_set(int8_dir, int8_dir, [])
     with pytest.raises(ValueError, match="quantised already"):
