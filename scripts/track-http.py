@@ -15,7 +15,10 @@ the server keeps the answer with the highest alignment score, the prediction's o
 the prior that small search's answer started from, and when that answer is not `localized` either, the
 frame is dead-reckoned (its estimate is the prediction). Without a
 calibrator on the server (`p_registered` null) the score alone decides and the full search's
-answer is kept.
+answer is kept. With --odometry (a file in poses.txt's layout, e.g. a wheel or visual odometry's
+camera-0 poses for the same frame indices, any origin; or `poses`, the sequence's own, i.e. the
+truth) each prediction takes the camera's motion from it instead, as `cmr-agent track --odometry`
+does (its simulated noise, --odometry-noise-*, is that command's alone).
 
 The map region must already be stored on the server (PUT /v1/maps/{id}) in the sequence's map
 frame: the LiDAR's frame at the sequence's frame 0 (see docs/tracking.md).
@@ -89,8 +92,7 @@ def read_sequence(root):
         r = calib["R0_rect"]
         tr = mul([r[0:3] + [0.0], r[3:6] + [0.0], r[6:9] + [0.0], [0, 0, 0, 1.0]], tr)
     offset = [[1.0, 0, 0, p2[3] / p2[0]], [0, 1.0, 0, p2[7] / p2[5]], [0, 0, 1.0, p2[11]], [0, 0, 0, 1.0]]
-    with open(os.path.join(root, "poses.txt")) as f:
-        poses = [from_3x4([float(v) for v in line.split()]) for line in f if line.strip()]
+    poses = read_poses(os.path.join(root, "poses.txt"))
     images = sorted(n for n in os.listdir(os.path.join(root, "image_2")) if n.endswith(".png"))
     return {
         "intrinsics": {"fx": p2[0], "fy": p2[5], "cx": p2[2], "cy": p2[6]},
@@ -101,10 +103,17 @@ def read_sequence(root):
     }
 
 
-def truth_camera_from_map(seq, index):
-    """image_2's camera_from_map; the map frame is the LiDAR at frame 0: C^-1 W_k C."""
+def read_poses(path):
+    """A poses.txt-layout file: one world_from_cam0 (3x4, row-major) per line."""
+    with open(path) as f:
+        return [from_3x4([float(v) for v in line.split()]) for line in f if line.strip()]
+
+
+def truth_camera_from_map(seq, index, poses=None):
+    """image_2's camera_from_map; the map frame is the LiDAR at frame 0: C^-1 W_k C. `poses`
+    (world_from_cam0 per frame index) in place of the sequence's own, e.g. an odometry's."""
     c = seq["cam0_from_lidar"]
-    map_from_lidar = mul(mul(inv(c), seq["poses"][index]), c)
+    map_from_lidar = mul(mul(inv(c), (poses or seq["poses"])[index]), c)
     return mul(seq["camera_from_lidar"], inv(map_from_lidar))
 
 
@@ -217,6 +226,8 @@ def main():
     parser.add_argument("--tracked-axis-starts", type=int, default=2)
     parser.add_argument("--tracked-axis-step-m", type=float, default=1.25)
     parser.add_argument("--tracked-axis-margin", type=float, default=0.005)
+    parser.add_argument("--odometry", default=None, metavar="poses|FILE",
+                        help="predict with this odometry's motion (poses.txt layout) instead of constant velocity")
     args = parser.parse_args()
 
     seq = read_sequence(args.sequence)
@@ -224,6 +235,11 @@ def main():
     if not frames:
         raise SystemExit(f"{args.sequence}: no frames from {args.first} on")
     rng = random.Random(args.seed)
+    odometry = None
+    if args.odometry is not None:
+        odometry = seq["poses"] if args.odometry == "poses" else read_poses(args.odometry)
+        if len(odometry) <= frames[-1][0]:
+            raise SystemExit(f"--odometry {args.odometry}: {len(odometry)} poses, the drive needs frame {frames[-1][0]}")
     rows, estimates, modes = [], [], []
     for position, (index, path) in enumerate(frames):
         with open(path, "rb") as f:
@@ -238,7 +254,11 @@ def main():
             pose, answer, latency, _ = first
             mode, tracked_confidence, shift = "cold", None, None
         else:
-            prior = predict(last_motion(modes, estimates), estimates[-1])
+            if odometry is None:
+                motion = last_motion(modes, estimates)
+            else:  # C_k C_k-1^-1 in the odometry's own frame, as src/track/mod.rs's Odometry::motion
+                motion = mul(truth_camera_from_map(seq, index, odometry), inv(truth_camera_from_map(seq, frames[position - 1][0], odometry)))
+            prior = predict(motion, estimates[-1])
             axis = {"each_way": args.tracked_axis_starts, "step_m": args.tracked_axis_step_m, "margin": args.tracked_axis_margin}
             small = localize(args.server, args.id, image_b64, seq["intrinsics"], prior, args.tracked_hypotheses, args.tracked_iterations, axis)
             mode, tracked_confidence, shift, start, latency = "tracked", None, None, prior, 0.0

@@ -208,6 +208,39 @@ async fn track_a_drive_offline_and_over_http() {
     assert_eq!(summary["modes"], serde_json::json!({"cold": 1, "tracked": 0, "fallback": 0, "dead_reckoning": 2}));
     let csv = std::fs::read_to_string(unsure.join("frames.csv")).unwrap();
     assert!(csv.lines().skip(2).all(|l| l.contains(",dead_reckoning,") && l.ends_with(",false")), "{csv}");
+    // The same with odometry: the dead-reckoned frames follow it, so the drive is the odometry
+    // chained from the first answer, which the summary reports beside it. A file in poses.txt's
+    // layout gives what `poses` (the sequence's own) gives; one too short, or noise without
+    // odometry, is a clear error.
+    let odometry_file = root.path().join("odometry.txt");
+    std::fs::copy(sequence.join("poses.txt"), &odometry_file).unwrap();
+    let mut runs = vec![];
+    for (name, source) in [("odometry-poses", "poses".to_string()), ("odometry-file", odometry_file.display().to_string())] {
+        let out = root.path().join(name);
+        let summary = tokio::task::spawn_blocking({
+            let (maps, sequence, out) = (maps.clone(), sequence.clone(), out.clone());
+            move || track(&maps, &sequence, &out, &["--first", "45", "--frames", "3", "--localized-threshold", "2", "--odometry", &source])
+        })
+        .await
+        .unwrap();
+        assert_eq!(summary["modes"]["dead_reckoning"], 2, "{summary}");
+        let (alone, tracked) = (&summary["odometry"]["dead_reckoned"]["ate_rmse_m"], &summary["error"]["ate_rmse_m"]);
+        assert!((alone.as_f64().unwrap() - tracked.as_f64().unwrap()).abs() < 1e-9, "{alone} against {tracked}");
+        assert_eq!((&summary["odometry"]["noise_pct"], &summary["odometry"]["noise_deg"]), (&0.0.into(), &0.0.into()));
+        runs.push(std::fs::read_to_string(out.join("trajectory.kitti.txt")).unwrap());
+    }
+    assert_eq!(runs[0], runs[1], "the sequence's poses as a file track as `poses` does");
+    let lines: Vec<String> = std::fs::read_to_string(&odometry_file).unwrap().lines().take(46).map(String::from).collect();
+    std::fs::write(&odometry_file, lines.join("\n")).unwrap();
+    for (flags, needle) in [(vec!["--odometry", odometry_file.to_str().unwrap()], "--odometry"), (vec!["--odometry-noise-pct", "2"], "--odometry <poses|FILE>")] {
+        let mut bad = cmr_agent();
+        bad.args(["track", "--id", "drive", "--first", "45", "--frames", "3"]).args(&flags).arg("--maps").arg(&maps).arg("--sequence").arg(&sequence);
+        bad.arg("--out").arg(root.path().join("bad")).arg("--models").arg(default_model());
+        let output = bad.output().unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success() && stderr.contains(needle), "{stderr}");
+    }
+    assert!(!root.path().join("bad").exists(), "nothing is written on an error");
 
     // Over HTTP: the server's maps directory starts empty; the region is uploaded.
     let served = tempfile::tempdir().unwrap();
@@ -243,6 +276,22 @@ async fn track_a_drive_offline_and_over_http() {
     let printed = tokio::task::spawn_blocking(move || run_ok(dead)).await.unwrap();
     let dead: serde_json::Value = serde_json::from_str(&printed).unwrap();
     assert_eq!((&dead["fallbacks"], &dead["dead_reckoned"]), (&0.into(), &2.into()), "{dead}");
+    // With odometry, the script's dead-reckoned frames follow it: each estimate moves from the
+    // one before as far as the truth moves (0.005 m here; standing still without odometry).
+    let mut dead = Command::new("python3");
+    dead.arg(&script).args(["--server", &unsure.base, "--id", "drive", "--first", "45", "--frames", "3", "--odometry", "poses"]);
+    dead.arg("--sequence").arg(&sequence).arg("--out").arg(root.path().join("track-http-odometry"));
+    let printed = tokio::task::spawn_blocking(move || run_ok(dead)).await.unwrap();
+    let dead: serde_json::Value = serde_json::from_str(&printed).unwrap();
+    assert_eq!(dead["dead_reckoned"], 2, "{dead}");
+    let csv = std::fs::read_to_string(root.path().join("track-http-odometry/frames.csv")).unwrap();
+    let rows: Vec<Vec<f64>> = csv.lines().skip(1).map(|l| l.split(',').rev().take(4).filter_map(|v| v.parse().ok()).collect()).collect();
+    for pair in rows.windows(2) {
+        // [truth_y, truth_x, estimate_y, estimate_x] per row.
+        let step_est = (pair[1][3] - pair[0][3]).hypot(pair[1][2] - pair[0][2]);
+        let step_gt = (pair[1][1] - pair[0][1]).hypot(pair[1][0] - pair[0][0]);
+        assert!(step_gt > 0.004 && (step_est - step_gt).abs() < 1e-5, "moved {step_est} m, the truth {step_gt} m: {csv}");
+    }
     unsure.stop().await;
     // A map the server does not hold: the script stops with the server's error.
     let mut missing = Command::new("python3");

@@ -19,8 +19,8 @@ use crate::maps::{MapError, MapStore};
 use crate::agent::AxisStarts;
 use crate::serving::request::AxisStartsBody;
 use crate::serving::{ImagePayload, IntrinsicsBody, LocalizeError, LocalizeRequest};
-use crate::track::output::TrackRun;
-use crate::track::{FrameAnswer, FrameLocalizer, SearchSize, TrackConfig, coarse_prior, cold_reference, spread, track};
+use crate::track::output::{OdometrySource, TrackRun};
+use crate::track::{FrameAnswer, FrameLocalizer, Odometry, SearchSize, TrackConfig, coarse_prior, cold_reference, spread, track};
 
 use super::config::EngineArgs;
 use super::offline::{FILE_REGION_ID, OfflineLocalizer, map_file_name};
@@ -86,6 +86,19 @@ pub struct TrackArgs {
     /// (alignment-score units, 0..=1).
     #[arg(long, env = "CMR_TRACK_AXIS_MARGIN", default_value_t = 0.005)]
     pub tracked_axis_margin: f32,
+    /// Predict each frame with odometry instead of the constant-velocity model: `poses` (the
+    /// sequence's own poses.txt, i.e. the truth: simulated odometry, with the noise below) or a
+    /// file in poses.txt's layout (the camera-0 poses of the same frame indices, any origin; e.g.
+    /// a wheel or visual odometry's track). A dead-reckoned frame then follows it too.
+    #[arg(long, value_name = "poses|FILE")]
+    pub odometry: Option<String>,
+    /// Noise added to every odometry step: the translation's scale error, percent (standard
+    /// deviation; drawn from --seed).
+    #[arg(long, default_value_t = 0.0, requires = "odometry")]
+    pub odometry_noise_pct: f64,
+    /// ... and a heading error per step, degrees (standard deviation).
+    #[arg(long, default_value_t = 0.0, requires = "odometry")]
+    pub odometry_noise_deg: f64,
     /// After tracking, localize this many frames (spread over the drive) cold: the full search
     /// from a coarse prior, for the summary's latency and accuracy comparison.
     #[arg(long, default_value_t = 0)]
@@ -163,6 +176,7 @@ pub fn run(args: TrackArgs) -> Result<()> {
     tracked.check(args.tracked_hypotheses).map_err(|e| anyhow!("--tracked-hypotheses and --tracked-axis-starts: {e} per tracked frame"))?;
     let frames = file_indices.iter().map(|&i| sequence.frame(i)).collect::<Result<Vec<_>>>()?;
     let truth = file_indices.iter().map(|&i| sequence.camera_from_map(i)).collect::<Result<Vec<_>>>()?;
+    let odometry = odometry(&args, &file_indices, &truth)?;
     let config = TrackConfig {
         tracked: SearchSize { hypotheses: args.tracked_hypotheses, max_iterations: args.tracked_iterations },
         full: SearchSize { hypotheses: args.engine.default_hypotheses, max_iterations: args.engine.default_max_iterations },
@@ -186,7 +200,7 @@ pub fn run(args: TrackArgs) -> Result<()> {
 
     let mut region = StoredRegion { offline: &offline, id: &id, frames: &frames };
     let first_prior = coarse_prior(&truth[0], args.prior_noise_m, args.prior_noise_deg, args.seed);
-    let tracked = track(&mut region, frames.len(), first_prior, &config, |f| {
+    let tracked = track(&mut region, frames.len(), first_prior, odometry.as_ref().map(|(o, _)| o), &config, |f| {
         let c = f.estimate.camera_position_in_map();
         let gt = truth[f.position].camera_position_in_map();
         tracing::info!(
@@ -213,6 +227,7 @@ pub fn run(args: TrackArgs) -> Result<()> {
         prior_noise_m: args.prior_noise_m,
         prior_noise_deg: args.prior_noise_deg,
         seed: args.seed,
+        odometry: odometry.as_ref().map(|(o, source)| (o, source.clone())),
     };
     // The plot's points, map frame (stored relative to the region's origin).
     let (local, _) = map.drawing_sample(40_960);
@@ -221,6 +236,27 @@ pub fn run(args: TrackArgs) -> Result<()> {
     let summary = run.write(&args.out, &points)?;
     println!("{}", serde_json::to_string_pretty(&summary)?);
     Ok(())
+}
+
+/// `--odometry`'s poses for the drive's frames (camera_from_odom of image_2), with its noise, or
+/// `None` without it. Errors: a file that is unreadable, or lacks a line for a frame of the drive.
+fn odometry(args: &TrackArgs, file_indices: &[usize], truth: &[Pose]) -> Result<Option<(Odometry, OdometrySource)>> {
+    let Some(source) = &args.odometry else { return Ok(None) };
+    for (flag, value) in [("--odometry-noise-pct", args.odometry_noise_pct), ("--odometry-noise-deg", args.odometry_noise_deg)] {
+        if !(value.is_finite() && value >= 0.0) {
+            bail!("{flag} {value}: give a standard deviation of 0 or more");
+        }
+    }
+    let poses = if source == "poses" {
+        truth.to_vec()
+    } else {
+        // The file read as the sequence's poses.txt would be: the same rig, the same conversion.
+        let own = Sequence::open(&args.sequence, Some(Path::new(source))).with_context(|| format!("--odometry {source}"))?;
+        file_indices.iter().map(|&i| own.camera_from_map(i)).collect::<Result<Vec<_>>>().with_context(|| format!("--odometry {source}"))?
+    };
+    // Its own stream of draws: the first prior's seed stays the one without odometry.
+    let odometry = Odometry::new(poses).with_noise(args.odometry_noise_pct, args.odometry_noise_deg, args.seed ^ 0x0D0);
+    Ok(Some((odometry, OdometrySource { source: source.clone(), noise_pct: args.odometry_noise_pct, noise_deg: args.odometry_noise_deg })))
 }
 
 /// The existing map store `dir` holding region `id`. Errors: the directory does not exist

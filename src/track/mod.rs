@@ -25,6 +25,9 @@
 //! - A model set without a calibrator gives no verdict (`p_registered: None`): then the score
 //!   alone decides the small search, and the full search's answer is always kept (the loop as it
 //!   was before the calibrator).
+//! - With [`Odometry`] (a fleet's wheel or visual odometry: camera poses in a frame of its own),
+//!   the prediction takes the camera's motion from it instead of repeating the last measured one,
+//!   and a dead-reckoned frame follows it: the loop is otherwise the same.
 //!
 //! The loop does no I/O and knows nothing of HTTP or the server: a [`FrameLocalizer`] answers one
 //! frame (`cmr-agent track` implements it with `serving::Localizer`, the path
@@ -39,6 +42,7 @@ pub mod output;
 pub mod plot;
 
 use nalgebra::Vector3;
+use nalgebra::Rotation3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -209,6 +213,78 @@ pub fn measures_motion(earlier: Mode, later: Mode) -> bool {
     }
 }
 
+/// A drive's odometry: one camera pose per drive position (camera_from_odom, in a frame of the
+/// odometry's own, e.g. a wheel-odometry or visual-odometry track started anywhere); only the
+/// motions between consecutive positions are read, so that frame need not be the map's.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Odometry {
+    poses: Vec<Pose>,
+}
+
+impl Odometry {
+    /// `poses`: camera_from_odom of the same camera as the drive's images, one per position.
+    pub fn new(poses: Vec<Pose>) -> Self {
+        Self { poses }
+    }
+
+    /// Positions covered.
+    pub fn len(&self) -> usize {
+        self.poses.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.poses.is_empty()
+    }
+
+    /// The camera's motion into `position` from the position before, C_k·C_{k−1}⁻¹ (in the
+    /// camera's own frame, as [`last_motion`]'s): the prediction T_k = motion·T_{k−1}.
+    /// Panics for position 0 or beyond [`Odometry::len`].
+    pub fn motion(&self, position: usize) -> Pose {
+        self.poses[position].compose(&self.poses[position - 1].inverse())
+    }
+
+    /// The same odometry with every step's error a real one has, drawn from `seed`: the
+    /// translation scaled by 1 + `noise_pct`/100 · n and the camera turned about its own y axis
+    /// (the vertical of a level camera: a heading error) by `noise_deg` · n′ degrees, n and n′
+    /// standard normal per step; the steps are then chained again from the first pose, so the
+    /// errors pile up as odometry's drift does. Zero noise returns the poses unchanged.
+    pub fn with_noise(&self, noise_pct: f64, noise_deg: f64, seed: u64) -> Self {
+        if noise_pct == 0.0 && noise_deg == 0.0 {
+            return self.clone();
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut normal = || {
+            // Box-Muller: one standard normal from two uniforms.
+            let (u, v): (f64, f64) = (rng.random_range(f64::EPSILON..1.0), rng.random_range(0.0..1.0));
+            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+        };
+        let mut poses = Vec::with_capacity(self.poses.len());
+        for (k, pose) in self.poses.iter().enumerate() {
+            if k == 0 {
+                poses.push(*pose);
+                continue;
+            }
+            let motion = self.motion(k);
+            let scale = 1.0 + noise_pct / 100.0 * normal();
+            let turn = Rotation3::from_axis_angle(&nalgebra::Vector3::y_axis(), (noise_deg * normal()).to_radians());
+            let noisy = Pose::from_rt(turn.matrix() * motion.rotation(), motion.translation() * scale);
+            poses.push(noisy.compose(&poses[k - 1]).renormalized());
+        }
+        Self { poses }
+    }
+
+    /// Odometry alone from `first` (camera_from_map at position 0): each later pose the one
+    /// before moved by the odometry's motion, what a tracker that never registers would answer.
+    pub fn dead_reckoned(&self, first: &Pose) -> Vec<Pose> {
+        let mut poses = vec![*first];
+        for position in 1..self.poses.len() {
+            let next = predict(Some(&self.motion(position)), &poses[position - 1]);
+            poses.push(next);
+        }
+        poses
+    }
+}
+
 /// A GNSS-like prior: `truth` (camera_from_map) with the camera centre moved by exactly
 /// `noise_m` metres in the map's ground plane (direction uniform) and its heading turned by
 /// `noise_deg` degrees about the map's z axis through the camera centre (sign uniform); height,
@@ -227,16 +303,22 @@ pub fn coarse_prior(truth: &Pose, noise_m: f64, noise_deg: f64, seed: u64) -> Po
 }
 
 /// Follows a drive of `frames` frames: the first from `first_prior` with the full search, the
-/// rest as the module doc says. `on_frame` sees each frame as soon as it is done (progress).
-/// Errors: the first error of `localizer`, with the frame's position.
+/// rest as the module doc says, each predicted with `odometry`'s motion when given (it must
+/// cover the drive) and the constant-velocity one when not. `on_frame` sees each frame as soon
+/// as it is done (progress). Errors: odometry shorter than the drive; the first error of
+/// `localizer`, with the frame's position.
 pub fn track(
     localizer: &mut dyn FrameLocalizer,
     frames: usize,
     first_prior: Pose,
+    odometry: Option<&Odometry>,
     config: &TrackConfig,
     mut on_frame: impl FnMut(&TrackedFrame),
 ) -> anyhow::Result<Vec<TrackedFrame>> {
     use anyhow::Context;
+    if let Some(odometry) = odometry.filter(|o| o.len() < frames) {
+        anyhow::bail!("the odometry has {} poses for a drive of {frames} frames", odometry.len());
+    }
     let mut done: Vec<TrackedFrame> = Vec::with_capacity(frames);
     for position in 0..frames {
         let at = || format!("frame {position} of the drive");
@@ -248,7 +330,11 @@ pub fn track(
                 .with_context(at)?;
             tracked_frame(0, Mode::Cold, first_prior, &answer, None, answer.latency_ms)
         } else {
-            let prior = predict(last_motion(&done).as_ref(), &done[position - 1].estimate);
+            let motion = match odometry {
+                Some(odometry) => Some(odometry.motion(position)),
+                None => last_motion(&done),
+            };
+            let prior = predict(motion.as_ref(), &done[position - 1].estimate);
             let small = localizer.localize(position, &prior, config.tracked, config.axis()).with_context(at)?;
             let small_ms = small.map_or(0.0, |s| s.latency_ms);
             let tracked = small.map(|s| (s.confidence, s.axis_shift_m));
@@ -502,7 +588,7 @@ mod tests {
         // still, is 1 m behind; later ones are exact).
         let mut basin = Basin { truth: truth.clone(), reach_m: 1.5, calls: vec![], calibrated: false, map_x_max: None };
         let first = coarse_prior(&truth[0], 3.0, 0.0, 1);
-        let frames = track(&mut basin, 6, first, &CONFIG, |_| {}).unwrap();
+        let frames = track(&mut basin, 6, first, None, &CONFIG, |_| {}).unwrap();
         assert_eq!(frames[0].mode, Mode::Cold);
         assert!(frames[1..].iter().all(|f| f.mode == Mode::Tracked));
         assert_eq!(basin.calls.len(), 6);
@@ -513,7 +599,7 @@ mod tests {
         // needs the full search.
         let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: false, map_x_max: None };
         let first = coarse_prior(&truth[0], 1.0, 0.0, 1);
-        let frames = track(&mut basin, 6, first, &CONFIG, |_| {}).unwrap();
+        let frames = track(&mut basin, 6, first, None, &CONFIG, |_| {}).unwrap();
         assert_eq!(frames[0].estimate, truth[0]);
         assert_eq!(frames[1].mode, Mode::Fallback);
         assert_eq!(frames[1].tracked_confidence, Some(0.1));
@@ -531,14 +617,14 @@ mod tests {
         // 0.5 m reach (1.5 m for the full search): frame 1's prediction (1 m off) needs the full
         // search; its answer is then exact, so later predictions are reached by the small one.
         let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: None };
-        let frames = track(&mut basin, 5, coarse_prior(&truth[0], 1.0, 0.0, 1), &CONFIG, |_| {}).unwrap();
+        let frames = track(&mut basin, 5, coarse_prior(&truth[0], 1.0, 0.0, 1), None, &CONFIG, |_| {}).unwrap();
         let modes: Vec<Mode> = frames.iter().map(|f| f.mode).collect();
         assert_eq!(modes, [Mode::Cold, Mode::Fallback, Mode::Tracked, Mode::Tracked, Mode::Tracked]);
         assert!(frames[1].verdict.localized && frames[1].verdict.p_registered == Some(0.9f32 as f64));
         // 0.2 m reach (0.6 m for the full search): frame 1 is out of both; it is dead-reckoned at
         // the prediction (the first estimate, standing still), and so is every later frame.
         let mut basin = Basin { truth: truth.clone(), reach_m: 0.2, calls: vec![], calibrated: true, map_x_max: None };
-        let frames = track(&mut basin, 3, coarse_prior(&truth[0], 0.5, 0.0, 1), &CONFIG, |_| {}).unwrap();
+        let frames = track(&mut basin, 3, coarse_prior(&truth[0], 0.5, 0.0, 1), None, &CONFIG, |_| {}).unwrap();
         assert_eq!(frames[0].estimate, truth[0]);
         assert!(frames[1..].iter().all(|f| f.mode == Mode::DeadReckoning && f.estimate == f.prior && !f.verdict.localized));
         assert_eq!(frames[1].latency_ms, 1.0 + 4.0, "both searches count");
@@ -546,7 +632,7 @@ mod tests {
         // Without a verdict the same drive keeps the full search's answers (as before the calibrator).
         let first = coarse_prior(&truth[0], 0.5, 0.0, 1);
         let mut basin = Basin { truth, reach_m: 0.2, calls: vec![], calibrated: false, map_x_max: None };
-        let frames = track(&mut basin, 3, first, &CONFIG, |_| {}).unwrap();
+        let frames = track(&mut basin, 3, first, None, &CONFIG, |_| {}).unwrap();
         assert!(frames[1..].iter().all(|f| f.mode == Mode::Fallback));
     }
 
@@ -558,7 +644,7 @@ mod tests {
         let truth = drive(4);
         let axis = TrackConfig { axis_starts: 1, axis_step_m: 1.0, ..CONFIG };
         let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: None };
-        let frames = track(&mut basin, 4, coarse_prior(&truth[0], 1.0, 0.0, 1), &axis, |_| {}).unwrap();
+        let frames = track(&mut basin, 4, coarse_prior(&truth[0], 1.0, 0.0, 1), None, &axis, |_| {}).unwrap();
         let modes: Vec<Mode> = frames.iter().map(|f| f.mode).collect();
         assert_eq!(modes, [Mode::Cold, Mode::Tracked, Mode::Tracked, Mode::Tracked]);
         assert_eq!(frames[1].estimate, truth[1]);
@@ -571,12 +657,12 @@ mod tests {
         // answer, which then falls back.
         let wide = TrackConfig { axis_margin: 1.0, ..axis };
         let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: None };
-        let frames = track(&mut basin, 2, coarse_prior(&truth[0], 1.0, 0.0, 1), &wide, |_| {}).unwrap();
+        let frames = track(&mut basin, 2, coarse_prior(&truth[0], 1.0, 0.0, 1), None, &wide, |_| {}).unwrap();
         assert_eq!((frames[1].mode, frames[1].prior), (Mode::Fallback, frames[0].estimate));
         // The same drive without them: frame 1 needs the full search.
         let first = coarse_prior(&truth[0], 1.0, 0.0, 1);
         let mut basin = Basin { truth, reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: None };
-        let frames = track(&mut basin, 2, first, &CONFIG, |_| {}).unwrap();
+        let frames = track(&mut basin, 2, first, None, &CONFIG, |_| {}).unwrap();
         assert_eq!(frames[1].mode, Mode::Fallback);
     }
 
@@ -589,7 +675,7 @@ mod tests {
         let axis = TrackConfig { axis_starts: 1, axis_step_m: 1.0, ..CONFIG };
         // Cameras at x ≈ 0.27 + k (frame k); the map ends at x = 3.5.
         let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: Some(3.5) };
-        let frames = track(&mut basin, 6, coarse_prior(&truth[0], 1.0, 0.0, 1), &axis, |_| {}).unwrap();
+        let frames = track(&mut basin, 6, coarse_prior(&truth[0], 1.0, 0.0, 1), None, &axis, |_| {}).unwrap();
         let modes: Vec<Mode> = frames.iter().map(|f| f.mode).collect();
         assert_eq!(modes, [Mode::Cold, Mode::Tracked, Mode::Tracked, Mode::Fallback, Mode::DeadReckoning, Mode::DeadReckoning]);
         // Frame 3: its start 1 m ahead lies off the map, so the small search is refused; the full
@@ -603,8 +689,77 @@ mod tests {
         let e = PoseError::between(&frames[4].estimate, &truth[4]);
         assert!(e.rte_m < 1e-9, "the motion before the fallback carries the prediction: {e:?}");
         let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: Some(-1.0) };
-        let e = track(&mut basin, 2, truth[0], &CONFIG, |_| {}).unwrap_err();
+        let e = track(&mut basin, 2, truth[0], None, &CONFIG, |_| {}).unwrap_err();
         assert!(format!("{e:#}").contains("frame 0 of the drive: the first frame's prior was refused"), "{e:#}");
+    }
+
+    /// The drive's poses in an odometry frame of its own (moved and turned against the map's).
+    fn odometry_of(truth: &[Pose]) -> Odometry {
+        let elsewhere = Pose::ground_motion(1.0, 40.0, -7.0);
+        Odometry::new(truth.iter().map(|t| t.compose(&elsewhere)).collect())
+    }
+
+    /// Exact odometry predicts every frame exactly, frame 1 included (which the constant-velocity
+    /// prediction has standing still), and its dead reckoning from the first truth is the drive.
+    #[test]
+    fn odometry_predicts_the_motion_from_the_second_frame_on() {
+        let truth = drive(5);
+        let odometry = odometry_of(&truth);
+        // 0.5 m reach: frame 1's constant-velocity prediction (1 m behind) falls back; with odometry
+        // every frame is tracked from an exact prediction.
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.5, calls: vec![], calibrated: true, map_x_max: None };
+        let frames = track(&mut basin, 5, coarse_prior(&truth[0], 1.0, 0.0, 1), Some(&odometry), &CONFIG, |_| {}).unwrap();
+        assert!(frames[1..].iter().all(|f| f.mode == Mode::Tracked), "{:?}", frames.iter().map(|f| f.mode).collect::<Vec<_>>());
+        for (f, t) in frames.iter().zip(&truth).skip(1) {
+            let e = PoseError::between(&f.prior, t);
+            assert!(e.rte_m < 1e-9 && e.rre_geodesic_deg < 1e-9, "frame {}: {e:?}", f.position);
+        }
+        for (est, t) in odometry.dead_reckoned(&truth[0]).iter().zip(&truth) {
+            let e = PoseError::between(est, t);
+            assert!(e.rte_m < 1e-9 && e.rre_geodesic_deg < 1e-9, "{e:?}");
+        }
+        let short = Odometry::new(odometry.poses[..4].to_vec());
+        let e = track(&mut basin, 5, truth[0], Some(&short), &CONFIG, |_| {}).unwrap_err();
+        assert!(e.to_string().contains("4 poses for a drive of 5 frames"), "{e}");
+    }
+
+    /// Neither search reaches the truth (a first answer 1 m off, 0.2 m reach): every frame is
+    /// dead-reckoned, along the odometry's motion rather than standing still.
+    #[test]
+    fn dead_reckoning_follows_the_odometry() {
+        let truth = drive(4);
+        let odometry = odometry_of(&truth);
+        let mut basin = Basin { truth: truth.clone(), reach_m: 0.2, calls: vec![], calibrated: true, map_x_max: None };
+        let first = coarse_prior(&truth[0], 1.0, 0.0, 1);
+        let frames = track(&mut basin, 4, first, Some(&odometry), &CONFIG, |_| {}).unwrap();
+        assert!(frames[1..].iter().all(|f| f.mode == Mode::DeadReckoning), "{:?}", frames.iter().map(|f| f.mode).collect::<Vec<_>>());
+        let estimates: Vec<Pose> = frames.iter().map(|f| f.estimate).collect();
+        assert_eq!(estimates, odometry.dead_reckoned(&frames[0].estimate));
+        for k in 1..4 {
+            let moved = (estimates[k].camera_position_in_map() - estimates[k - 1].camera_position_in_map()).norm();
+            assert!((moved - 1.0).abs() < 0.01, "frame {k} moved {moved} m: the drive's step");
+        }
+    }
+
+    /// Noisy odometry is seeded, drifts by about the asked amount per step, and is the odometry
+    /// itself without noise.
+    #[test]
+    fn noisy_odometry_is_seeded_and_drifts() {
+        let truth = drive(200);
+        let exact = odometry_of(&truth);
+        assert_eq!(exact.with_noise(0.0, 0.0, 3), exact);
+        let noisy = exact.with_noise(2.0, 0.5, 3);
+        assert_eq!(noisy, exact.with_noise(2.0, 0.5, 3));
+        assert_ne!(noisy, exact.with_noise(2.0, 0.5, 4));
+        let (mut scale, mut turn) = (vec![], vec![]);
+        for k in 1..200 {
+            let (m, n) = (exact.motion(k), noisy.motion(k));
+            scale.push(n.translation().norm() / m.translation().norm() - 1.0);
+            turn.push(PoseError::between(&n, &m).rre_geodesic_deg);
+        }
+        let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt();
+        assert!((rms(&scale) - 0.02).abs() < 0.005, "scale error rms {}", rms(&scale));
+        assert!((rms(&turn) - 0.5).abs() < 0.1, "turn rms {} deg", rms(&turn));
     }
 
     #[test]

@@ -15,7 +15,7 @@ use anyhow::{Context, Result};
 use serde::Serialize;
 
 use super::metrics::{FrameError, TrajectoryError, frame_errors, trajectory_error};
-use super::{ColdFrame, Mode, TrackConfig, TrackedFrame};
+use super::{ColdFrame, Mode, Odometry, TrackConfig, TrackedFrame};
 use crate::atomic_file::write_atomic;
 use crate::geometry::Pose;
 use crate::kitti::{Sequence, format_kitti_number, poses::poses_to_text};
@@ -34,6 +34,27 @@ pub struct TrackRun<'a> {
     pub prior_noise_m: f64,
     pub prior_noise_deg: f64,
     pub seed: u64,
+    /// The odometry the predictions followed, and how it was made (`None`: constant velocity).
+    pub odometry: Option<(&'a Odometry, OdometrySource)>,
+}
+
+/// Where the odometry came from and the noise added to it (`track::Odometry::with_noise`).
+#[derive(Debug, Clone, Serialize)]
+pub struct OdometrySource {
+    /// `poses` (the sequence's own poses.txt: the truth) or the file given.
+    pub source: String,
+    pub noise_pct: f64,
+    pub noise_deg: f64,
+}
+
+/// The odometry beside the tracker: what it alone gives from the first frame's answer.
+#[derive(Debug, Clone, Serialize)]
+pub struct OdometrySummary {
+    #[serde(flatten)]
+    pub source: OdometrySource,
+    /// The odometry's own motions chained from the first frame's answer, no registration after
+    /// it (`Odometry::dead_reckoned`): the baseline the tracked frames have to beat.
+    pub dead_reckoned: TrajectoryError,
 }
 
 /// One row of `frames.csv`.
@@ -75,7 +96,8 @@ pub struct ModeCounts {
     pub cold: usize,
     pub tracked: usize,
     pub fallback: usize,
-    /// Frames neither search localized: the estimate is the constant-velocity prediction.
+    /// Frames neither search localized: the estimate is the prediction (constant velocity, or
+    /// the odometry's motion).
     pub dead_reckoning: usize,
 }
 
@@ -118,6 +140,8 @@ pub struct Summary {
     pub modes: ModeCounts,
     pub latency: LatencySummary,
     pub cold_reference: Option<ColdSummary>,
+    /// With `--odometry`: its source, noise and its own errors from the first frame's answer.
+    pub odometry: Option<OdometrySummary>,
     /// latency.mean_per_frame_ms / cold_reference.mean_latency_ms.
     pub tracked_to_cold_latency: Option<f64>,
     /// Where the TUM file's timestamps come from.
@@ -171,6 +195,14 @@ impl TrackRun<'_> {
                 registration_recall: e.registration_recall,
             }
         });
+        let odometry = match (self.odometry.as_ref(), self.frames.first()) {
+            (Some((odometry, source)), Some(first)) => {
+                let alone = odometry.dead_reckoned(&first.estimate);
+                let n = self.frames.len().min(alone.len());
+                Some(OdometrySummary { source: source.clone(), dead_reckoned: trajectory_error(&frame_errors(&alone[..n], &self.truth[..n])) })
+            }
+            _ => None,
+        };
         let tracked_to_cold_latency = cold_reference.as_ref().filter(|c| c.mean_latency_ms > 0.0).map(|c| latency.mean_per_frame_ms / c.mean_latency_ms);
         Ok(Summary {
             sequence: self.sequence.dir.display().to_string(),
@@ -185,6 +217,7 @@ impl TrackRun<'_> {
             modes: ModeCounts { cold: count(Mode::Cold), tracked: count(Mode::Tracked), fallback: count(Mode::Fallback), dead_reckoning: count(Mode::DeadReckoning) },
             latency,
             cold_reference,
+            odometry,
             tracked_to_cold_latency,
             timestamps: self.timestamps()?.1,
         })
