@@ -141,13 +141,20 @@ fn held_out_cases(limit: usize) -> Vec<Case> {
         .collect()
 }
 
-async fn localize(server: &TestServer, id: &str, case: &Case, prior: &Pose, bound: Option<[f64; 2]>) -> (Pose, f64) {
-    localize_at(&server.client, &server.base, id, case, prior, bound).await
+/// The answer, its total ms and its `confidence.localized` verdict.
+async fn localize(server: &TestServer, id: &str, case: &Case, prior: &Pose, bound: Option<[f64; 2]>) -> (Pose, f64, bool) {
+    localize_verdict(&server.client, &server.base, id, case, prior, bound).await
 }
 
 /// The localize of `case` from `prior` against the server at `base`, stating `bound` (degrees,
 /// metres) as the request's `prior_bound` when given: the answer and its total ms.
 async fn localize_at(client: &reqwest::Client, base: &str, id: &str, case: &Case, prior: &Pose, bound: Option<[f64; 2]>) -> (Pose, f64) {
+    let (pose, total_ms, _) = localize_verdict(client, base, id, case, prior, bound).await;
+    (pose, total_ms)
+}
+
+/// [`localize_at`], with the answer's `confidence.localized`.
+async fn localize_verdict(client: &reqwest::Client, base: &str, id: &str, case: &Case, prior: &Pose, bound: Option<[f64; 2]>) -> (Pose, f64, bool) {
     let mut request = serde_json::json!({"image": case.image_b64, "intrinsics": case.intrinsics, "prior_camera_from_map": prior.to_rows()});
     if let Some([rotation_deg, translation_m]) = bound {
         request["prior_bound"] = serde_json::json!({"rotation_deg": rotation_deg, "translation_m": translation_m});
@@ -156,26 +163,32 @@ async fn localize_at(client: &reqwest::Client, base: &str, id: &str, case: &Case
     let status = r.status().as_u16();
     let body: serde_json::Value = r.json().await.unwrap();
     assert_eq!(status, 200, "frame {}: {body}", case.frame);
-    (pose_of(&body["pose"]["camera_from_map"]), body["timings_ms"]["total"].as_f64().unwrap())
+    let localized = body["confidence"]["localized"].as_bool().expect("a verdict in every answer");
+    (pose_of(&body["pose"]["camera_from_map"]), body["timings_ms"]["total"].as_f64().unwrap(), localized)
 }
 
 /// Localizes every case from `prior(case)` (moved to the map frame of `frame`) against region `id`; returns the answers and prints
 /// and returns RR (position < 5 m and rotation < 10°), mean position error and mean rotation
-/// error over the registered ones, and the mean total time.
+/// error over the registered ones, and the mean total time; prints how many answers the
+/// calibrated verdict called `localized` and how many of those registered (its precision here).
 async fn run_cases(server: &TestServer, id: &str, cases: &[Case], label: &str, frame: LocalFrame, prior: impl Fn(&Case) -> Pose, bound: Option<[f64; 2]>) -> (Vec<Pose>, f64) {
     let (mut registered, mut position, mut rotation, mut ms, mut answers) = (0usize, Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut localized, mut localized_right) = (0usize, 0usize);
     for case in cases {
         let start = frame.camera_from_map(&prior(case));
         let truth = frame.camera_from_map(&case.truth);
-        let (estimate, total_ms) = localize(server, id, case, &start, bound).await;
+        let (estimate, total_ms, vouched) = localize(server, id, case, &start, bound).await;
         let (m, deg) = difference(&estimate, &truth);
         let (m0, deg0) = difference(&start, &truth);
-        println!("{label} frame {:3}: start {m0:.2} m / {deg0:.1} deg -> {m:.3} m / {deg:.3} deg, {total_ms:.0} ms", case.frame);
-        if m < 5.0 && deg < 10.0 {
+        println!("{label} frame {:3}: start {m0:.2} m / {deg0:.1} deg -> {m:.3} m / {deg:.3} deg, localized {vouched}, {total_ms:.0} ms", case.frame);
+        let right = m < 5.0 && deg < 10.0;
+        if right {
             registered += 1;
             position.push(m);
             rotation.push(deg);
         }
+        localized += vouched as usize;
+        localized_right += (vouched && right) as usize;
         ms.push(total_ms);
         answers.push(estimate);
     }
@@ -189,6 +202,7 @@ async fn run_cases(server: &TestServer, id: &str, cases: &[Case], label: &str, f
         mean(&rotation),
         mean(&ms)
     );
+    println!("{label}: localized {localized} of {}, {localized_right} of them registered", cases.len());
     (answers, rr)
 }
 
