@@ -41,8 +41,7 @@ pub mod metrics;
 pub mod output;
 pub mod plot;
 
-use nalgebra::Vector3;
-use nalgebra::Rotation3;
+use nalgebra::{Rotation3, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -266,7 +265,7 @@ impl Odometry {
             }
             let motion = self.motion(k);
             let scale = 1.0 + noise_pct / 100.0 * normal();
-            let turn = Rotation3::from_axis_angle(&nalgebra::Vector3::y_axis(), (noise_deg * normal()).to_radians());
+            let turn = Rotation3::from_axis_angle(&Vector3::y_axis(), (noise_deg * normal()).to_radians());
             let noisy = Pose::from_rt(turn.matrix() * motion.rotation(), motion.translation() * scale);
             poses.push(noisy.compose(&poses[k - 1]).renormalized());
         }
