@@ -36,6 +36,10 @@ from .export import atomic_write_bytes
 from .losses import circle_loss, weighted_bce
 from .models import STRIDE, arch_of, build_all, load_pretrained
 
+# The span of the near hard negatives (`Config.rank_near_pool`): `cmr.diagnose`'s peak grid turns
+# up to 6 deg and shifts up to 5 m.
+NEAR_TURN_DEG = 8.0
+NEAR_SHIFT_M = 5.0
 
 @dataclass
 class Config:
@@ -100,6 +104,14 @@ class Config:
     # perturbed poses -- the wrong poses the search would answer with (the street seen backwards).
     rank_hard_pool: int = 0
     rank_hard: int = 0
+    # Near hard negatives, off: `rank_near_pool` poses drawn per sample about the truth over the
+    # span of `cmr.diagnose`'s peak grid (a turn within +-`NEAR_TURN_DEG` about the camera centre,
+    # then a ground shift of 1 to `NEAR_SHIFT_M` m), scored without gradient, and the
+    # `rank_near_hard` best-scoring of them added to the perturbed poses with their own margin
+    # `rank_near_margin` -- the poses a position peak metres off the truth is made of.
+    rank_near_pool: int = 0
+    rank_near_hard: int = 0
+    rank_near_margin: float = 0.02
     # stage 2: agent
     agent_iters: int = 2000
     agent_envs: int = 8
@@ -447,13 +459,20 @@ class Run:
         if cfg.rank_hard > 0:
             for i, s in enumerate(samples):
                 moved[i] += self.hard_negatives(s.truth, points[i], k[i], pf[i], imf[i], rng)
+        margin = [[cfg.rank_margin] * len(m) for m in moved]
+        if cfg.rank_near_hard > 0:
+            for i, s in enumerate(samples):
+                near = self.near_negatives(s.truth, points[i], k[i], pf[i], imf[i], rng)
+                moved[i] += near
+                margin[i] += [cfg.rank_near_margin] * len(near)
+        margin = torch.as_tensor(margin, dtype=torch.float32, device=dev)  # [B, P]
         p = len(moved[0])
         truth = torch.as_tensor(np.stack([s.truth for s in samples]), dtype=torch.float32, device=dev)
         moved = torch.as_tensor(np.stack([m for ms in moved for m in ms]), dtype=torch.float32, device=dev)
         rep = lambda t: t.repeat_interleave(p, dim=0)  # noqa: E731
         good = alignment(truth, points, k, pf, imf)  # [B]
         bad = alignment(moved, rep(points), rep(k), rep(pf), rep(imf)).view(b, p)
-        return (F.softplus(20.0 * (cfg.rank_margin - (good[:, None] - bad))) / 20.0).mean()
+        return (F.softplus(20.0 * (margin - (good[:, None] - bad))) / 20.0).mean()
 
     def rank_perturbations(self, truth: np.ndarray, rng) -> list[np.ndarray]:
         """`rank_poses` camera_from_map poses [4, 4] near `truth` for the ranking term (its docstring)."""
@@ -483,17 +502,41 @@ class Run:
                 poses.append(pose)
         return poses
 
-    @torch.no_grad()
+    def near_poses(self, truth: np.ndarray, count: int, rng) -> list[np.ndarray]:
+        """`count` camera_from_map poses [4, 4] about `truth` as `cmr.diagnose`'s peak grid turns
+        and shifts it: a turn uniform within +-`NEAR_TURN_DEG` about the camera centre (map z),
+        then a ground shift (right and forward of the turned heading) uniform over the ring 1 to
+        `NEAR_SHIFT_M` m."""
+        centre = g.invert(truth)[:3, 3]
+        poses = []
+        for _ in range(count):
+            yaw = rng.uniform(-NEAR_TURN_DEG, NEAR_TURN_DEG)
+            r = math.sqrt(rng.uniform(1.0, NEAR_SHIFT_M ** 2))
+            a = rng.uniform(0.0, 2 * math.pi)
+            turned = g.apply_action(truth, centre, yaw, 0.0, 0.0, frame=g.MAP_Z)
+            poses.append(g.apply_action(turned, centre, 0.0, r * math.cos(a), r * math.sin(a), frame=g.MAP_Z))
+        return poses
+
     def hard_negatives(self, truth, points, k, pf, imf, rng) -> list[np.ndarray]:
         """The `rank_hard` best-scoring (`state.alignment`, no gradient) of `rank_hard_pool`
         `protocol_poses` of one sample (points [N, 3], k [4], pf [N, C], imf [C, H, W])."""
+        pool = self.protocol_poses(truth, self.cfg.rank_hard_pool, rng)
+        return self.best_scoring(pool, self.cfg.rank_hard, points, k, pf, imf)
+
+    def near_negatives(self, truth, points, k, pf, imf, rng) -> list[np.ndarray]:
+        """The `rank_near_hard` best-scoring of `rank_near_pool` `near_poses` of one sample."""
+        pool = self.near_poses(truth, self.cfg.rank_near_pool, rng)
+        return self.best_scoring(pool, self.cfg.rank_near_hard, points, k, pf, imf)
+
+    @torch.no_grad()
+    def best_scoring(self, pool, count, points, k, pf, imf) -> list[np.ndarray]:
+        """The `count` poses of `pool` that score highest by `state.alignment`, no gradient."""
         from .state import alignment
-        cfg, n = self.cfg, self.cfg.rank_hard_pool
-        pool = self.protocol_poses(truth, n, rng)
+        n = len(pool)
         poses = torch.as_tensor(np.stack(pool), dtype=torch.float32, device=self.device)
         score = alignment(poses, points.expand(n, *points.shape), k.expand(n, *k.shape),
                           pf.expand(n, *pf.shape), imf.expand(n, *imf.shape))
-        return [pool[j] for j in torch.topk(score, min(cfg.rank_hard, n)).indices.tolist()]
+        return [pool[j] for j in torch.topk(score, min(count, n)).indices.tolist()]
 
     def embed_param_groups(self) -> list[dict]:
         """Stage 1's parameters; a pretrained backbone's in a group of their own whose learning rate
