@@ -57,11 +57,13 @@
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
 #                                # rtv-fleet, rtv-fleet2 (a second fleet sample of the same drives,
-#                                # seed 3106), dev-protocol, dev-fleet, synth-test, v2-val, own-synth,
-#                                # and fused (tests/fleet_maps.rs's two 42-case files on the candidate)
-#                                # (default: the shipping rule's rtv-protocol synth-test); EVAL_FLAGS
-#                                # adds eval flags (e.g. "--keep-prior true") and TAG a suffix;
-#                                # QUANTIZE_GRAPHS=agent keeps the image encoder float (a new NAME)
+#                                # seed 3106), dev-protocol, dev-fleet, the four 16-per-frame files
+#                                # rtv-protocol16, rtv-fleet16, dev-protocol16, dev-fleet16, synth-test,
+#                                # v2-val, own-synth, and fused (tests/fleet_maps.rs's two 42-case
+#                                # files on the candidate) (default: rtv-protocol synth-test);
+#                                # EVAL_FLAGS adds eval flags (e.g. "--prior-bound 30,5") and TAG a
+#                                # suffix; QUANTIZE_GRAPHS names the int8 graphs (cmr.quantize's
+#                                # default: the agent alone, the image encoder float)
 #
 # Resuming: `start` resumes from $RUN/last.pt; when that is missing (a fresh machine) or behind
 # the committed training/checkpoints/v7.pt (fewer steps), the committed file is copied there first, byte
@@ -407,6 +409,11 @@ judge() {
       rtv-fleet2) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed3106-perturbations.json ;;
       dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-perturbations.json ;;
       dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-perturbations.json ;;
+      # 16 cases per frame, drawn 2026-12-07 (run v21's second judgement; training/README.md)
+      rtv-protocol16) data=$DATA/real-split/val; cases=docs/eval/real-train-val-seed4101-perturbations.json ;;
+      rtv-fleet16) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4102-perturbations.json ;;
+      dev-protocol16) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4103-perturbations.json ;;
+      dev-fleet16) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4104-perturbations.json ;;
       synth-test) data=$DATA/synth-test; cases=docs/eval/perturbations.json ;;
       v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-perturbations.json ;;
       own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-perturbations.json ;;
