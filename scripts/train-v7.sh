@@ -53,6 +53,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v9a scripts/train-v7.sh start-v9a
 #                                # run v9a: stage 2 continued on v9e's finished encoders (the
 #                                # agent from v7's, as v9e kept it), 600 iterations, one thread
+#   RUN=~/.cache/cmr-agent/runs/v26 scripts/train-v7.sh start-v26
+#                                # run v26: v11's encoders on with near hard negatives in the
+#                                # ranking term (4,000 steps), then 1,000 agent iterations
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
@@ -383,6 +386,16 @@ start_v24() {
     embed_eval_every=1500 "${V20_STAGE2[@]}" virtual_scan_p=0.75 "$@"
 }
 
+# Run v26: v24's shape (v11's encoders trained on with stage 1 from the shipped weights, then
+# V20_STAGE2's agent stage) with near hard negatives in the ranking term (cmr.train's
+# `rank_near_*`: the best-scoring of 32 poses turned within 8 deg and shifted 1-5 m join each
+# sample's negatives, margin 0.02) and COMMON's map cuts. SETTING... after these (a later one wins).
+start_v26() {
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 backbone_lr_scale=0.1 \
+    init_from="$(v11_shipped)" embed_lr=2e-4 embed_warmup=100 embed_lr_min=1e-5 embed_steps=4000 keep_embed_every=1000 \
+    embed_eval_every=1000 rank_near_pool=32 rank_near_hard=4 rank_near_margin=0.02 "${V20_STAGE2[@]}" "$@"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -462,6 +475,7 @@ case "${1:-}" in
   start-v21) start_v21 ;;
   start-v22) start_v22 ;;
   start-v24) start_v24 ;;
+  start-v26) start_v26 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
