@@ -79,14 +79,14 @@ def lidar_edges(xyz: np.ndarray, bin_deg=0.08, max_daz=0.6, min_jump=0.3):
 
 
 def edge_map(grey: np.ndarray, gamma=0.98, alpha=1 / 3, reach_px=40) -> np.ndarray:
-    g = torch.from_numpy(grey)[None, None]
-    pad = torch.nn.functional.pad(g, (1, 1, 1, 1), mode="replicate")
+    img = torch.from_numpy(grey)[None, None]
+    pad = torch.nn.functional.pad(img, (1, 1, 1, 1), mode="replicate")
     h, w = grey.shape
-    e = torch.zeros_like(g)
+    e = torch.zeros_like(img)
     for dy in range(3):
         for dx in range(3):
             if (dy, dx) != (1, 1):
-                e = torch.maximum(e, (pad[..., dy:dy + h, dx:dx + w] - g).abs())
+                e = torch.maximum(e, (pad[..., dy:dy + h, dx:dx + w] - img).abs())
     spread = e.clone()
     for _ in range(reach_px):
         spread = torch.maximum(e, gamma * torch.nn.functional.max_pool2d(spread, 3, 1, 1))

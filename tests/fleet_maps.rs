@@ -141,20 +141,14 @@ fn held_out_cases(limit: usize) -> Vec<Case> {
         .collect()
 }
 
-/// The answer, its total ms and its `confidence.localized` verdict.
 async fn localize(server: &TestServer, id: &str, case: &Case, prior: &Pose, bound: Option<[f64; 2]>) -> (Pose, f64, bool) {
-    localize_verdict(&server.client, &server.base, id, case, prior, bound).await
+    localize_at(&server.client, &server.base, id, case, prior, bound).await
 }
 
 /// The localize of `case` from `prior` against the server at `base`, stating `bound` (degrees,
-/// metres) as the request's `prior_bound` when given: the answer and its total ms.
-async fn localize_at(client: &reqwest::Client, base: &str, id: &str, case: &Case, prior: &Pose, bound: Option<[f64; 2]>) -> (Pose, f64) {
-    let (pose, total_ms, _) = localize_verdict(client, base, id, case, prior, bound).await;
-    (pose, total_ms)
-}
-
-/// [`localize_at`], with the answer's `confidence.localized`.
-async fn localize_verdict(client: &reqwest::Client, base: &str, id: &str, case: &Case, prior: &Pose, bound: Option<[f64; 2]>) -> (Pose, f64, bool) {
+/// metres) as the request's `prior_bound` when given: the answer, its total ms and its
+/// `confidence.localized` verdict.
+async fn localize_at(client: &reqwest::Client, base: &str, id: &str, case: &Case, prior: &Pose, bound: Option<[f64; 2]>) -> (Pose, f64, bool) {
     let mut request = serde_json::json!({"image": case.image_b64, "intrinsics": case.intrinsics, "prior_camera_from_map": prior.to_rows()});
     if let Some([rotation_deg, translation_m]) = bound {
         request["prior_bound"] = serde_json::json!({"rotation_deg": rotation_deg, "translation_m": translation_m});
@@ -515,7 +509,7 @@ async fn a_ten_million_point_region_stays_under_one_and_a_half_gigabytes() {
     println!("10 M upload: {:.1} s, {} points, {} tiles, timings {}; VmHWM {:.0} MiB", t.elapsed().as_secs_f64(), json["map"]["num_points"], json["map"]["tiles"], json["timings_ms"], hwm());
     assert!(json["map"]["num_points"].as_u64().unwrap() >= 10_000_000);
     for case in held_out_cases(5) {
-        let (estimate, total_ms) = localize_at(&client, &base, "big", &case, &case.prior, None).await;
+        let (estimate, total_ms, _) = localize_at(&client, &base, "big", &case, &case.prior, None).await;
         let (m, deg) = difference(&estimate, &case.truth);
         println!("frame {}: {m:.3} m / {deg:.3} deg from the truth, {total_ms:.0} ms; VmHWM {:.0} MiB", case.frame, hwm());
     }

@@ -41,6 +41,7 @@ from .models import STRIDE, arch_of, build_all, load_pretrained
 NEAR_TURN_DEG = 8.0
 NEAR_SHIFT_M = 5.0
 
+
 @dataclass
 class Config:
     data: str = ""  # comma-separated KITTI-layout roots / sequence dirs

@@ -167,28 +167,23 @@ def test_rank_loss_prefers_the_truth_and_reaches_both_encoders(tmp_path, tiny_da
         assert grads and any(g.abs().sum() > 0 for g in grads), name
 
 
-def test_hard_negatives_are_the_best_scoring_wrong_protocol_poses(tmp_path, tiny_dataset):
-    """`rank_hard`: of `rank_hard_pool` protocol-like poses (none registered), the best-scoring by
-    `state.alignment` join the ranking term's perturbed poses, which still trains both encoders."""
+def best_scoring_negatives_train_both_encoders(run, sample, negatives, pool):
+    """With random embeddings of `sample`, `negatives` (a `Run` method choosing hard negatives)
+    returns the three best-scoring by `state.alignment` of the 12 poses `pool` draws with the same
+    seed (the run's pool size is 12 and its count 3); and the ranking term with them has gradients
+    in both encoders."""
     from cmr.state import alignment
-    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=2, rank_hard_pool=12, rank_hard=3)
-    sample = run.samples(1, 0, 1, 2048)[0]
-    pool = run.protocol_poses(sample.truth, 200, np.random.default_rng(1))
-    assert len(pool) == 200 and not any(g.registered(p, sample.truth) for p in pool)
-    centre = g.invert(sample.truth)[:3, 3]
-    assert max(np.linalg.norm(g.invert(p)[:3, 3] - centre) for p in pool) <= 10.0 * math.sqrt(2) + 1e-6
     torch.manual_seed(0)
     points = torch.as_tensor(sample.points[:, :3], dtype=torch.float32)
     pf = torch.nn.functional.normalize(torch.randn(len(points), 64), dim=1)
     imf = torch.nn.functional.normalize(torch.randn(64, 40, 128), dim=0)
     k = torch.as_tensor(sample.intrinsics, dtype=torch.float32)
-    hard = run.hard_negatives(sample.truth, points, k, pf, imf, np.random.default_rng(2))
-    drawn = run.protocol_poses(sample.truth, 12, np.random.default_rng(2))
+    chosen = negatives(sample.truth, points, k, pf, imf, np.random.default_rng(2))
+    drawn = pool(sample.truth, 12, np.random.default_rng(2))
     score = lambda poses: alignment(torch.as_tensor(np.stack(poses), dtype=torch.float32),  # noqa: E731
                                     points.expand(len(poses), -1, -1), k.expand(len(poses), -1),
                                     pf.expand(len(poses), -1, -1), imf.expand(len(poses), -1, -1, -1))
-    want = sorted(score(drawn).tolist(), reverse=True)[:3]
-    assert np.allclose(score(hard).tolist(), want)
+    assert np.allclose(score(chosen).tolist(), sorted(score(drawn).tolist(), reverse=True)[:3])
     loss, stats = run.embed_losses(run.samples(1, 0, 2, 2048))
     assert stats["rank"] > 0
     loss.backward()
@@ -196,11 +191,22 @@ def test_hard_negatives_are_the_best_scoring_wrong_protocol_poses(tmp_path, tiny
         assert any(q.grad is not None and q.grad.abs().sum() > 0 for q in run.models[name].parameters()), name
 
 
+def test_hard_negatives_are_the_best_scoring_wrong_protocol_poses(tmp_path, tiny_dataset):
+    """`rank_hard`: of `rank_hard_pool` protocol-like poses (none registered), the best-scoring by
+    `state.alignment` join the ranking term's perturbed poses, which still trains both encoders."""
+    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=2, rank_hard_pool=12, rank_hard=3)
+    sample = run.samples(1, 0, 1, 2048)[0]
+    pool = run.protocol_poses(sample.truth, 200, np.random.default_rng(1))
+    assert len(pool) == 200 and not any(g.registered(p, sample.truth) for p in pool)
+    centre = g.invert(sample.truth)[:3, 3]
+    assert max(np.linalg.norm(g.invert(p)[:3, 3] - centre) for p in pool) <= 10.0 * math.sqrt(2) + 1e-6
+    best_scoring_negatives_train_both_encoders(run, sample, run.hard_negatives, run.protocol_poses)
+
+
 def test_near_negatives_are_the_best_scoring_poses_metres_off(tmp_path, tiny_dataset):
     """`rank_near_hard`: of `rank_near_pool` poses turned within 8 deg and shifted 1-5 m along the
     ground, the best-scoring join the ranking term with their own margin, which trains both
     encoders."""
-    from cmr.state import alignment
     from cmr.train import NEAR_SHIFT_M, NEAR_TURN_DEG
     run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=2, rank_near_pool=12, rank_near_hard=3)
     sample = run.samples(1, 0, 1, 2048)[0]
@@ -211,22 +217,7 @@ def test_near_negatives_are_the_best_scoring_poses_metres_off(tmp_path, tiny_dat
         turn = math.degrees(math.acos(np.clip(f0 @ g.ground_heading(pose)[1], -1.0, 1.0)))
         assert 1.0 - 1e-6 <= np.linalg.norm(moved) <= NEAR_SHIFT_M + 1e-6 and abs(moved[2]) < 1e-9
         assert turn <= NEAR_TURN_DEG + 1e-6
-    torch.manual_seed(0)
-    points = torch.as_tensor(sample.points[:, :3], dtype=torch.float32)
-    pf = torch.nn.functional.normalize(torch.randn(len(points), 64), dim=1)
-    imf = torch.nn.functional.normalize(torch.randn(64, 40, 128), dim=0)
-    k = torch.as_tensor(sample.intrinsics, dtype=torch.float32)
-    near = run.near_negatives(sample.truth, points, k, pf, imf, np.random.default_rng(2))
-    drawn = run.near_poses(sample.truth, 12, np.random.default_rng(2))
-    score = lambda poses: alignment(torch.as_tensor(np.stack(poses), dtype=torch.float32),  # noqa: E731
-                                    points.expand(len(poses), -1, -1), k.expand(len(poses), -1),
-                                    pf.expand(len(poses), -1, -1), imf.expand(len(poses), -1, -1, -1))
-    assert np.allclose(score(near).tolist(), sorted(score(drawn).tolist(), reverse=True)[:3])
-    loss, stats = run.embed_losses(run.samples(1, 0, 2, 2048))
-    assert stats["rank"] > 0
-    loss.backward()
-    for name in ("point_encoder", "image_encoder"):
-        assert any(q.grad is not None and q.grad.abs().sum() > 0 for q in run.models[name].parameters()), name
+    best_scoring_negatives_train_both_encoders(run, sample, run.near_negatives, run.near_poses)
 
 
 def test_same_padding_is_tensorflows_and_keeps_shapes_static():
