@@ -56,6 +56,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v26 scripts/train-v7.sh start-v26
 #                                # run v26: v11's encoders on with near hard negatives in the
 #                                # ranking term (4,000 steps), then 1,000 agent iterations
+#   RUN=~/.cache/cmr-agent/runs/v27 scripts/train-v7.sh start-v27
+#                                # run v27: v26 with the near negatives the best 8 of 256 poses
+#                                # (scored on 4,096 points) instead of the best 4 of 32
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
@@ -396,6 +399,13 @@ start_v26() {
     embed_eval_every=1000 rank_near_pool=32 rank_near_hard=4 rank_near_margin=0.02 "${V20_STAGE2[@]}" "$@"
 }
 
+# Run v27: v26 with a pool eight times larger (the best 8 of 256 near poses, ranked on 4,096 of
+# the sample's points to keep a step at about 0.8 s), so that the near negatives are the poses
+# that beat the truth rather than a random few of them.
+start_v27() {
+  start_v26 rank_near_pool=256 rank_near_hard=8 rank_near_points=4096 "$@"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -476,6 +486,7 @@ case "${1:-}" in
   start-v22) start_v22 ;;
   start-v24) start_v24 ;;
   start-v26) start_v26 ;;
+  start-v27) start_v27 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac

@@ -109,10 +109,13 @@ class Config:
     # span of `cmr.diagnose`'s peak grid (a turn within +-`NEAR_TURN_DEG` about the camera centre,
     # then a ground shift of 1 to `NEAR_SHIFT_M` m), scored without gradient, and the
     # `rank_near_hard` best-scoring of them added to the perturbed poses with their own margin
-    # `rank_near_margin` -- the poses a position peak metres off the truth is made of.
+    # `rank_near_margin` -- the poses a position peak metres off the truth is made of. With
+    # `rank_near_points` > 0 the pool is scored on that many of the sample's points (one random
+    # subset per sample, the same for every pose of its pool), so that a large pool stays cheap.
     rank_near_pool: int = 0
     rank_near_hard: int = 0
     rank_near_margin: float = 0.02
+    rank_near_points: int = 0
     # stage 2: agent
     agent_iters: int = 2000
     agent_envs: int = 8
@@ -525,8 +528,13 @@ class Run:
         return self.best_scoring(pool, self.cfg.rank_hard, points, k, pf, imf)
 
     def near_negatives(self, truth, points, k, pf, imf, rng) -> list[np.ndarray]:
-        """The `rank_near_hard` best-scoring of `rank_near_pool` `near_poses` of one sample."""
+        """The `rank_near_hard` best-scoring of `rank_near_pool` `near_poses` of one sample, scored
+        on `rank_near_points` of its points (drawn after the pool) when that is set and fewer than all."""
         pool = self.near_poses(truth, self.cfg.rank_near_pool, rng)
+        m = self.cfg.rank_near_points
+        if 0 < m < len(points):
+            keep = torch.as_tensor(np.sort(rng.choice(len(points), m, replace=False)), device=points.device)
+            points, pf = points[keep], pf[keep]
         return self.best_scoring(pool, self.cfg.rank_near_hard, points, k, pf, imf)
 
     @torch.no_grad()

@@ -220,6 +220,34 @@ def test_near_negatives_are_the_best_scoring_poses_metres_off(tmp_path, tiny_dat
     best_scoring_negatives_train_both_encoders(run, sample, run.near_negatives, run.near_poses)
 
 
+def test_near_negatives_scored_on_a_subset_of_points(tmp_path, tiny_dataset):
+    """`rank_near_points`: the pool is ranked on that many of the sample's points, a subset drawn
+    after the pool from the same generator; the chosen poses are the best by the subset's score
+    (and, with random embeddings, not all the best by the full score)."""
+    from cmr.state import alignment
+    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=2, rank_near_pool=40, rank_near_hard=3,
+                    rank_near_points=300)
+    sample = run.samples(1, 0, 1, 2048)[0]
+    torch.manual_seed(0)
+    points = torch.as_tensor(sample.points[:, :3], dtype=torch.float32)
+    pf = torch.nn.functional.normalize(torch.randn(len(points), 64), dim=1)
+    imf = torch.nn.functional.normalize(torch.randn(64, 40, 128), dim=0)
+    k = torch.as_tensor(sample.intrinsics, dtype=torch.float32)
+    chosen = run.near_negatives(sample.truth, points, k, pf, imf, np.random.default_rng(5))
+    rng = np.random.default_rng(5)
+    drawn = run.near_poses(sample.truth, 40, rng)
+    keep = np.sort(rng.choice(len(points), 300, replace=False))
+
+    def score(poses, idx):
+        n = len(poses)
+        return alignment(torch.as_tensor(np.stack(poses), dtype=torch.float32), points[idx].expand(n, -1, -1),
+                         k.expand(n, -1), pf[idx].expand(n, -1, -1), imf.expand(n, -1, -1, -1)).tolist()
+
+    assert np.allclose(score(chosen, keep), sorted(score(drawn, keep), reverse=True)[:3])
+    everything = np.arange(len(points))
+    assert sorted(score(chosen, everything)) != sorted(score(drawn, everything), reverse=True)[:3][::-1]
+
+
 def test_same_padding_is_tensorflows_and_keeps_shapes_static():
     from cmr.models import SamePad
     for k in (3, 5):
