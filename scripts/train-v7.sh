@@ -59,6 +59,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v27 scripts/train-v7.sh start-v27
 #                                # run v27: v26 with the near negatives the best 8 of 256 poses
 #                                # (scored on 4,096 points) instead of the best 4 of 32
+#   RUN=~/.cache/cmr-agent/runs/v28 scripts/train-v7.sh start-v28
+#                                # run v28: v27 with the near negatives' margin 0.05 and the
+#                                # ranking term's weight 4
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
@@ -406,6 +409,13 @@ start_v27() {
   start_v26 rank_near_pool=256 rank_near_hard=8 rank_near_points=4096 "$@"
 }
 
+# Run v28: v27 with the near negatives' margin 0.05 (v27 0.02) and the ranking term at weight 4
+# (V7_STAGE1's 2): the truth must beat the best near poses by more than twice the score's gain at
+# its peak on held-out real frames, and the term weighs twice as much against the circle loss.
+start_v28() {
+  start_v27 rank_near_margin=0.05 rank_weight=4 "$@"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -487,6 +497,7 @@ case "${1:-}" in
   start-v24) start_v24 ;;
   start-v26) start_v26 ;;
   start-v27) start_v27 ;;
+  start-v28) start_v28 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
