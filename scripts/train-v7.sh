@@ -410,8 +410,8 @@ start_v27() {
 }
 
 # Run v28: v27 with the near negatives' margin 0.05 (v27 0.02) and the ranking term at weight 4
-# (V7_STAGE1's 2): the truth must beat the best near poses by more than twice the score's gain at
-# its peak on held-out real frames, and the term weighs twice as much against the circle loss.
+# (V7_STAGE1's 2): the truth must beat the best near poses by four to six times the score's gain
+# at its peak on held-out real frames, and the term weighs twice as much against the circle loss.
 start_v28() {
   start_v27 rank_near_margin=0.05 rank_weight=4 "$@"
 }

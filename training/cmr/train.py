@@ -37,7 +37,7 @@ from .losses import circle_loss, weighted_bce
 from .models import STRIDE, arch_of, build_all, load_pretrained
 
 # The span of the near hard negatives (`Config.rank_near_pool`): `cmr.diagnose`'s peak grid turns
-# up to 6 deg and shifts up to 5 m.
+# up to 6 deg and shifts up to 5 m; the turn here reaches a little beyond it.
 NEAR_TURN_DEG = 8.0
 NEAR_SHIFT_M = 5.0
 
@@ -110,8 +110,9 @@ class Config:
     # then a ground shift of 1 to `NEAR_SHIFT_M` m), scored without gradient, and the
     # `rank_near_hard` best-scoring of them added to the perturbed poses with their own margin
     # `rank_near_margin` -- the poses a position peak metres off the truth is made of. With
-    # `rank_near_points` > 0 the pool is scored on that many of the sample's points (one random
-    # subset per sample, the same for every pose of its pool), so that a large pool stays cheap.
+    # 0 < `rank_near_points` < the sample's points, the pool is scored on that many of them (one
+    # random subset per sample, the same for every pose of its pool), so that a large pool stays
+    # cheap; otherwise on all of them.
     rank_near_pool: int = 0
     rank_near_hard: int = 0
     rank_near_margin: float = 0.02
