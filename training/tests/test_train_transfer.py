@@ -167,23 +167,34 @@ def test_rank_loss_prefers_the_truth_and_reaches_both_encoders(tmp_path, tiny_da
         assert grads and any(g.abs().sum() > 0 for g in grads), name
 
 
+def random_embeddings(sample):
+    """`sample`'s points [N, 3] and intrinsics [4] as tensors, with seeded random unit point
+    features [N, 64] and image features [64, 40, 128]."""
+    torch.manual_seed(0)
+    points = torch.as_tensor(sample.points[:, :3], dtype=torch.float32)
+    pf = torch.nn.functional.normalize(torch.randn(len(points), 64), dim=1)
+    imf = torch.nn.functional.normalize(torch.randn(64, 40, 128), dim=0)
+    return points, torch.as_tensor(sample.intrinsics, dtype=torch.float32), pf, imf
+
+
+def alignments(poses, points, k, pf, imf) -> list[float]:
+    """`state.alignment` of each of `poses` (camera_from_map [4, 4]) with one sample's embeddings."""
+    from cmr.state import alignment
+    n = len(poses)
+    return alignment(torch.as_tensor(np.stack(poses), dtype=torch.float32), points.expand(n, -1, -1),
+                     k.expand(n, -1), pf.expand(n, -1, -1), imf.expand(n, -1, -1, -1)).tolist()
+
+
 def best_scoring_negatives_train_both_encoders(run, sample, negatives, pool):
     """With random embeddings of `sample`, `negatives` (a `Run` method choosing hard negatives)
     returns the three best-scoring by `state.alignment` of the 12 poses `pool` draws with the same
     seed (the run's pool size is 12 and its count 3); and the ranking term with them has gradients
     in both encoders."""
-    from cmr.state import alignment
-    torch.manual_seed(0)
-    points = torch.as_tensor(sample.points[:, :3], dtype=torch.float32)
-    pf = torch.nn.functional.normalize(torch.randn(len(points), 64), dim=1)
-    imf = torch.nn.functional.normalize(torch.randn(64, 40, 128), dim=0)
-    k = torch.as_tensor(sample.intrinsics, dtype=torch.float32)
+    points, k, pf, imf = random_embeddings(sample)
     chosen = negatives(sample.truth, points, k, pf, imf, np.random.default_rng(2))
     drawn = pool(sample.truth, 12, np.random.default_rng(2))
-    score = lambda poses: alignment(torch.as_tensor(np.stack(poses), dtype=torch.float32),  # noqa: E731
-                                    points.expand(len(poses), -1, -1), k.expand(len(poses), -1),
-                                    pf.expand(len(poses), -1, -1), imf.expand(len(poses), -1, -1, -1))
-    assert np.allclose(score(chosen).tolist(), sorted(score(drawn).tolist(), reverse=True)[:3])
+    score = lambda poses: alignments(poses, points, k, pf, imf)  # noqa: E731
+    assert np.allclose(score(chosen), sorted(score(drawn), reverse=True)[:3])
     loss, stats = run.embed_losses(run.samples(1, 0, 2, 2048))
     assert stats["rank"] > 0
     loss.backward()
@@ -224,25 +235,15 @@ def test_near_negatives_scored_on_a_subset_of_points(tmp_path, tiny_dataset):
     """`rank_near_points`: the pool is ranked on that many of the sample's points, a subset drawn
     after the pool from the same generator; the chosen poses are the best by the subset's score
     (and, with random embeddings, not all the best by the full score)."""
-    from cmr.state import alignment
     run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=2, rank_near_pool=40, rank_near_hard=3,
                     rank_near_points=300)
     sample = run.samples(1, 0, 1, 2048)[0]
-    torch.manual_seed(0)
-    points = torch.as_tensor(sample.points[:, :3], dtype=torch.float32)
-    pf = torch.nn.functional.normalize(torch.randn(len(points), 64), dim=1)
-    imf = torch.nn.functional.normalize(torch.randn(64, 40, 128), dim=0)
-    k = torch.as_tensor(sample.intrinsics, dtype=torch.float32)
+    points, k, pf, imf = random_embeddings(sample)
     chosen = run.near_negatives(sample.truth, points, k, pf, imf, np.random.default_rng(5))
     rng = np.random.default_rng(5)
     drawn = run.near_poses(sample.truth, 40, rng)
     keep = np.sort(rng.choice(len(points), 300, replace=False))
-
-    def score(poses, idx):
-        n = len(poses)
-        return alignment(torch.as_tensor(np.stack(poses), dtype=torch.float32), points[idx].expand(n, -1, -1),
-                         k.expand(n, -1), pf[idx].expand(n, -1, -1), imf.expand(n, -1, -1, -1)).tolist()
-
+    score = lambda poses, idx: alignments(poses, points[idx], k, pf[idx], imf)  # noqa: E731
     assert np.allclose(score(chosen, keep), sorted(score(drawn, keep), reverse=True)[:3])
     full_best = np.argsort(score(drawn, np.arange(len(points))))[::-1][:3]
     assert not all(any(np.array_equal(drawn[j], c) for c in chosen) for j in full_best)
