@@ -62,6 +62,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v28 scripts/train-v7.sh start-v28
 #                                # run v28: v27 with the near negatives' margin 0.05 and the
 #                                # ranking term's weight 4
+#   RUN=~/.cache/cmr-agent/runs/v29 scripts/train-v7.sh start-v29
+#                                # run v29: v28's stage 1 carried on 4,000 steps from its end with
+#                                # the margin 0.1, then 1,000 agent iterations
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
@@ -416,6 +419,12 @@ start_v28() {
   start_v27 rank_near_margin=0.05 rank_weight=4 "$@"
 }
 
+# Run v29: v28's stage 1 carried on from its end (v28's snap/embed_004000.pt, which holds v11's
+# agent) for 4,000 more steps with the near negatives' margin 0.1 (v28 0.05), then V20_STAGE2.
+start_v29() {
+  start_v28 init_from="$HOME/.cache/cmr-agent/runs/v28/snap/embed_004000.pt" rank_near_margin=0.1 "$@"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -498,6 +507,7 @@ case "${1:-}" in
   start-v26) start_v26 ;;
   start-v27) start_v27 ;;
   start-v28) start_v28 ;;
+  start-v29) start_v29 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
