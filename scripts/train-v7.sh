@@ -65,6 +65,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v29 scripts/train-v7.sh start-v29
 #                                # run v29: v28's stage 1 carried on 4,000 steps from its end with
 #                                # the margin 0.1, then 1,000 agent iterations
+#   RUN=~/.cache/cmr-agent/runs/v30 scripts/train-v7.sh start-v30
+#                                # run v30: v28's stage 1 carried on 4,000 steps from its end with
+#                                # the best 8 of 256 far (protocol-like) poses as hard negatives too
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
@@ -425,6 +428,14 @@ start_v29() {
   start_v28 init_from="$HOME/.cache/cmr-agent/runs/v28/snap/embed_004000.pt" rank_near_margin=0.1 "$@"
 }
 
+# Run v30: v28's stage 1 carried on from its end as v29, v28's margin kept, with hard negatives
+# far from the truth as well: the best 8 of 256 protocol-like poses (any heading, within 10 m,
+# none registered), scored on 4,096 of the sample's points; then V20_STAGE2.
+start_v30() {
+  start_v28 init_from="$HOME/.cache/cmr-agent/runs/v28/snap/embed_004000.pt" rank_hard_pool=256 rank_hard=8 \
+    rank_hard_points=4096 "$@"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -508,6 +519,7 @@ case "${1:-}" in
   start-v27) start_v27 ;;
   start-v28) start_v28 ;;
   start-v29) start_v29 ;;
+  start-v30) start_v30 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac

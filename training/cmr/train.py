@@ -103,8 +103,10 @@ class Config:
     # starts (any heading about the camera centre, a ground shift within +-10 m; registered ones
     # redrawn), scored without gradient, and the `rank_hard` best-scoring of them added to the
     # perturbed poses -- the wrong poses the search would answer with (the street seen backwards).
+    # `rank_hard_points` as `rank_near_points` below, for this pool.
     rank_hard_pool: int = 0
     rank_hard: int = 0
+    rank_hard_points: int = 0
     # Near hard negatives, off: `rank_near_pool` poses drawn per sample about the truth over the
     # span of `cmr.diagnose`'s peak grid (a turn within +-`NEAR_TURN_DEG` about the camera centre,
     # then a ground shift of 1 to `NEAR_SHIFT_M` m), scored without gradient, and the
@@ -212,6 +214,15 @@ class Config:
 
 
 _LOADER: dict = {}
+
+
+def points_subset(points: torch.Tensor, pf: torch.Tensor, count: int, rng) -> tuple[torch.Tensor, torch.Tensor]:
+    """`count` of one sample's points [N, 3] and their features [N, C], drawn without replacement
+    by `rng` and kept in order, when 0 < `count` < N; otherwise both unchanged."""
+    if 0 < count < len(points):
+        keep = torch.as_tensor(np.sort(rng.choice(len(points), count, replace=False)), device=points.device)
+        return points[keep], pf[keep]
+    return points, pf
 
 
 def build_samples(frames, seed: int, stage: int, step: int, count: int, num_points: int, augment) -> list:
@@ -524,18 +535,17 @@ class Run:
 
     def hard_negatives(self, truth, points, k, pf, imf, rng) -> list[np.ndarray]:
         """The `rank_hard` best-scoring (`state.alignment`, no gradient) of `rank_hard_pool`
-        `protocol_poses` of one sample (points [N, 3], k [4], pf [N, C], imf [C, H, W])."""
+        `protocol_poses` of one sample (points [N, 3], k [4], pf [N, C], imf [C, H, W]), scored on
+        `rank_hard_points` of its points (drawn after the pool) when that is set and fewer than all."""
         pool = self.protocol_poses(truth, self.cfg.rank_hard_pool, rng)
+        points, pf = points_subset(points, pf, self.cfg.rank_hard_points, rng)
         return self.best_scoring(pool, self.cfg.rank_hard, points, k, pf, imf)
 
     def near_negatives(self, truth, points, k, pf, imf, rng) -> list[np.ndarray]:
         """The `rank_near_hard` best-scoring of `rank_near_pool` `near_poses` of one sample, scored
         on `rank_near_points` of its points (drawn after the pool) when that is set and fewer than all."""
         pool = self.near_poses(truth, self.cfg.rank_near_pool, rng)
-        m = self.cfg.rank_near_points
-        if 0 < m < len(points):
-            keep = torch.as_tensor(np.sort(rng.choice(len(points), m, replace=False)), device=points.device)
-            points, pf = points[keep], pf[keep]
+        points, pf = points_subset(points, pf, self.cfg.rank_near_points, rng)
         return self.best_scoring(pool, self.cfg.rank_near_hard, points, k, pf, imf)
 
     @torch.no_grad()

@@ -231,17 +231,19 @@ def test_near_negatives_are_the_best_scoring_poses_metres_off(tmp_path, tiny_dat
     best_scoring_negatives_train_both_encoders(run, sample, run.near_negatives, run.near_poses)
 
 
-def test_near_negatives_scored_on_a_subset_of_points(tmp_path, tiny_dataset):
-    """`rank_near_points`: the pool is ranked on that many of the sample's points, a subset drawn
-    after the pool from the same generator; the chosen poses are the best by the subset's score
-    (and, with random embeddings, not all the best by the full score)."""
-    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=2, rank_near_pool=40, rank_near_hard=3,
-                    rank_near_points=300)
+@pytest.mark.parametrize("kind", ["near", "hard"])
+def test_negatives_scored_on_a_subset_of_points(tmp_path, tiny_dataset, kind):
+    """`rank_near_points` / `rank_hard_points`: the pool is ranked on that many of the sample's
+    points, a subset drawn after the pool from the same generator; the chosen poses are the best by
+    the subset's score (and, with random embeddings, not all the best by the full score)."""
+    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=2, **{
+        f"rank_{kind}_pool": 40, ("rank_near_hard" if kind == "near" else "rank_hard"): 3, f"rank_{kind}_points": 300})
+    negatives, pool = (run.near_negatives, run.near_poses) if kind == "near" else (run.hard_negatives, run.protocol_poses)
     sample = run.samples(1, 0, 1, 2048)[0]
     points, k, pf, imf = random_embeddings(sample)
-    chosen = run.near_negatives(sample.truth, points, k, pf, imf, np.random.default_rng(5))
+    chosen = negatives(sample.truth, points, k, pf, imf, np.random.default_rng(5))
     rng = np.random.default_rng(5)
-    drawn = run.near_poses(sample.truth, 40, rng)
+    drawn = pool(sample.truth, 40, rng)
     keep = np.sort(rng.choice(len(points), 300, replace=False))
     score = lambda poses, idx: alignments(poses, points[idx], k, pf[idx], imf)  # noqa: E731
     assert np.allclose(score(chosen, keep), sorted(score(drawn, keep), reverse=True)[:3])
