@@ -231,14 +231,22 @@ def test_near_negatives_are_the_best_scoring_poses_metres_off(tmp_path, tiny_dat
     best_scoring_negatives_train_both_encoders(run, sample, run.near_negatives, run.near_poses)
 
 
-@pytest.mark.parametrize("kind", ["near", "hard"])
+# Each pool's settings (40 poses, the best 3, ranked on 300 points) and its `Run` methods: the
+# chooser and the drawer it draws from.
+SUBSET_POOLS = {
+    "near": (dict(rank_near_pool=40, rank_near_hard=3, rank_near_points=300), "near_negatives", "near_poses"),
+    "hard": (dict(rank_hard_pool=40, rank_hard=3, rank_hard_points=300), "hard_negatives", "protocol_poses"),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(SUBSET_POOLS))
 def test_negatives_scored_on_a_subset_of_points(tmp_path, tiny_dataset, kind):
     """`rank_near_points` / `rank_hard_points`: the pool is ranked on that many of the sample's
     points, a subset drawn after the pool from the same generator; the chosen poses are the best by
     the subset's score (and, with random embeddings, not all the best by the full score)."""
-    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=2, **{
-        f"rank_{kind}_pool": 40, ("rank_near_hard" if kind == "near" else "rank_hard"): 3, f"rank_{kind}_points": 300})
-    negatives, pool = (run.near_negatives, run.near_poses) if kind == "near" else (run.hard_negatives, run.protocol_poses)
+    settings, chooser, drawer = SUBSET_POOLS[kind]
+    run = small_run(tmp_path, tiny_dataset, rank_weight=1.0, rank_poses=2, **settings)
+    negatives, pool = getattr(run, chooser), getattr(run, drawer)
     sample = run.samples(1, 0, 1, 2048)[0]
     points, k, pf, imf = random_embeddings(sample)
     chosen = negatives(sample.truth, points, k, pf, imf, np.random.default_rng(5))
