@@ -33,3 +33,24 @@ def test_other_encoders_or_a_bad_alpha_are_refused():
         interpolate(checkpoint(0.0), checkpoint(2.0, encoder_value=3.0), 0.5)
     with pytest.raises(ValueError, match="alpha"):
         interpolate(checkpoint(0.0), checkpoint(2.0), 1.5)
+
+
+def test_the_encoders_mix_under_the_agent_both_ship():
+    start, tuned = checkpoint(1.0, encoder_value=0.0), checkpoint(1.0, encoder_value=4.0)
+    for name in ("point_encoder", "image_encoder", "frustum_head"):
+        start["models"][name]["batches"] = torch.tensor(3)  # an integer buffer: the tuned one's
+        tuned["models"][name]["batches"] = torch.tensor(9)
+    mid = interpolate(start, tuned, 0.75, part="encoders")
+    for name in ("point_encoder", "image_encoder", "frustum_head"):
+        assert torch.allclose(mid["models"][name]["w"], torch.full((4,), 3.0))
+        assert mid["models"][name]["batches"].item() == 9
+    assert torch.equal(mid["agent_ema"]["fc.weight"], tuned["agent_ema"]["fc.weight"])
+    assert mid["meta"]["interpolated"]["part"] == "encoders"
+    assert tuned["models"]["image_encoder"]["w"][0].item() == 4.0  # the inputs are left as they were
+
+
+def test_encoders_under_different_agents_or_an_unknown_part_are_refused():
+    with pytest.raises(ValueError, match="agents differ"):
+        interpolate(checkpoint(0.0, encoder_value=0.0), checkpoint(2.0, encoder_value=4.0), 0.5, part="encoders")
+    with pytest.raises(ValueError, match="part"):
+        interpolate(checkpoint(0.0), checkpoint(2.0), 0.5, part="heads")
