@@ -68,6 +68,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v30 scripts/train-v7.sh start-v30
 #                                # run v30: v28's stage 1 carried on 4,000 steps from its end with
 #                                # the best 8 of 256 far (protocol-like) poses as hard negatives too
+#   RUN=~/.cache/cmr-agent/runs/v32 scripts/train-v7.sh start-v32
+#                                # run v32: v30's stage 1 carried on 2,000 steps from its end with
+#                                # feature distillation towards v11's encoders (stage 1 only)
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
 #                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
@@ -255,11 +258,17 @@ start_v11() {
 # fresh start (a run that resumes already holds what it took from it).
 v11_shipped() {
   local init=$HOME/.cache/cmr-agent/runs/v11-shipped.pt
-  if needs_init "$init"; then
-    mkdir -p "$(dirname "$init")"
-    git -C "$ROOT" show e0ba91f:training/checkpoints/v11.pt > "$init.tmp" && mv "$init.tmp" "$init"
+  if needs_init "$init" || [ "${1:-}" = always ]; then
+    from_git e0ba91f:training/checkpoints/v11.pt "$init"
   fi
   echo "$init"
+}
+
+# from_git REV:PATH FILE: a file of git's history copied to FILE once (kept when it is there).
+from_git() {
+  [ -f "$2" ] && return 0
+  mkdir -p "$(dirname "$2")"
+  git -C "$ROOT" show "$1" > "$2.tmp" && mv "$2.tmp" "$2"
 }
 
 # Run v12: the shipped v11 (stage-2 iteration 2,000; its checkpoint, kept in git at commit e0ba91f
@@ -436,6 +445,29 @@ start_v30() {
     rank_hard_points=4096 "$@"
 }
 
+# v30's committed checkpoint (git 7d5afbe, agent iteration 300; stage 2 trains the agent alone, so
+# its encoders are those of v30's snap/embed_004000.pt), copied once to runs/v30-iter300.pt. Only
+# made for a fresh start, like v11_shipped.
+v30_committed() {
+  local init=$HOME/.cache/cmr-agent/runs/v30-iter300.pt
+  if needs_init "$init"; then
+    from_git 7d5afbe:training/checkpoints/v30.pt "$init"
+  fi
+  echo "$init"
+}
+
+# Run v32: v30's stage-1 end (its encoders, v11's agent) carried on for 2,000 steps with v30's
+# ranking terms (near and far hard negatives) and feature distillation towards v11's encoders (the
+# teacher, read again at every resume, so runs/v11-shipped.pt is made whenever it is missing), so
+# that the encoders keep what v11 knew of synthetic frames; stage 1 only.
+start_v32() {
+  local teacher
+  teacher=$(v11_shipped always)
+  start_v28 init_from="$(v30_committed)" init_agent_from="$teacher" rank_hard_pool=256 rank_hard=8 \
+    rank_hard_points=4096 distill_from="$teacher" distill_weight=10 embed_steps=2000 embed_lr=1e-4 \
+    keep_embed_every=500 embed_eval_every=1000 agent_iters=0 "$@"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -520,6 +552,7 @@ case "${1:-}" in
   start-v28) start_v28 ;;
   start-v29) start_v29 ;;
   start-v30) start_v30 ;;
+  start-v32) start_v32 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac

@@ -119,6 +119,13 @@ class Config:
     rank_near_hard: int = 0
     rank_near_margin: float = 0.02
     rank_near_points: int = 0
+    # Feature distillation, off: with `distill_weight` > 0 stage 1 adds `distill_weight` times the
+    # mean cosine distance (1 - cos) between this run's embeddings and those a frozen teacher (the
+    # point and image encoders of checkpoint `distill_from`) gives the same batch, per point and per
+    # image cell, so that a fine-tune keeps what its start knew where the other terms ask for no
+    # change (Li & Hoiem, "Learning without Forgetting", TPAMI 2018, in feature form).
+    distill_weight: float = 0.0
+    distill_from: str = ""
     # stage 2: agent
     agent_iters: int = 2000
     agent_envs: int = 8
@@ -267,6 +274,7 @@ class Run:
         self.opt_embed = torch.optim.Adam(self.embed_param_groups(), lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))
         self.agent_ema = copy.deepcopy(self.models["agent"]).eval() if cfg.agent_ema > 0 else None
+        self.teacher = self._teacher(Path(cfg.distill_from)) if cfg.distill_weight > 0 else None
         self.embed_step = 0
         self.agent_iter = 0
         self._pool, self._pending = None, {}
@@ -354,6 +362,20 @@ class Run:
         self._set_agent(state)
         print(f"initialised from {path} (embed step {state['embed_step']}, agent iteration {state['agent_iter']})",
               flush=True)
+
+    def _teacher(self, path: Path) -> dict:
+        """The frozen encoders of checkpoint `path` (same architecture as this run's), for
+        `distill_weight`; read again on every resume, so the file must stay where it was."""
+        state = torch.load(path, map_location=self.device, weights_only=False)
+        if arch_of(state.get("meta", {}).get("config", {})) != arch_of(dataclasses.asdict(self.cfg)):
+            raise SystemExit(f"the teacher {path} has another architecture than this run")
+        built = build_all(**arch_of(dataclasses.asdict(self.cfg)))
+        teacher = {}
+        for k in ("point_encoder", "image_encoder"):
+            m = built[k].to(self.device)
+            m.load_state_dict(state["models"][k])
+            teacher[k] = m.eval().requires_grad_(False)
+        return teacher
 
     def _init_agent_from(self, path: Path) -> None:
         state = torch.load(path, map_location=self.device, weights_only=False)
@@ -457,7 +479,19 @@ class Run:
             rank = self.rank_loss(samples, points, pf, imf, rng)
             loss = loss + cfg.rank_weight * rank
             stats["rank"] = rank.item()
+        if self.teacher is not None:
+            distill = self.distill_loss(points, images, pf, imf)
+            loss = loss + cfg.distill_weight * distill
+            stats["distill"] = distill.item()
         return loss, dict(circle=circle.item(), bce=bce.item(), **stats)
+
+    def distill_loss(self, points, images, pf, imf) -> torch.Tensor:
+        """Mean cosine distance of point embeddings `pf` (B, N, C) and image embeddings `imf`
+        (B, C, H, W) from the teacher's for the same `points` and `images` (0 = the teacher's
+        directions; the point and image parts weigh the same)."""
+        with torch.no_grad():
+            tpf, timf = self.teacher["point_encoder"](points), self.teacher["image_encoder"](images)
+        return (2.0 - F.cosine_similarity(pf, tpf, dim=-1).mean() - F.cosine_similarity(imf, timf, dim=1).mean()) / 2.0
 
     def rank_loss(self, samples, points, pf, imf, rng) -> torch.Tensor:
         """softplus(20 (margin - (score(truth) - score(perturbed)))) / 20, averaged over `rank_poses`

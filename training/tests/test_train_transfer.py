@@ -422,3 +422,34 @@ def test_a_pretrained_backbone_run_trains_its_backbone_slower_and_resumes(tmp_pa
     main(base + ["embed_steps=2", "agent_iters=0"])  # resumes with the backbone's own group
     log = [json.loads(line) for line in (tmp_path / "cli" / "log.jsonl").read_text().splitlines()]
     assert [r["step"] for r in log if r["stage"] == "embed"] == [1, 2]
+
+
+def test_distillation_pulls_towards_a_frozen_teacher_and_trains_the_student_alone(tmp_path, tiny_dataset):
+    """`distill_weight`: the teacher is `distill_from`'s encoders, frozen; the term (logged as
+    `distill`) is 0 for a student equal to the teacher, grows as the student moves away, and its
+    gradient reaches the student's encoders and never the teacher's."""
+    main(["--out", str(tmp_path / "t"), "--data", str(tiny_dataset), "--set"]
+         + [f"{k}={v}" for k, v in SMALL.items()] + ["embed_steps=0", "agent_iters=0"])
+    teacher = str(tmp_path / "t" / "last.pt")
+    run = small_run(tmp_path / "s", tiny_dataset, init_from=teacher, distill_weight=1.0, distill_from=teacher)
+    for m in run.models.values():
+        m.eval()  # the teacher's mode: equal weights give equal embeddings
+    samples = run.samples(1, 0, 2, 2048)
+    points = torch.as_tensor(np.stack([s.points for s in samples]))
+    images = torch.as_tensor(np.stack([s.image for s in samples]))
+    pf, imf = run.models["point_encoder"](points), run.models["image_encoder"](images)
+    assert run.distill_loss(points, images, pf, imf).item() == pytest.approx(0.0, abs=1e-5)
+    with torch.no_grad():
+        for q in run.models["point_encoder"].parameters():
+            q.add_(0.5 * torch.randn_like(q))
+    pf = run.models["point_encoder"](points)
+    moved = run.distill_loss(points, images, pf, imf)
+    assert moved.item() > 0.01
+    loss, stats = run.embed_losses(samples)
+    assert stats["distill"] > 0.01
+    loss.backward()
+    for name in ("point_encoder", "image_encoder"):
+        assert any(q.grad is not None and q.grad.abs().sum() > 0 for q in run.models[name].parameters()), name
+        assert all(q.grad is None and not q.requires_grad for q in run.teacher[name].parameters()), name
+    with pytest.raises(SystemExit, match="architecture"):
+        small_run(tmp_path / "x", tiny_dataset, norm="group", distill_weight=1.0, distill_from=teacher)
