@@ -72,11 +72,14 @@
 #                                # run v32: v30's stage 1 carried on 2,000 steps from its end with
 #                                # feature distillation towards v11's encoders (stage 1 only)
 #   scripts/train-v7.sh judge CHECKPOINT NAME [SET...]
-#                                # exports and quantises CHECKPOINT into $RUN/judge/NAME, then runs
+#                                # exports and quantises CHECKPOINT into $RUN/judge/NAME (a model set
+#                                # folder, e.g. models/, is linked there as it is), then runs
 #                                # `cmr-agent eval` (the server's search) on each SET: rtv-protocol,
 #                                # rtv-fleet, rtv-fleet2 (a second fleet sample of the same drives,
 #                                # seed 3106), dev-protocol, dev-fleet, the four 16-per-frame files
-#                                # rtv-protocol16, rtv-fleet16, dev-protocol16, dev-fleet16, synth-test,
+#                                # rtv-protocol16, rtv-fleet16, dev-protocol16, dev-fleet16, run v32's
+#                                # fresh-rtv-protocol, fresh-rtv-fleet, fresh-dev-protocol,
+#                                # fresh-dev-fleet, fresh-synth-test, fresh-own-synth, fresh-v2-val, synth-test,
 #                                # v2-val, own-synth, and fused (tests/fleet_maps.rs's two 42-case
 #                                # files on the candidate) (default: rtv-protocol synth-test);
 #                                # EVAL_FLAGS adds eval flags (e.g. "--prior-bound 30,5") and TAG a
@@ -481,7 +484,9 @@ judge() {
   local out=$RUN/judge/$name sets=("$@") tag=${TAG:-}
   [ ${#sets[@]} -gt 0 ] || sets=(rtv-protocol synth-test)
   mkdir -p "$out"
-  if [ ! -f "$out/models/manifest.json" ]; then
+  if [ -f "$ckpt/manifest.json" ]; then
+    [ -e "$out/models" ] || ln -s "$ckpt" "$out/models"  # a model set as it is (e.g. models/, the shipped one)
+  elif [ ! -f "$out/models/manifest.json" ]; then
     (cd "$ROOT/training" && nice -n "$NICE" "$PY" -m cmr.export --checkpoint "$ckpt" --out "$out/float" &&
       nice -n "$NICE" "$PY" -m cmr.quantize --models "$out/float" --calibration "$DATA/v7/train/b0" "$DATA/real-split/train" \
         ${QUANTIZE_GRAPHS:+--graphs "$QUANTIZE_GRAPHS"} --out "$out/models") > "$out/export.log" 2>&1
@@ -499,6 +504,14 @@ judge() {
       rtv-fleet16) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4102-perturbations.json ;;
       dev-protocol16) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4103-perturbations.json ;;
       dev-fleet16) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4104-perturbations.json ;;
+      # drawn 2026-12-07 for run v32's rule, after any model was judged on them (training/README.md)
+      fresh-rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-seed4201-perturbations.json ;;
+      fresh-rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4202-perturbations.json ;;
+      fresh-dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4203-perturbations.json ;;
+      fresh-dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4204-perturbations.json ;;
+      fresh-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4205-perturbations.json ;;
+      fresh-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4206-perturbations.json ;;
+      fresh-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4207-perturbations.json ;;
       synth-test) data=$DATA/synth-test; cases=docs/eval/perturbations.json ;;
       v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-perturbations.json ;;
       own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-perturbations.json ;;
