@@ -7,8 +7,10 @@ prints the out-of-fold scores of both (folds by sequence, as `cmr.calibrate` mak
 
     .venv/bin/python scripts/prior-offset-signal.py EVAL_ROOT NAME=PERTURBATIONS.json [...]
 
-Each NAME is a `cmr-agent eval --out EVAL_ROOT/NAME` folder of the served set (with its no-op
-records: run without --no-baseline's reference-only mode) and PERTURBATIONS the case file it ran.
+Each NAME is a `cmr-agent eval --out EVAL_ROOT/NAME` folder of the served set (any eval output,
+`--no-baseline` included: the no-op records are what the prior is checked against) and
+PERTURBATIONS the case file it ran; e.g. EVAL_ROOT `$RUN/judge/shipped` of `scripts/train-v7.sh
+judge models shipped fresh-...` with NAME `fresh-rtv-fleet-bound` and its file.
 The prior is the truth moved by the case's map motion (`Perturbation::truth` inverted); each row's
 prior is checked against the no-op's error. Exploratory: nothing here is served.
 """
@@ -34,6 +36,8 @@ def offset(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
 
 
 def main() -> None:
+    if len(sys.argv) < 3 or any("=" not in a for a in sys.argv[2:]):
+        sys.exit(__doc__.split("\n\n")[1] + "\n(needs EVAL_ROOT and at least one NAME=PERTURBATIONS.json)")
     root, pairs = Path(sys.argv[1]), [a.split("=", 1) for a in sys.argv[2:]]
     extra, paths = [], []
     for name, pert in pairs:

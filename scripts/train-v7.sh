@@ -504,7 +504,7 @@ judge() {
       rtv-fleet16) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4102-perturbations.json ;;
       dev-protocol16) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4103-perturbations.json ;;
       dev-fleet16) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4104-perturbations.json ;;
-      # drawn 2026-12-07 for run v32's rule, after any model was judged on them (training/README.md)
+      # drawn 2026-12-07 14:19 UTC for runs v32 and v33, before any model was judged on them (training/README.md)
       fresh-rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-seed4201-perturbations.json ;;
       fresh-rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4202-perturbations.json ;;
       fresh-dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4203-perturbations.json ;;
