@@ -30,11 +30,6 @@ def pose(flat) -> np.ndarray:
     return np.vstack([np.asarray(flat, float).reshape(3, 4), [0, 0, 0, 1]])
 
 
-def offset(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
-    r = a[:3, :3] @ b[:3, :3].T
-    return math.degrees(math.acos(np.clip((np.trace(r) - 1) / 2, -1, 1))), float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
-
-
 def main() -> None:
     if len(sys.argv) < 3 or any("=" not in a for a in sys.argv[2:]):
         sys.exit(__doc__.split("\n\n")[1] + "\n(needs EVAL_ROOT and at least one NAME=PERTURBATIONS.json)")
@@ -52,8 +47,9 @@ def main() -> None:
             assert (r["sequence"], r["frame"]) == (case["sequence"], case["frame"])
             truth, answer = pose(r["notes"]["truth_camera_from_map"]), pose(r["notes"]["answer_camera_from_map"])
             prior = truth @ g.ground_motion(math.radians(case["yaw_deg"]), case["dx_m"], case["dy_m"])
-            assert abs(offset(prior, truth)[1] - n["errors"][-1]["rte_m"]) < 1e-3, "the prior does not match the no-op"
-            extra.append(offset(answer, prior))
+            assert abs(g.pose_error(prior, truth)["rte_m"] - n["errors"][-1]["rte_m"]) < 1e-3, "the prior does not match the no-op"
+            e = g.pose_error(answer, prior)
+            extra.append((e["rre_geodesic_deg"], e["rte_m"]))
     rows = cal.load_cases(paths)
     ex = np.asarray(extra)
     assert len(ex) == len(rows["y"])
