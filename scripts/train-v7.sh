@@ -53,6 +53,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v9a scripts/train-v7.sh start-v9a
 #                                # run v9a: stage 2 continued on v9e's finished encoders (the
 #                                # agent from v7's, as v9e kept it), 600 iterations, one thread
+#   RUN=~/.cache/cmr-agent/runs/v34 scripts/train-v7.sh start-v34
+#                                # run v34 (issue 29): v11 whose point encoder also reads each
+#                                # point's intensity rank, stage 1 only (v11's agent kept)
 #   RUN=~/.cache/cmr-agent/runs/v26 scripts/train-v7.sh start-v26
 #                                # run v26: v11's encoders on with near hard negatives in the
 #                                # ranking term (4,000 steps), then 1,000 agent iterations
@@ -471,6 +474,17 @@ start_v32() {
     keep_embed_every=500 embed_eval_every=1000 agent_iters=0 "$@"
 }
 
+# Run v34: the shipped v11 whose point encoder also reads each point's intensity, as its rank among
+# the N input points (`data.intensity_rank`; "pillars_intensity", the new column's weights starting
+# at zero, so step 0 computes exactly v11), 3,000 stage-1 steps at v13's settings with a tenth of the
+# samples given no intensity (rank 0.5), v11's agent kept. A copy of every 500th step in $RUN/snap/.
+start_v34() {
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 \
+    point_encoder=pillars_intensity intensity_drop_p=0.1 backbone_lr_scale=0.1 init_from="$(v11_shipped)" \
+    embed_lr=3e-4 embed_warmup=100 embed_lr_min=1e-5 embed_steps=3000 keep_embed_every=500 embed_eval_every=1000 \
+    rank_hard_pool=32 rank_hard=2 agent_iters=0 "$@"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -566,6 +580,7 @@ case "${1:-}" in
   start-v29) start_v29 ;;
   start-v30) start_v30 ;;
   start-v32) start_v32 ;;
+  start-v34) start_v34 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac

@@ -56,11 +56,15 @@ class AugmentOptions:
     # Mirror images (`data.mirror_sample`): this share of the samples is flipped left to right,
     # the image and the map together, so the geometry stays exact (traffic keeps left there).
     mirror_p: float = 0.0
+    # Maps without intensity (`data.intensity_rank` of a constant: 0.5 everywhere): this share of
+    # the samples loses its points' intensity, so a model that reads it still works from geometry
+    # alone (a PLY or fused region with no intensity field). Drawn last.
+    intensity_drop_p: float = 0.0
 
     @property
     def active(self) -> bool:
         return (self.photometric != "basic" or self.scale_max > 1.0 or self.lidar or self.map_window > 0 or self.virtual_scan_p > 0
-                or self.near_start_p > 0 or self.mirror_p > 0)
+                or self.near_start_p > 0 or self.mirror_p > 0 or self.intensity_drop_p > 0)
 
 
 DEFAULT = AugmentOptions()
@@ -175,10 +179,11 @@ def keep_beams(xyz: np.ndarray, target: int, rng: np.random.Generator) -> np.nda
 
 def lidar_augment(xyz: np.ndarray, rng: np.random.Generator, opts: AugmentOptions) -> np.ndarray:
     """Beam dropout, density subsampling, range noise and an occluded azimuth sector. Never
-    returns fewer than 64 points (a step that would is skipped)."""
+    returns fewer than 64 points (a step that would is skipped). `xyz`: [M, 3] or [M, 3 + k]; the
+    geometry is the first three columns, any others (intensity) ride along with their points."""
     out = xyz
     if rng.random() < opts.beam_dropout_p:
-        mask = keep_beams(out, int(rng.integers(opts.beams_min, opts.beams_max + 1)), rng)
+        mask = keep_beams(out[:, :3], int(rng.integers(opts.beams_min, opts.beams_max + 1)), rng)
         if mask.sum() >= 64:
             out = out[mask]
     keep = rng.uniform(opts.density_min, 1.0)
@@ -193,7 +198,7 @@ def lidar_augment(xyz: np.ndarray, rng: np.random.Generator, opts: AugmentOption
             out = out[~inside]
     sigma = rng.uniform(0.0, opts.range_noise_m)
     if sigma > 0:
-        r = np.linalg.norm(out, axis=1, keepdims=True)
+        r = np.linalg.norm(out[:, :3], axis=1, keepdims=True)
         noisy = np.maximum(r + rng.normal(0.0, sigma, r.shape), 0.05)
-        out = out * (noisy / np.maximum(r, 1e-6))
+        out = np.concatenate([out[:, :3] * (noisy / np.maximum(r, 1e-6)), out[:, 3:]], axis=1)
     return np.ascontiguousarray(out, dtype=np.float32)

@@ -18,7 +18,8 @@ A sequence directory holds `calib.txt`, `velodyne/NNNNNN.bin` (float32 x, y, z, 
   such a union from a sensor moved up to `virtual_scan_offset_m` along the ground from the
   camera. A localize in a tiled region takes its virtual scan from the prior, so the scan's
   centre is where the prior is, not where the camera is (docs/server.md, "Known limit");
-- in-frustum labels of every sampled point under the true pose.
+- in-frustum labels of every sampled point under the true pose;
+- each point's intensity as its rank among the N (`intensity_rank`), read by intensity models.
 
 Decoded frames (resized image, xyz) are cached in memory: PNG decode dominates on 2 cores.
 """
@@ -90,12 +91,32 @@ def parse_calib(path: Path) -> Calibration:
     return Calibration(shift @ tr, np.array([p2[0, 0], p2[1, 1], p2[0, 2], p2[1, 2]]), tr)
 
 
-def read_scan(path: Path) -> np.ndarray:
+def read_scan(path: Path, intensity: bool = False) -> np.ndarray:
+    """A scan's finite points: [M, 3] float32 x, y, z (LiDAR frame, metres), or [M, 4] with the
+    intensity column when `intensity` (a non-finite intensity reads as 0)."""
     raw = np.fromfile(path, dtype=np.float32)
     if raw.size % 4:
         raise DataError(f"{path}: size is not a multiple of 4 float32 values")
-    xyz = raw.reshape(-1, 4)[:, :3]
-    return xyz[np.isfinite(xyz).all(axis=1)]
+    rows = raw.reshape(-1, 4)
+    rows = rows[np.isfinite(rows[:, :3]).all(axis=1)]
+    if not intensity:
+        return rows[:, :3]
+    return np.concatenate([rows[:, :3], np.nan_to_num(rows[:, 3:], nan=0.0, posinf=0.0, neginf=0.0)], axis=1)
+
+
+def intensity_rank(values: np.ndarray) -> np.ndarray:
+    """Each point's intensity as its mid-rank among the model's N input points: (number below +
+    half the number equal) / N, in (0, 1), float32. Monotone rescalings of a rig's intensity (the
+    rigs here report medians from 0.03 to 0.3) leave it unchanged, and a cloud without intensity
+    (constant) reads 0.5 everywhere. The twin of `maps::intensity_rank` (Rust), pinned by
+    `fixtures/conventions.json`."""
+    v = np.asarray(values, dtype=np.float32)
+    if v.size == 0:
+        return v.copy()
+    ordered = np.sort(v)
+    below = np.searchsorted(ordered, v, side="left")
+    equal = np.searchsorted(ordered, v, side="right") - below
+    return ((below + 0.5 * equal) / v.size).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -160,19 +181,21 @@ def lidar_from_lidar(frame: "Frame", other: int) -> np.ndarray:
 
 
 def neighbour_map(frame: "Frame", rng: np.random.Generator, window: int, scans: int,
-                  augment: "aug.AugmentOptions | None" = None) -> np.ndarray:
+                  augment: "aug.AugmentOptions | None" = None, intensity: bool = False) -> np.ndarray:
     """The union of the scans of `scans` distinct frames drawn within +-`window` of `frame` (frames
     that exist in its sequence; possibly `frame` itself), each LiDAR-augmented in its own frame
-    when `augment.lidar`, moved into `frame`'s LiDAR frame. [M, 3] float64."""
+    when `augment.lidar`, moved into `frame`'s LiDAR frame. [M, 3] float64 ([M, 4] with the
+    intensity column when `intensity`; the draws are the same either way)."""
     candidates = [j for j in range(frame.index - window, frame.index + window + 1)
                   if (frame.sequence / "velodyne" / f"{j:06d}.bin").is_file()]
     picks = rng.choice(candidates, size=min(scans, len(candidates)), replace=False)
     parts = []
     for j in sorted(int(j) for j in picks):
-        xyz = read_scan(frame.sequence / "velodyne" / f"{j:06d}.bin")
+        xyz = read_scan(frame.sequence / "velodyne" / f"{j:06d}.bin", intensity=intensity)
         if augment is not None and augment.lidar:
             xyz = aug.lidar_augment(xyz, rng, augment)
-        parts.append(g.transform(lidar_from_lidar(frame, j), xyz.astype(np.float64)))
+        moved = g.transform(lidar_from_lidar(frame, j), xyz[:, :3].astype(np.float64))
+        parts.append(np.concatenate([moved, xyz[:, 3:].astype(np.float64)], axis=1))
     return np.concatenate(parts)
 
 
@@ -208,18 +231,19 @@ def virtual_scan(points: np.ndarray, sensor, radius_m: float) -> np.ndarray:
     return keep[order][first]
 
 
-def virtual_scan_map(frame: "Frame", rng: np.random.Generator, augment: "aug.AugmentOptions") -> np.ndarray:
+def virtual_scan_map(frame: "Frame", rng: np.random.Generator, augment: "aug.AugmentOptions",
+                     intensity: bool = False) -> np.ndarray:
     """The server's crop of a region built from the drive, seen from a wrong place: the union of
     neighbour scans (`neighbour_map`, `augment.map_window` / `map_scans`), virtually scanned
     (`virtual_scan`, `augment.virtual_scan_radius_m`) from the camera's position moved along the
     LiDAR's ground plane by a uniform draw in a disc of `augment.virtual_scan_offset_m`. [M, 3]
-    float64 in `frame`'s LiDAR frame."""
-    union = neighbour_map(frame, rng, max(augment.map_window, 1), augment.map_scans, augment)
+    float64 in `frame`'s LiDAR frame ([M, 4] with intensity when `intensity`)."""
+    union = neighbour_map(frame, rng, max(augment.map_window, 1), augment.map_scans, augment, intensity)
     camera = g.invert(frame.calib.camera_from_lidar)[:3, 3]
     r = augment.virtual_scan_offset_m * math.sqrt(rng.random())
     a = rng.uniform(-math.pi, math.pi)
     sensor = camera + np.array([r * math.cos(a), r * math.sin(a), 0.0])
-    seen = union[virtual_scan(union, sensor, augment.virtual_scan_radius_m)]
+    seen = union[virtual_scan(union[:, :3], sensor, augment.virtual_scan_radius_m)]
     if len(seen) == 0:
         raise DataError(f"{frame.sequence} frame {frame.index}: the virtual scan from {sensor} sees no point")
     return seen
@@ -255,14 +279,14 @@ def find_sequences(root: Path) -> list[Path]:
 
 @lru_cache(maxsize=1024)
 def _decoded(image_path: Path, scan_path: Path, scale: float) -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
-    """(image resized by `scale` (raised to cover the input) as uint8 HxWx3, xyz float32, original
-    (W, H)); resizing does not depend on the crop."""
+    """(image resized by `scale` (raised to cover the input) as uint8 HxWx3, the scan's x, y, z,
+    intensity [M, 4] float32, original (W, H)); resizing does not depend on the crop."""
     with Image.open(image_path) as im:
         im = im.convert("RGB")
         w, h = im.size
         plan = g.preprocess_plan(w, h, scale, OUT_W, OUT_H)
         resized = np.asarray(im.resize((plan["resized_width"], plan["resized_height"]), Image.BILINEAR))
-    return resized, read_scan(scan_path), (w, h)
+    return resized, read_scan(scan_path, intensity=True), (w, h)
 
 
 @dataclass
@@ -274,6 +298,20 @@ class Sample:
     truth: np.ndarray  # 4x4 camera_from_map
     initial: np.ndarray  # 4x4 camera_from_map (the rig calibration)
     motion: np.ndarray  # Q, 4x4
+    intensity: np.ndarray | None = None  # [N] float32, `intensity_rank` of the points' intensity
+
+
+def point_input(samples: "list[Sample]", channels: int = 3) -> np.ndarray:
+    """The point encoder's input for a batch: [B, N, 3] x, y, z (map frame, metres), or with
+    `channels` = 4 the points' `intensity_rank` as a fourth column (0.5 where a sample has none)."""
+    xyz = np.stack([s.points for s in samples]).astype(np.float32)
+    if channels == 3:
+        return xyz
+    if channels != 4:
+        raise ValueError(f"a point encoder reads 3 or 4 channels, not {channels}")
+    rank = np.stack([s.intensity if s.intensity is not None else np.full(len(s.points), 0.5, np.float32)
+                     for s in samples]).astype(np.float32)
+    return np.concatenate([xyz, rank[..., None]], axis=-1)
 
 
 def sample_points(xyz: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -305,7 +343,7 @@ def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points:
     `focal_range_px`: the model's (lo, hi) focal lengths (`geometry.input_scale`; None: NOMINAL_SCALE
     for every image)."""
     scale = g.input_scale(NOMINAL_SCALE, focal_range_px, float(frame.calib.intrinsics[0]))
-    resized, xyz, (w, h) = _decoded(frame.image_path, frame.scan_path, scale)
+    resized, xyz, (w, h) = _decoded(frame.image_path, frame.scan_path, scale)  # xyz: [M, 4] with intensity
     rh, rw = resized.shape[:2]
     zoom = aug.draw_zoom(rng, augment) if train and augment.scale_max > 1.0 else 1.0
     if zoom != 1.0:
@@ -325,12 +363,13 @@ def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points:
     k = g.adjust_intrinsics(plan, frame.calib.intrinsics, w, h)
 
     if train and augment.virtual_scan_p > 0 and rng.random() < augment.virtual_scan_p:
-        xyz = virtual_scan_map(frame, rng, augment)
+        xyz = virtual_scan_map(frame, rng, augment, intensity=True)
     elif train and augment.map_window > 0 and (augment.map_window_p >= 1.0 or rng.random() < augment.map_window_p):
-        xyz = neighbour_map(frame, rng, augment.map_window, augment.map_scans, augment)
+        xyz = neighbour_map(frame, rng, augment.map_window, augment.map_scans, augment, intensity=True)
     elif train and augment.lidar:
         xyz = aug.lidar_augment(xyz, rng, augment)
-    scan = sample_points(xyz, num_points, rng).astype(np.float64)
+    sampled = sample_points(xyz, num_points, rng)
+    scan, intensity = sampled[:, :3].astype(np.float64), intensity_rank(sampled[:, 3])
     q = g.ground_motion(rng.uniform(-math.pi, math.pi), *rng.uniform(-max_shift_m, max_shift_m, 2))
     if train and augment.near_start_p > 0 and rng.random() < augment.near_start_p:
         # drawn after the protocol's motion, so the other options' draws stay as they were
@@ -344,10 +383,13 @@ def make_sample(frame: Frame, rng: np.random.Generator, train: bool, num_points:
     truth = frame.calib.camera_from_lidar @ g.invert(q)
     labels = g.in_frustum(k, g.transform(truth, points), OUT_W, OUT_H)
     sample = Sample(image=np.ascontiguousarray(image), intrinsics=k, points=points.astype(np.float32),
-                    labels=labels, truth=truth, initial=frame.calib.camera_from_lidar.copy(), motion=q)
+                    labels=labels, truth=truth, initial=frame.calib.camera_from_lidar.copy(), motion=q,
+                    intensity=intensity)
     # drawn last, so the other options' draws stay as they were
     if train and augment.mirror_p > 0 and rng.random() < augment.mirror_p:
         sample = mirror_sample(sample)
+    if train and augment.intensity_drop_p > 0 and rng.random() < augment.intensity_drop_p:
+        sample.intensity = np.full(len(sample.points), 0.5, np.float32)
     return sample
 
 
@@ -367,7 +409,8 @@ def mirror_sample(s: Sample) -> Sample:
     conj = lambda pose: _MIRROR_CAMERA @ pose @ _MIRROR_MAP  # noqa: E731
     return Sample(image=np.ascontiguousarray(s.image[:, :, ::-1]), intrinsics=k,
                   points=(s.points * np.array([1.0, -1.0, 1.0], np.float32)).astype(np.float32), labels=s.labels,
-                  truth=conj(s.truth), initial=conj(s.initial), motion=_MIRROR_MAP @ s.motion @ _MIRROR_MAP)
+                  truth=conj(s.truth), initial=conj(s.initial), motion=_MIRROR_MAP @ s.motion @ _MIRROR_MAP,
+                  intensity=s.intensity)
 
 
 def split_frames(frames: list[Frame], holdout_every: int) -> tuple[list[Frame], list[Frame]]:

@@ -9,7 +9,7 @@ import numpy as np
 import torch
 
 from . import geometry as g
-from .data import Sample
+from .data import Sample, point_input
 from .state import NUM_STATE_POINTS, alignment, build_state
 
 REWARD_POINTS = 1024  # true-frustum points used for the point-to-point distance
@@ -92,7 +92,8 @@ def degrade_image_features(episodes: Episodes, share: float, sigma_max: float, r
 def embed(models: dict, samples: list[Sample], device: torch.device, action_frame: str = g.CAMERA_Y) -> Episodes:
     points = torch.as_tensor(np.stack([s.points for s in samples]), device=device)
     images = torch.as_tensor(np.stack([s.image for s in samples]), device=device)
-    pf = models["point_encoder"](points)
+    encoder = models["point_encoder"]
+    pf = encoder(torch.as_tensor(point_input(samples, getattr(encoder, "in_channels", 3)), device=device))
     imf = models["image_encoder"](images)
     prob = torch.sigmoid(models["frustum_head"](pf, imf))[:, :NUM_STATE_POINTS]
     reward_points = []

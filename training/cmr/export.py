@@ -91,11 +91,25 @@ def is_correlation_agent(module: torch.nn.Module) -> bool:
     return hasattr(module, "correlate") and hasattr(module, "decide")
 
 
-def example_inputs(name: str, num_points: int = 4096, batch: int = 1, seed: int = 0) -> tuple[torch.Tensor, ...]:
-    """Random inputs with the contract's shapes (the points look like a street-sized cloud)."""
+# The point encoder's input columns: x, y, z (map frame, metres), and for an intensity encoder each
+# point's intensity rank among the N (`data.intensity_rank`). The manifest names them.
+POINT_CHANNELS = {3: ["x", "y", "z"], 4: ["x", "y", "z", "intensity_rank"]}
+
+
+def point_channels(module: torch.nn.Module) -> int:
+    """How many columns a point encoder reads (3 for every encoder without intensity)."""
+    return int(getattr(module, "in_channels", 3))
+
+
+def example_inputs(name: str, num_points: int = 4096, batch: int = 1, seed: int = 0,
+                   point_channels: int = 3) -> tuple[torch.Tensor, ...]:
+    """Random inputs with the contract's shapes (the points look like a street-sized cloud; with
+    `point_channels` = 4 a uniform intensity rank beside them)."""
     gen = torch.Generator().manual_seed(seed)
     if name == "point_encoder":
         pts = torch.randn(1, num_points, 3, generator=gen) * torch.tensor([15.0, 15.0, 1.5]) + torch.tensor([5.0, -3.0, 0.0])
+        if point_channels == 4:
+            pts = torch.cat([pts, torch.rand(1, num_points, 1, generator=gen)], dim=-1)
         return (pts,)
     if name == "image_encoder":
         return (torch.randn(1, 3, IMAGE_HEIGHT, IMAGE_WIDTH, generator=gen),)
@@ -115,7 +129,7 @@ def example_inputs(name: str, num_points: int = 4096, batch: int = 1, seed: int 
 def graph_inputs(name: str, module: torch.nn.Module, correlation: bool, batch: int = 1, seed: int = 0) -> tuple[torch.Tensor, ...]:
     """`example_inputs` as graph `name`'s ONNX export takes them: for an agent exported in the
     correlation form, `Agent.correlate` of the random state in place of the state."""
-    inputs = example_inputs(name, batch=batch, seed=seed)
+    inputs = example_inputs(name, batch=batch, seed=seed, point_channels=point_channels(module))
     if name == "agent" and correlation and is_correlation_agent(module):
         with torch.no_grad():
             inputs = (module.eval().correlate(inputs[0]), inputs[1])
@@ -126,7 +140,7 @@ def onnx_bytes(name: str, module: torch.nn.Module, correlation: bool = True) -> 
     """One graph as ONNX bytes; `correlation`: export an agent that has `correlate` in the
     correlation form (else the features form)."""
     inputs, outputs, dynamic = GRAPH_IO[name]
-    example = example_inputs(name)
+    example = example_inputs(name, point_channels=point_channels(module))
     if name == "agent":
         if correlation and is_correlation_agent(module):
             with torch.no_grad():
@@ -206,10 +220,15 @@ def action_frame_of(meta: dict) -> str:
 
 
 def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenance: dict, validation: dict,
-             action_frame: str = g.CAMERA_Y, flops: dict[str, int] | None = None, correlation: bool = True) -> dict:
+             action_frame: str = g.CAMERA_Y, flops: dict[str, int] | None = None, correlation: bool = True,
+             point_channels: int = 3) -> dict:
+    """`point_channels`: the point encoder's input columns (3, or 4 with the intensity rank; the
+    manifest's `points.channels` then names them, and older servers refuse the set)."""
     graphs = {}
     for name, (file, sha) in files.items():
         ins, outs = AGENT_FEATURES_SHAPES if name == "agent" and not correlation else CONTRACT_SHAPES[name]
+        if name == "point_encoder":
+            ins = {"points": [1, "N", point_channels]}
         graphs[name] = dict(file=file, sha256=sha, inputs=ins, outputs=outs)
         if flops and name in flops:
             graphs[name]["flops"] = flops[name]
@@ -228,6 +247,8 @@ def manifest(files: dict[str, tuple[str, str]], params: dict[str, int], provenan
     }
     if correlation:
         doc["state_2d"] = dict(CORRELATION_STATE)
+    if point_channels != 3:
+        doc["points"]["channels"] = POINT_CHANNELS[point_channels]
     return doc
 
 
@@ -248,7 +269,8 @@ def export_models(models: dict[str, torch.nn.Module], out_dir: Path, provenance:
     provenance.setdefault("git_commit", git_commit())
     provenance.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
     doc = manifest(files, parameter_counts(models), provenance, validation or {}, action_frame, flops,
-                   correlation=correlation)
+                   correlation=correlation,
+                   point_channels=point_channels(models["point_encoder"]) if "point_encoder" in models else 3)
     atomic_write_bytes(out_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
     return doc
 

@@ -85,7 +85,7 @@ class PillarGrid:
     cell_m: float = 0.8
 
 
-POINT_ENCODERS = ("pillars", "pillars_fine")
+POINT_ENCODERS = ("pillars", "pillars_fine", "pillars_intensity")
 
 
 class PointEncoder(nn.Module):
@@ -96,12 +96,21 @@ class PointEncoder(nn.Module):
     `fine` ("pillars_fine"): a second grid of 0.4 m cells over the same extent, two 3x3 layers on
     it and gathered back to each point beside the coarse context: the shape of poles, trunks, kerbs
     and facade edges that a 0.8 m pillar max-pools away. It runs once per map region, never per
-    request. `load_coarse` starts it from a coarse encoder with the head's weights for it zero."""
+    request. `load_coarse` starts it from a coarse encoder with the head's weights for it zero.
 
-    def __init__(self, grid: PillarGrid = PillarGrid(), width: int = 32, norm: str = "batch", fine: bool = False):
+    `intensity` ("pillars_intensity"): the input is [B, N, 4], the fourth column each point's
+    intensity as its rank among the N (`data.intensity_rank`: rig-independent, 0.5 everywhere for
+    a map without intensity), a per-point cue beside the geometry: paint, plates and signs return
+    more light than asphalt. `load_coarse` starts it from an encoder without it, that column's
+    weights zero."""
+
+    def __init__(self, grid: PillarGrid = PillarGrid(), width: int = 32, norm: str = "batch", fine: bool = False,
+                 intensity: bool = False):
         super().__init__()
         self.grid = grid
-        self.local = nn.Sequential(point_mlp(4, width), point_mlp(width, width))
+        self.intensity = intensity
+        self.in_channels = 4 if intensity else 3
+        self.local = nn.Sequential(point_mlp(5 if intensity else 4, width), point_mlp(width, width))
         self.bev = nn.Sequential(conv_bn(width, 48, stride=2, norm=norm), conv_bn(48, 48, norm=norm),
                                  conv_bn(48, 48, norm=norm))
         self.bev_out = conv_bn(48 + width, 48, k=1, norm=norm)
@@ -130,12 +139,17 @@ class PointEncoder(nn.Module):
         return flat.gather(2, idx.unsqueeze(1).expand(flat.shape[0], flat.shape[1], idx.shape[1]))
 
     def forward(self, points: torch.Tensor) -> torch.Tensor:
-        centred = points - points.mean(dim=1, keepdim=True)
+        """[B, N, in_channels] (x, y, z map frame metres[, intensity rank]) -> [B, N, D] unit features."""
+        xyz = points[..., :3]
+        centred = xyz - xyz.mean(dim=1, keepdim=True)
         g = self.grid
         # Height and the in-cell offset are yaw-agnostic local cues; the CNN supplies the layout.
         offset = centred[..., :2] / g.cell_m - torch.floor(centred[..., :2] / g.cell_m) - 0.5
         radius = torch.sqrt((centred[..., :2] ** 2).sum(-1, keepdim=True)) / 40.0
-        x = torch.cat([centred[..., 2:3] / 3.0, offset, radius], dim=-1)  # [B, N, 4]
+        cues = [centred[..., 2:3] / 3.0, offset, radius]
+        if self.intensity:
+            cues.append(points[..., 3:4] - 0.5)
+        x = torch.cat(cues, dim=-1)  # [B, N, 4 or 5]
         local = self.local(x).transpose(1, 2)  # [B, C, N], >= 0 after ReLU
         idx = self.cell_index(centred, g)
         grid = self.scatter_max(local, idx, g)
@@ -152,7 +166,10 @@ class PointEncoder(nn.Module):
     def load_coarse(self, state: dict[str, torch.Tensor]) -> int:
         """A fine encoder from a coarse one's `state_dict` (`load_grown`): the head's first layer's
         weights for the fine branch's channels zero, so the output is the coarse encoder's; the
-        fine layers keep their initialisation."""
+        fine layers keep their initialisation. An intensity encoder likewise from one without it
+        (the first layer's weights for the intensity column zero)."""
+        if self.intensity:
+            return load_grown(self, state, "local.0.0.weight", 1)
         return load_grown(self, state, "head.0.0.weight" if self.fine is not None else "", FINE_WIDTH)
 
 
@@ -547,7 +564,8 @@ def build_all(norm: str = "batch", image_edges: bool = False, image_backbone: st
     `image_backbone` (`IMAGE_BACKBONES`): "scratch" (`ImageEncoder`), "efficientnet_lite0",
     "efficientnet_lite0_s32" or "efficientnet_lite1" (`LiteImageEncoder`, Lite0 shallow or deep, or
     Lite1, its decoder normalised by `norm`; untrained until `load_pretrained`); `point_encoder`
-    (`POINT_ENCODERS`): "pillars" or "pillars_fine" (`PointEncoder(fine=...)`). A checkpoint records all four in its config (`arch_of`)."""
+    (`POINT_ENCODERS`): "pillars", "pillars_fine" or "pillars_intensity" (`PointEncoder(fine=...)`,
+    `PointEncoder(intensity=...)`). A checkpoint records all four in its config (`arch_of`)."""
     if image_backbone == "scratch":
         image_encoder = ImageEncoder(norm=norm, edges=image_edges)
     elif image_backbone in IMAGE_BACKBONES:
@@ -559,7 +577,8 @@ def build_all(norm: str = "batch", image_edges: bool = False, image_backbone: st
         raise ValueError(f"unknown image_backbone {image_backbone!r}; expected one of {IMAGE_BACKBONES}")
     if point_encoder not in POINT_ENCODERS:
         raise ValueError(f"unknown point_encoder {point_encoder!r}; expected one of {POINT_ENCODERS}")
-    return dict(point_encoder=PointEncoder(norm=norm, fine=point_encoder == "pillars_fine"), image_encoder=image_encoder,
+    return dict(point_encoder=PointEncoder(norm=norm, fine=point_encoder == "pillars_fine",
+                                           intensity=point_encoder == "pillars_intensity"), image_encoder=image_encoder,
                 frustum_head=FrustumHead(), agent=Agent())
 
 

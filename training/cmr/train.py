@@ -30,7 +30,7 @@ import torch.nn.functional as F
 
 from . import geometry as g
 from .augment import AugmentOptions
-from .data import find_sequences, list_frames, make_sample, split_frames
+from .data import find_sequences, list_frames, make_sample, point_input, split_frames
 from .episodes import degrade_image_features, embed, embed_many, gae, rollout
 from .export import atomic_write_bytes
 from .losses import circle_loss, weighted_bce
@@ -79,7 +79,9 @@ class Config:
     # initialised from a checkpoint), whose pretrained weights learn at backbone_lr_scale x the rate.
     image_backbone: str = "scratch"
     # The point encoder (models.POINT_ENCODERS): "pillars" (every model up to v14) or
-    # "pillars_fine" (a second, 0.4 m grid; from a "pillars" checkpoint it starts at zero).
+    # "pillars_fine" (a second, 0.4 m grid; from a "pillars" checkpoint it starts at zero) or
+    # "pillars_intensity" (each point's intensity rank as a fifth input cue; from "pillars" its
+    # weights start at zero).
     point_encoder: str = "pillars"
     backbone_lr_scale: float = 0.1
     circle_points: int = 512
@@ -179,6 +181,9 @@ class Config:
     # Mirror augmentation (augment.AugmentOptions.mirror_p): this share of the samples flipped left
     # to right, image and map together.
     mirror_p: float = 0.0
+    # Intensity dropout (augment.AugmentOptions.intensity_drop_p): this share of the samples reads
+    # a map without intensity (rank 0.5 everywhere); for "pillars_intensity" encoders.
+    intensity_drop_p: float = 0.0
     # Stage 2 only, off: this share of the rollout pool's samples with their image features made
     # noisy (episodes.degrade_image_features, per-component std up to image_noise_max), so the
     # agent also learns on evidence as weak as real frames of unseen drives give it.
@@ -270,7 +275,8 @@ class Run:
                                       virtual_scan_p=cfg.virtual_scan_p, virtual_scan_offset_m=cfg.virtual_scan_offset_m,
                                       virtual_scan_radius_m=cfg.virtual_scan_radius_m,
                                       near_start_p=cfg.near_start_p, near_start_yaw_deg=cfg.near_start_yaw_deg,
-                                      near_start_shift_m=cfg.near_start_shift_m, mirror_p=cfg.mirror_p)
+                                      near_start_shift_m=cfg.near_start_shift_m, mirror_p=cfg.mirror_p,
+                                      intensity_drop_p=cfg.intensity_drop_p)
         self.opt_embed = torch.optim.Adam(self.embed_param_groups(), lr=cfg.embed_lr)
         self.opt_agent = torch.optim.Adam(self.models["agent"].parameters(), lr=cfg.agent_lr, betas=(0.98, 0.999))
         self.agent_ema = copy.deepcopy(self.models["agent"]).eval() if cfg.agent_ema > 0 else None
@@ -339,11 +345,11 @@ class Run:
         mine = arch_of(dataclasses.asdict(self.cfg))
         # Encoders may grow from a checkpoint's, starting as it: a shallow EfficientNet-Lite0 encoder
         # its stride-32 stages (`LiteImageEncoder.load_shallow`), a pillar encoder its fine grid
-        # (`PointEncoder.load_coarse`); each new branch's way into the output starts at zero. A
+        # or its intensity input (`PointEncoder.load_coarse`); each new branch's way into the output starts at zero. A
         # Lite0 encoder may also swap its backbone for Lite1's ImageNet weights, keeping its decoder
         # (`LiteImageEncoder.load_decoder`): that encoder starts anew, the rest of the model does not.
         grows = dict(image_backbone={("efficientnet_lite0", "efficientnet_lite0_s32"), ("efficientnet_lite0", "efficientnet_lite1")},
-                     point_encoder={("pillars", "pillars_fine")})
+                     point_encoder={("pillars", "pillars_fine"), ("pillars", "pillars_intensity")})
         grown = {k for k, pairs in grows.items() if (arch[k], mine[k]) in pairs}
         if {k: v for k, v in arch.items() if k not in grown} != {k: v for k, v in mine.items() if k not in grown}:
             wanted = " ".join(f"{k}={v}" for k, v in arch.items())
@@ -356,7 +362,8 @@ class Run:
                 print(f"image backbone {m.variant}: {load_pretrained(m)} pretrained tensors, "
                       f"decoder {m.load_decoder(state['models'][k])} tensors from {path}", flush=True)
             elif k == "point_encoder" and "point_encoder" in grown:
-                print(f"point encoder with a fine grid: {m.load_coarse(state['models'][k])} tensors from {path}", flush=True)
+                print(f"point encoder with {'intensity' if m.intensity else 'a fine grid'}: "
+                      f"{m.load_coarse(state['models'][k])} tensors from {path}", flush=True)
             elif k != "agent":
                 m.load_state_dict(state["models"][k])
         self._set_agent(state)
@@ -446,9 +453,10 @@ class Run:
         cfg, dev = self.cfg, self.device
         pe, ie, fh = self.models["point_encoder"], self.models["image_encoder"], self.models["frustum_head"]
         points = torch.as_tensor(np.stack([s.points for s in samples]), device=dev)
+        encoder_in = torch.as_tensor(point_input(samples, pe.in_channels), device=dev)
         images = torch.as_tensor(np.stack([s.image for s in samples]), device=dev)
         labels = torch.as_tensor(np.stack([s.labels for s in samples]), device=dev)
-        pf, imf = pe(points), ie(images)
+        pf, imf = pe(encoder_in), ie(images)
         logits = fh(pf, imf)
         bce = weighted_bce(logits, labels)
         circles = []
@@ -480,14 +488,14 @@ class Run:
             loss = loss + cfg.rank_weight * rank
             stats["rank"] = rank.item()
         if self.teacher is not None:
-            distill = self.distill_loss(points, images, pf, imf)
+            distill = self.distill_loss(encoder_in, images, pf, imf)
             loss = loss + cfg.distill_weight * distill
             stats["distill"] = distill.item()
         return loss, dict(circle=circle.item(), bce=bce.item(), **stats)
 
     def distill_loss(self, points, images, pf, imf) -> torch.Tensor:
         """Mean cosine distance of point embeddings `pf` (B, N, C) and image embeddings `imf`
-        (B, C, H, W) from the teacher's for the same `points` and `images` (0 = the teacher's
+        (B, C, H, W) from the teacher's for the same `points` (the encoder's input) and `images` (0 = the teacher's
         directions; the point and image parts weigh the same)."""
         with torch.no_grad():
             tpf, timf = self.teacher["point_encoder"](points), self.teacher["image_encoder"](images)

@@ -178,3 +178,49 @@ def test_virtual_scan_maps_see_the_drive_from_beside_the_camera(tiny_dataset):
     b = make_sample(f0, np.random.default_rng(3), train=True, num_points=4096,
                     augment=AugmentOptions(map_window=3, map_scans=2, virtual_scan_p=0.0, virtual_scan_offset_m=9.0))
     assert np.array_equal(a.points, b.points)
+
+
+def test_intensity_rank_is_the_mid_rank_and_ignores_the_rigs_scale():
+    from cmr.data import intensity_rank
+    v = np.array([0.2, 0.1, 0.2, 0.9], np.float32)
+    # below + half of the equal ones, over N: 0.1 -> 0.5/4, 0.2 -> (1 + 1)/4, 0.9 -> 3.5/4
+    assert np.allclose(intensity_rank(v), [0.5, 0.125, 0.5, 0.875])
+    assert intensity_rank(v).dtype == np.float32
+    rng = np.random.default_rng(0)
+    w = rng.random(1000).astype(np.float32)
+    assert np.array_equal(intensity_rank(w), intensity_rank(0.1 * w ** 2))  # monotone: the same ranks
+    assert np.all(intensity_rank(np.full(7, 0.3, np.float32)) == 0.5)  # no intensity: 0.5 everywhere
+    assert intensity_rank(np.zeros(0, np.float32)).shape == (0,)
+
+
+def test_samples_carry_each_points_intensity_through_every_map_kind(tiny_dataset):
+    from cmr import augment as aug
+    from cmr.data import intensity_rank, point_input, read_scan
+    frames = list_frames(find_sequences(tiny_dataset))
+    f0 = frames[0]
+    scan = read_scan(f0.scan_path, intensity=True)
+    assert scan.shape[1] == 4 and np.array_equal(scan[:, :3], read_scan(f0.scan_path))
+    # The frame's own scan, unaugmented: each sampled point has its own intensity's rank.
+    s = make_sample(f0, np.random.default_rng(3), train=False, num_points=2048)
+    lidar = g.transform(g.invert(s.motion), s.points.astype(np.float64))
+    raw = {tuple(np.round(p, 2)): i for p, i in zip(scan[:, :3].astype(np.float64), scan[:, 3])}
+    found = [(raw[k], r) for k, r in zip(map(tuple, np.round(lidar, 2)), s.intensity) if k in raw]
+    assert len(found) > 1000
+    intensities, ranks = np.array(found).T
+    order = np.argsort(ranks, kind="stable")
+    assert np.all(np.diff(intensities[order]) >= 0)  # ranks sort as the raw intensities
+    assert np.allclose(s.intensity.mean(), 0.5, atol=1e-6)
+    # Augmented, neighbour and virtual-scan maps keep [N] ranks; the draws are unchanged by them.
+    for opts in (aug.AugmentOptions(lidar=True), aug.AugmentOptions(map_window=3, map_scans=2),
+                 aug.AugmentOptions(map_window=3, map_scans=2, virtual_scan_p=1.0)):
+        t = make_sample(f0, np.random.default_rng(4), train=True, num_points=1024, augment=opts)
+        assert t.intensity.shape == (1024,) and 0 < t.intensity.min() and t.intensity.max() < 1
+    assert point_input([t, t], 4).shape == (2, 1024, 4)
+    assert point_input([s], 3).shape == (1, 2048, 3)
+    assert np.array_equal(point_input([s], 4)[0, :, 3], s.intensity)
+    # Dropped intensity reads 0.5; the other draws are those of the sample without the option.
+    plain = make_sample(f0, np.random.default_rng(6), train=True, num_points=1024)
+    dropped = make_sample(f0, np.random.default_rng(6), train=True, num_points=1024,
+                          augment=aug.AugmentOptions(intensity_drop_p=1.0))
+    assert np.array_equal(plain.points, dropped.points) and np.all(dropped.intensity == 0.5)
+    assert not np.all(plain.intensity == 0.5)

@@ -453,3 +453,57 @@ def test_distillation_pulls_towards_a_frozen_teacher_and_trains_the_student_alon
         assert all(q.grad is None and not q.requires_grad for q in run.teacher[name].parameters()), name
     with pytest.raises(SystemExit, match="architecture"):
         small_run(tmp_path / "x", tiny_dataset, norm="group", distill_weight=1.0, distill_from=teacher)
+
+
+def test_the_intensity_point_encoder_starts_as_the_plain_one_and_exports(tmp_path):
+    from cmr.models import PointEncoder
+    torch.manual_seed(0)
+    plain = PointEncoder(norm="group")
+    for p in plain.parameters():
+        p.data.normal_(0, 0.1)
+    lit = PointEncoder(norm="group", intensity=True)
+    assert lit.in_channels == 4 and plain.in_channels == 3
+    assert lit.load_coarse(plain.state_dict()) == len(plain.state_dict())
+    points = torch.randn(1, 3000, 3) * torch.tensor([20.0, 20.0, 2.0])
+    ranked = torch.cat([points, torch.rand(1, 3000, 1)], -1)
+    with torch.no_grad():
+        torch.testing.assert_close(lit.eval()(ranked), plain.eval()(points), rtol=0, atol=1e-6)
+    lit.train()
+    (lit(ranked) * torch.randn(1, 3000, 64)).sum().backward()
+    assert lit.local[0][0].weight.grad[:, -1].abs().sum() > 0  # the intensity column learns
+    with torch.no_grad():
+        lit.local[0][0].weight[:, -1].normal_(0, 0.5)
+    lit.eval()
+    doc = export_models({"point_encoder": lit}, tmp_path, dict(data="test"))
+    assert doc["graphs"]["point_encoder"]["inputs"] == {"points": [1, "N", 4]}
+    assert doc["points"]["channels"] == ["x", "y", "z", "intensity_rank"]
+    sess = ort.InferenceSession(str(tmp_path / doc["graphs"]["point_encoder"]["file"]), providers=["CPUExecutionProvider"])
+    for n in (500, 4096):
+        pts = torch.cat([torch.randn(1, n, 3) * torch.tensor([25.0, 25.0, 2.0]), torch.rand(1, n, 1)], -1)
+        with torch.no_grad():
+            want = lit(pts)
+            flat = lit(torch.cat([pts[..., :3], torch.full((1, n, 1), 0.5)], -1))
+        assert not torch.allclose(want, flat, atol=1e-3)  # the intensity changes the features
+        assert np.abs(sess.run(None, {"points": pts.numpy()})[0] - want.numpy()).max() < 1e-4
+    plain_doc = export_models({"point_encoder": plain.eval()}, tmp_path / "plain", dict(data="test"))
+    assert plain_doc["graphs"]["point_encoder"]["inputs"] == {"points": [1, "N", 3]} and "channels" not in plain_doc["points"]
+
+
+def test_a_run_grows_an_intensity_input_from_a_plain_checkpoint_and_trains_it(tmp_path, tiny_dataset):
+    plain = small_run(tmp_path / "plain", tiny_dataset, norm="group")
+    plain.save("last.pt")
+    grown = small_run(tmp_path / "lit", tiny_dataset, norm="group", point_encoder="pillars_intensity",
+                      init_from=str(plain.dir / "last.pt"), intensity_drop_p=0.5)
+    enc = grown.models["point_encoder"]
+    assert enc.intensity and grown.augment.intensity_drop_p == 0.5
+    points = torch.randn(1, 2000, 3) * torch.tensor([20.0, 20.0, 2.0])
+    with torch.no_grad():
+        torch.testing.assert_close(plain.models["point_encoder"].eval()(points),
+                                   enc.eval()(torch.cat([points, torch.rand(1, 2000, 1)], -1)), rtol=0, atol=1e-6)
+    # stage 1 reads the samples' intensity ranks, and its loss reaches the new column
+    from cmr.data import make_sample
+    samples = [make_sample(f, np.random.default_rng(i), train=True, num_points=2048) for i, f in enumerate(grown.train_frames[:2])]
+    enc.train()
+    loss, _ = grown.embed_losses(samples)
+    loss.backward()
+    assert enc.local[0][0].weight.grad[:, -1].abs().sum() > 0
