@@ -492,6 +492,26 @@ save() {
   "$PY" -c "import torch,sys; c=torch.load(sys.argv[1], map_location='cpu', weights_only=False); print('embed_step', c['embed_step'], 'agent_iter', c['agent_iter'])" "$SAVED"
 }
 
+# intensity_free ROOT: a copy of the KITTI-layout sequences under ROOT (made once, beside it, named
+# ROOT-intensity0) whose scans have every intensity 0: a map without intensity, for models that read
+# it (images, calibration and poses are links)
+intensity_free() {
+  local out=$1-intensity0 seq
+  if [ ! -f "$out/.done" ]; then
+    for seq in "$1"/*/; do
+      seq=$(readlink -f "$seq")
+      mkdir -p "$out/$(basename "$seq")/velodyne"
+      for f in "$seq"/*; do [ "$(basename "$f")" = velodyne ] || ln -sfn "$f" "$out/$(basename "$seq")/"; done
+      "$PY" -c "import numpy as np, sys, pathlib
+for src in sorted(pathlib.Path(sys.argv[1]).glob('*.bin')):
+    a = np.fromfile(src, np.float32).reshape(-1, 4); a[:, 3] = 0; a.tofile(pathlib.Path(sys.argv[2]) / src.name)" \
+        "$seq/velodyne" "$out/$(basename "$seq")/velodyne"
+    done
+    touch "$out/.done"
+  fi
+  echo "$out"
+}
+
 # export + quantise a checkpoint like the shipped set, then `cmr-agent eval` on the named sets
 judge() {
   local ckpt=$(readlink -f "$1") name=$2; shift 2
@@ -505,8 +525,9 @@ judge() {
       nice -n "$NICE" "$PY" -m cmr.quantize --models "$out/float" --calibration "$DATA/v7/train/b0" "$DATA/real-split/train" \
         ${QUANTIZE_GRAPHS:+--graphs "$QUANTIZE_GRAPHS"} --out "$out/models") > "$out/export.log" 2>&1
   fi
-  local set data cases
+  local set data cases draw
   for set in "${sets[@]}"; do
+    draw=""  # how a set's case file is drawn on its first use (fresh2-*); an existing file is read
     case $set in
       rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-perturbations.json ;;
       rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-perturbations.json ;;
@@ -526,6 +547,16 @@ judge() {
       fresh-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4205-perturbations.json ;;
       fresh-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4206-perturbations.json ;;
       fresh-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4207-perturbations.json ;;
+      # drawn for run v34 after its candidate existed (training/README.md, "Run `v34`"); the
+      # -noint set reads the held-out frames with every intensity 0 (`intensity_free`)
+      fresh2-rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-seed4301-perturbations.json; draw="--cases-per-frame 16 --seed 4301" ;;
+      fresh2-rtv-protocol-noint) data=$(intensity_free "$DATA/real-split/val"); cases=docs/eval/real-train-val-seed4301-perturbations.json ;;
+      fresh2-rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4302-perturbations.json; draw="--cases-per-frame 16 --seed 4302 --priors fleet" ;;
+      fresh2-dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4303-perturbations.json; draw="--cases-per-frame 16 --seed 4303" ;;
+      fresh2-dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4304-perturbations.json; draw="--cases-per-frame 16 --seed 4304 --priors fleet" ;;
+      fresh2-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4305-perturbations.json; draw="--cases-per-frame 1 --seed 4305" ;;
+      fresh2-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4306-perturbations.json; draw="--cases-per-frame 4 --seed 4306" ;;
+      fresh2-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4307-perturbations.json; draw="--cases-per-frame 4 --seed 4307" ;;
       synth-test) data=$DATA/synth-test; cases=docs/eval/perturbations.json ;;
       v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-perturbations.json ;;
       own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-perturbations.json ;;
@@ -540,7 +571,8 @@ judge() {
       *) echo "unknown set $set" >&2; return 2 ;;
     esac
     # shellcheck disable=SC2086
-    (cd "$ROOT" && nice -n "$NICE" "$BIN" eval --data "$data" --perturbations "$cases" --models "$out/models" \
+    [ -f "$ROOT/$cases" ] && draw=""
+    (cd "$ROOT" && nice -n "$NICE" "$BIN" eval --data "$data" --perturbations "$cases" --models "$out/models" $draw \
       --out "$out/$set$tag" --no-baseline --worst 0 --quiet ${EVAL_FLAGS:-}) > "$out/$set$tag.log" 2>&1
     printf '%-22s' "$set$tag"
     awk -F'|' '/^## Table 1:/{t=1; next} /^## /{t=0} t && $2 ~ /cmr-agent|no-op/ {printf " %s%s%%;", $2, $6}' "$out/$set$tag/tables.md"
