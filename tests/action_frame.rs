@@ -10,7 +10,7 @@ use cmr_agent::agent::{self, AxisStarts, SearchConfig};
 use cmr_agent::geometry::actions::{apply_action, apply_motion};
 use cmr_agent::geometry::{ActionFrame, Intrinsics, Pose};
 use cmr_agent::maps::{PreparedMap, prepare_map};
-use cmr_agent::model::{BackendOptions, ModelSet};
+use cmr_agent::model::{BackendOptions, ModelSet, Points};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
 fn tiny_model_with_frame(dir: &Path, frame: &str) -> ModelSet {
@@ -54,7 +54,7 @@ fn a_map_z_model_steps_about_the_map_up_axis() {
     let set = tiny_model_with_frame(dir.path(), "map_z");
     assert_eq!(set.manifest.action_frame(), ActionFrame::MapZ);
     let mut backend = set.backend().unwrap();
-    let map: Arc<PreparedMap> = Arc::new(prepare_map(&mut backend, &cloud()).unwrap());
+    let map: Arc<PreparedMap> = Arc::new(prepare_map(&mut backend, Points::xyz(&cloud())).unwrap());
     let image = image::RgbImage::from_fn(1241, 376, |x, y| image::Rgb([(x % 251) as u8, (y % 253) as u8, ((x + y) % 7) as u8]));
     let k = Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 };
     let (tensor, crop_k) = agent::prepare_image(&image, &k, &set.manifest).unwrap();

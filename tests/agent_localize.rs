@@ -9,7 +9,7 @@ use cmr_agent::agent::{self, AxisStarts, SearchConfig};
 use cmr_agent::maps::{PreparedMap, prepare_map};
 use cmr_agent::geometry::actions::{apply_action, apply_motion};
 use cmr_agent::geometry::{ActionFrame, Intrinsics, Pose};
-use cmr_agent::model::{BackendOptions, ModelSet};
+use cmr_agent::model::{BackendOptions, ModelSet, Points};
 use nalgebra::{Matrix3, Vector3};
 
 fn models() -> ModelSet {
@@ -43,7 +43,7 @@ fn rig() -> Pose {
 fn localize_follows_the_disentangled_update_and_is_deterministic() {
     let set = models();
     let mut backend = set.backend().unwrap();
-    let map: Arc<PreparedMap> = Arc::new(prepare_map(&mut backend, &cloud()).unwrap());
+    let map: Arc<PreparedMap> = Arc::new(prepare_map(&mut backend, Points::xyz(&cloud())).unwrap());
     assert_eq!(map.points.len(), 40960);
     assert_eq!(map.features.len(), 40960 * 64);
     let norms_ok = map.features.chunks(64).all(|f| (f.iter().map(|v| v * v).sum::<f32>() - 1.0).abs() < 1e-3);
@@ -169,7 +169,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 fn bad_inputs_are_refused() {
     let set = models();
     let mut backend = set.backend().unwrap();
-    assert!(prepare_map(&mut backend, &[]).is_err());
+    assert!(prepare_map(&mut backend, Points::xyz(&[])).is_err());
     let image = image::RgbImage::new(64, 32);
     let bad = Intrinsics { fx: -1.0, fy: 1.0, cx: 0.0, cy: 0.0 };
     assert!(agent::prepare_image(&image, &bad, &set.manifest).is_err());
@@ -184,7 +184,7 @@ fn bad_inputs_are_refused() {
 fn axis_starts_answer_as_the_best_of_separate_searches() {
     let set = models();
     let mut backend = set.backend().unwrap();
-    let map = Arc::new(prepare_map(&mut backend, &cloud()).unwrap());
+    let map = Arc::new(prepare_map(&mut backend, Points::xyz(&cloud())).unwrap());
     let image = image::RgbImage::from_fn(640, 200, |x, y| image::Rgb([(x * 3) as u8, (y * 5) as u8, ((x + y) % 11 * 20) as u8]));
     let (tensor, crop_k) = agent::prepare_image(&image, &Intrinsics { fx: 500.0, fy: 500.0, cx: 319.5, cy: 99.5 }, &set.manifest).unwrap();
     let prior = rig().compose(&Pose::ground_motion(0.2, 1.0, -0.5));
@@ -225,7 +225,7 @@ fn batched_workers_match_the_synchronous_loop() {
 
     let set = models();
     let mut backend = set.backend().unwrap();
-    let map = Arc::new(prepare_map(&mut backend, &cloud()).unwrap());
+    let map = Arc::new(prepare_map(&mut backend, Points::xyz(&cloud())).unwrap());
     let k = Intrinsics { fx: 500.0, fy: 500.0, cx: 319.5, cy: 99.5 };
     let cases: Vec<(Vec<f32>, Intrinsics, Pose, SearchConfig)> = (0..6)
         .map(|i| {

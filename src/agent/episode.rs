@@ -334,7 +334,7 @@ mod tests {
         let manifest = Arc::new(Manifest::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model")).unwrap());
         let mut backend = centring(manifest.clone());
         let cloud: Vec<[f32; 3]> = (0..5000).map(|i| [(i % 100) as f32 * 0.3 - 15.0, (i / 100) as f32 * 0.4 - 10.0, ((i * 7) % 13) as f32 * 0.2 - 1.7]).collect();
-        let map = crate::maps::prepare_map(&mut backend, &cloud).unwrap();
+        let map = crate::maps::prepare_map(&mut backend, crate::model::Points::xyz(&cloud)).unwrap();
         let layout = StateLayout::from_manifest(&manifest);
         let image: Vec<f32> = (0..3 * layout.image_width as usize * layout.image_height as usize).map(|p| (p % 97) as f32 / 97.0).collect();
         let image_features = backend.encode_image(&image).unwrap();
@@ -387,6 +387,7 @@ mod tests {
             features: vec![0.0; 64],
             pivot: Point3::new(0.0, 0.0, 5.0),
             source_points: 1,
+            intensity: None,
         };
         let set = ActionSet::default();
         let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 256.0, cy: 80.0 };

@@ -42,7 +42,8 @@ impl Dataset {
         }
     }
 
-    /// Loads one case: the scan moved by Q into the map frame, its N-point sample, the image.
+    /// Loads one case: the scan moved by Q into the map frame (with each point's intensity), its
+    /// N-point sample, the image.
     pub fn case(&self, perturbation: &Perturbation, num_points: usize) -> Result<EvalCase> {
         let sequence = self
             .sequences
@@ -52,20 +53,21 @@ impl Dataset {
             .frame(perturbation.frame)
             .with_context(|| format!("sequence {} has no frame {}", perturbation.sequence, perturbation.frame))?;
         let q = perturbation.map_from_lidar();
-        let map_cloud: Vec<[f32; 3]> = frame
-            .read_points()?
+        let scan: Vec<_> = frame.read_points()?.into_iter().filter(|p| p.x.is_finite() && p.y.is_finite() && p.z.is_finite()).collect();
+        let map_cloud: Vec<[f32; 3]> = scan
             .iter()
-            .filter(|p| p.x.is_finite() && p.y.is_finite() && p.z.is_finite())
             .map(|p| {
                 let m = q.transform(&nalgebra::Point3::new(p.x as f64, p.y as f64, p.z as f64));
                 [m.x as f32, m.y as f32, m.z as f32]
             })
             .collect();
+        let map_intensity: Vec<f32> = scan.iter().map(|p| p.intensity).collect();
         let map_points = sample_points(&map_cloud, num_points)?;
         Ok(EvalCase {
             pivot: centroid(&map_points),
             map_points,
             map_cloud,
+            map_intensity: Some(map_intensity),
             image: frame.read_image()?,
             intrinsics: frame.intrinsics,
             initial: frame.camera_from_lidar,

@@ -17,7 +17,7 @@ use std::sync::Arc;
 use crate::agent::{self, SearchConfig, ms};
 use crate::geometry::{Pose, PoseError};
 use crate::maps::{PreparedMap, prepare_map};
-use crate::model::{Backend, Calibration};
+use crate::model::{Backend, Calibration, Points};
 
 use super::matching::{MatchStrategy, cell_centre, find_matches};
 use super::methods::{EvalCase, Method, MethodRun};
@@ -216,7 +216,7 @@ impl Method for Learned {
 
     fn run(&mut self, case: &EvalCase) -> Result<Vec<MethodRun>> {
         let t = Instant::now();
-        let map = Arc::new(prepare_map(self.backend.as_mut(), &case.map_cloud)?);
+        let map = Arc::new(prepare_map(self.backend.as_mut(), Points::new(&case.map_cloud, case.map_intensity.as_deref()))?);
         let prepare_ms = ms(t);
         let mut runs = vec![self.run_agent(case, &map, AGENT, self.search)?];
         // Once per map (the server caches it), so it is reported apart from per-request times.

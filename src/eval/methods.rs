@@ -18,6 +18,9 @@ pub struct EvalCase {
     pub perturbation: Perturbation,
     /// The whole map cloud (Q·scan, finite points), map frame: what a user would upload.
     pub map_cloud: Vec<[f32; 3]>,
+    /// The raw intensity of each point of `map_cloud` (the scan's 4th float), which a model
+    /// that reads intensity is given with the points; `None` when the case has none.
+    pub map_intensity: Option<Vec<f32>>,
     /// Its N sampled points (the contract's ChaCha8 seed-0 sampling), map frame.
     pub map_points: Vec<[f32; 3]>,
     /// The pivot of rotation steps: the mean of `map_points`.
@@ -129,6 +132,7 @@ pub(crate) mod tests {
         EvalCase {
             pivot: Point3::from(sum / n),
             map_cloud: map_points.clone(),
+            map_intensity: None,
             map_points,
             image: RgbImage::new(4, 4),
             intrinsics: Intrinsics { fx: 700.0, fy: 700.0, cx: 620.0, cy: 187.0 },

@@ -348,7 +348,9 @@ pub(crate) mod tests {
             let xyz: Vec<[f32; 3]> = (0..3000)
                 .map(|_| [rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(-1.7..4.0)])
                 .collect();
-            let cloud = PointCloud { intensity: Some(vec![0.5; xyz.len()]), xyz };
+            // Intensity varies from point to point (without drawing from `rng`), so a set that
+            // reads it sees more than a constant.
+            let cloud = PointCloud { intensity: Some((0..xyz.len()).map(|i| ((i * 37) % 100) as f32 / 100.0).collect()), xyz };
             std::fs::write(seq.join("velodyne").join(format!("{f:06}.bin")), write_kitti_bin(&cloud)).unwrap();
             image::RgbImage::from_pixel(1241, 376, image::Rgb([90, 100, 110])).save(seq.join("image_2").join(format!("{f:06}.png"))).unwrap();
         }
@@ -464,6 +466,26 @@ pub(crate) mod tests {
         file.write(&config.perturbations).unwrap();
         let err = run(&config).unwrap_err();
         assert!(format!("{err:#}").contains("no frame 7"), "{err:#}");
+    }
+
+    /// `eval` with a set whose point encoder reads intensity: each case keeps its scan's
+    /// intensity beside its points (what `prepare_map` gives the encoder), and the learned
+    /// methods run with it.
+    #[test]
+    fn eval_gives_an_intensity_set_each_scans_intensity() {
+        let dir = tempfile::tempdir().unwrap();
+        let (data, out) = (dir.path().join("data"), dir.path().join("out"));
+        write_tiny_sequence(&data, 1);
+        let perturbation = PerturbationFile::generate(&[("00".into(), 0)], 3, Priors::Protocol).cases[0].clone();
+        let case = Dataset::open(&data).unwrap().case(&perturbation, 2048).unwrap();
+        let scan = crate::kitti::read_velodyne(&data.join("00/velodyne/000000.bin")).unwrap();
+        assert_eq!(case.map_cloud.len(), scan.len());
+        assert_eq!(case.map_intensity, Some(scan.iter().map(|p| p.intensity).collect::<Vec<_>>()));
+        let models = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model-intensity");
+        let config = EvalConfig { models: Some(models), iterations: 2, hypotheses: 1, ..config(&data, &out) };
+        let report = run(&config).unwrap();
+        assert_eq!(report.methods[0].method, AGENT);
+        assert_eq!(report.methods[0].per_iteration.len(), 2);
     }
 
     /// The learned methods through real ONNX graphs (the committed tiny contract model): every

@@ -63,7 +63,7 @@ pub fn decode(bytes: &[u8], model_sha: &str, source_sha: &str) -> Option<Prepare
     let flat = floats(HEADER, n * 3);
     let points = flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
     let features = floats(HEADER + n * 12, n * d);
-    Some(PreparedMap { points, features, pivot, source_points })
+    Some(PreparedMap { points, features, pivot, source_points, intensity: None })
 }
 
 /// A sha256 hex string as the 64 fixed bytes the embedding files' headers hold (lower case).
@@ -86,6 +86,7 @@ mod tests {
             features: vec![0.5; 8],
             pivot: Point3::new(2.5, 3.5, 4.5),
             source_points: 7,
+            intensity: None,
         };
         let mut bytes = Vec::new();
         write(&mut bytes, &map, "ab", "cd").unwrap();

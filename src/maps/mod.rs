@@ -17,10 +17,10 @@ use std::time::Instant;
 
 use crate::geometry::LocalFrame;
 use crate::geometry::voxel::{validate_voxel, voxel_downsample};
-use crate::model::Backend;
+use crate::model::{Backend, Points};
 
 pub use cache::MapCache;
-pub use prepared::{PreparedMap, centroid, prepare_map, sample_points};
+pub use prepared::{PreparedMap, centroid, intensity_rank, prepare_map, sample_indices, sample_points};
 pub use store::{Extent, MapEntry, MapMetadata, MapStore, validate_id};
 pub use tiles::{SparseCrop, TileConfig, TiledMap};
 pub use upload::Upload;
@@ -155,6 +155,9 @@ pub struct Maps {
     /// The point encoder used for registrations and cache misses (not the agent workers').
     encoder: Mutex<Box<dyn Backend>>,
     model_sha: String,
+    /// Whether the point encoder reads intensity (`Manifest::reads_intensity`): then a tiled
+    /// region's file keeps each point's intensity for its crops.
+    reads_intensity: bool,
     /// The sha256 of the cloud each cached prepared map was made from. The store's files may be
     /// rewritten by another replica sharing the directory; a mismatch with the stored cloud's
     /// sha256 drops the cached copy, whoever noticed the change first.
@@ -169,6 +172,7 @@ pub struct Maps {
 impl Maps {
     pub fn new(store: MapStore, cache: MapCache, encoder: Box<dyn Backend>, config: RegionConfig) -> Self {
         let model_sha = encoder.manifest().point_encoder_sha256().to_string();
+        let reads_intensity = encoder.manifest().reads_intensity();
         let store = Arc::new(store);
         Self {
             writer: persist::EmbeddingWriter::start(store.clone()),
@@ -177,6 +181,7 @@ impl Maps {
             config,
             encoder: Mutex::new(encoder),
             model_sha,
+            reads_intensity,
             prepared_from: Mutex::new(Default::default()),
             loaded_from_disk: AtomicU64::new(0),
             computed: AtomicU64::new(0),
@@ -211,17 +216,17 @@ impl Maps {
         let (cloud, source_sha, _) = self.store.read_cloud(id)?;
         self.prepared_from.lock().expect("prepared_from").insert(id.to_string(), source_sha.clone());
         if self.is_tiled(cloud.len()) {
-            if let Some(tiled) = self.store.load_tiles(id, &self.model_sha, &source_sha, self.config.tiles, self.needs_tile_embeddings()) {
+            if let Some(tiled) = self.store.load_tiles(id, &self.model_sha, &source_sha, self.config.tiles, self.needs_tile_embeddings(), self.reads_intensity) {
                 self.loaded_from_disk.fetch_add(1, Ordering::Relaxed);
                 metrics::counter!("cmr_embeddings_loaded_total").increment(1);
                 return Ok(Prepared::Tiled(Arc::new(tiled)));
             }
             let mut emb = self.store.stage_embeddings(id)?;
-            self.encode_tiles(&cloud, &source_sha, &mut emb)?;
+            self.encode_tiles(cloud.points(), &source_sha, &mut emb)?;
             emb.commit().map_err(|e| MapError::Io(e.to_string()))?;
             self.computed.fetch_add(1, Ordering::Relaxed);
             metrics::counter!("cmr_embeddings_computed_total").increment(1);
-            let tiled = self.store.load_tiles(id, &self.model_sha, &source_sha, self.config.tiles, self.needs_tile_embeddings()).ok_or_else(|| MapError::Io(format!("{id}.emb: cannot read back the tiles just written")))?;
+            let tiled = self.store.load_tiles(id, &self.model_sha, &source_sha, self.config.tiles, self.needs_tile_embeddings(), self.reads_intensity).ok_or_else(|| MapError::Io(format!("{id}.emb: cannot read back the tiles just written")))?;
             return Ok(Prepared::Tiled(Arc::new(tiled)));
         }
         // A registration's own file may still be queued (evicted right after it was made).
@@ -231,7 +236,7 @@ impl Maps {
             metrics::counter!("cmr_embeddings_loaded_total").increment(1);
             return Ok(Prepared::Whole(Arc::new(map)));
         }
-        let map = Arc::new(self.encode(&cloud)?);
+        let map = Arc::new(self.encode(cloud.points())?);
         self.computed.fetch_add(1, Ordering::Relaxed);
         metrics::counter!("cmr_embeddings_computed_total").increment(1);
         self.writer.submit(id, map.clone(), &self.model_sha, &source_sha);
@@ -255,25 +260,26 @@ impl Maps {
         let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
         let cloud = crate::model::synthetic_cloud(encoder.manifest().points.num_points, 80.0, 3.0);
         for _ in 0..2 {
-            encoder.encode_points(&cloud).map_err(|e| MapError::Inference(format!("{e:#}")))?;
+            encoder.encode_points(Points::xyz(&cloud)).map_err(|e| MapError::Inference(format!("{e:#}")))?;
         }
         Ok(())
     }
 
     /// A crop with its embeddings computed now, by the point encoder on the crop's own points
-    /// (`CropEmbeddings::Encode`), instead of the stored per-tile ones.
+    /// and their intensity ([`PreparedMap::input`]; `CropEmbeddings::Encode`), instead of the
+    /// stored per-tile ones.
     pub fn reencode(&self, crop: &PreparedMap) -> Result<PreparedMap, MapError> {
         let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
-        let features = encoder.encode_points(&crop.points).map_err(|e| MapError::Inference(format!("{e:#}")))?;
+        let features = encoder.encode_points(crop.input()).map_err(|e| MapError::Inference(format!("{e:#}")))?;
         Ok(PreparedMap { features, ..crop.clone() })
     }
 
-    fn encode(&self, cloud: &[[f32; 3]]) -> Result<PreparedMap, MapError> {
+    fn encode(&self, cloud: Points<'_>) -> Result<PreparedMap, MapError> {
         let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
         prepare_map(encoder.as_mut(), cloud).map_err(|e| MapError::Inference(format!("{e:#}")))
     }
 
-    fn encode_tiles(&self, cloud: &[[f32; 3]], source_sha: &str, out: &mut dyn std::io::Write) -> Result<tiles::BuildStats, MapError> {
+    fn encode_tiles(&self, cloud: Points<'_>, source_sha: &str, out: &mut dyn std::io::Write) -> Result<tiles::BuildStats, MapError> {
         let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
         let t = Instant::now();
         let stats = tiles::build(encoder.as_mut(), cloud, self.config.tiles, self.needs_tile_embeddings(), &self.model_sha, source_sha, out).map_err(|e| MapError::Inference(format!("{e:#}")))?;
@@ -300,12 +306,14 @@ impl Maps {
         // A tiled region's embeddings are streamed to their file as the tiles are encoded and
         // committed with the cloud; a whole region's are written after the answer.
         let (whole, tiles) = if self.is_tiled(cloud.len()) {
-            cloud.intensity = None;
+            if !self.reads_intensity {
+                cloud.intensity = None;
+            }
             let mut emb = self.store.stage_embeddings(id)?;
-            self.encode_tiles(&cloud.xyz, staged.sha256(), &mut emb)?;
+            self.encode_tiles(cloud.points(), staged.sha256(), &mut emb)?;
             (None, Some(emb))
         } else {
-            (Some(Arc::new(self.encode(&cloud.xyz)?)), None)
+            (Some(Arc::new(self.encode(cloud.points())?)), None)
         };
         drop(cloud);
         let encode_ms = ms(t);
@@ -317,7 +325,7 @@ impl Maps {
                 self.cache.insert(id, Prepared::Whole(prepared.clone()));
                 self.writer.submit(id, prepared, &self.model_sha, &entry.source_sha256);
             }
-            None => match self.store.load_tiles(id, &self.model_sha, &entry.source_sha256, self.config.tiles, self.needs_tile_embeddings()) {
+            None => match self.store.load_tiles(id, &self.model_sha, &entry.source_sha256, self.config.tiles, self.needs_tile_embeddings(), self.reads_intensity) {
                 Some(tiled) => self.cache.insert(id, Prepared::Tiled(Arc::new(tiled))),
                 None => self.cache.invalidate(id),
             },

@@ -273,19 +273,20 @@ impl MapStore {
             Err(e) => return Err(MapError::Io(format!("{id}.json: {e}"))),
         };
         let frame = LocalFrame { origin: origin.into() };
-        let extent = Extent::of(&cloud, frame).ok_or_else(|| MapError::BadCloud(format!("{id}.bin has no points")))?;
+        let extent = Extent::of(&cloud.xyz, frame).ok_or_else(|| MapError::BadCloud(format!("{id}.bin has no points")))?;
         Ok(MapEntry { id: id.to_string(), num_points: cloud.len(), file_bytes: bytes, source_sha256: sha, metadata, origin, extent })
     }
 
-    /// The stored cloud's points and the sha256 of its file.
-    pub fn read_cloud(&self, id: &str) -> Result<(Vec<[f32; 3]>, String, u64), MapError> {
+    /// The stored cloud (points and intensity: 0 where the upload had none) and the sha256 and
+    /// size of its file.
+    pub fn read_cloud(&self, id: &str) -> Result<(PointCloud, String, u64), MapError> {
         let path = self.path(id, "bin");
         let bytes = std::fs::read(&path).map_err(|e| match e.kind() {
             std::io::ErrorKind::NotFound => MapError::NotFound(id.to_string()),
             _ => MapError::Io(format!("{}: {e}", path.display())),
         })?;
         let cloud = parse(&bytes, CloudFormat::KittiBin).map_err(|e| MapError::BadCloud(format!("{}: {e}", path.display())))?;
-        Ok((cloud.xyz, sha256_hex(&bytes), bytes.len() as u64))
+        Ok((cloud, sha256_hex(&bytes), bytes.len() as u64))
     }
 
     fn stamp(&self, id: &str) -> Option<Stamp> {
@@ -453,15 +454,16 @@ impl MapStore {
     }
 
     /// The persisted tiles of a large region, memory-mapped, when they match this model, the
-    /// stored cloud and `config`, and hold embeddings when `embeddings` (a file of points alone
-    /// serves a server that encodes its crops).
-    pub fn load_tiles(&self, id: &str, model_sha: &str, source_sha: &str, config: super::tiles::TileConfig, embeddings: bool) -> Option<super::tiles::TiledMap> {
+    /// stored cloud and `config`, hold embeddings when `embeddings` (a file of points alone
+    /// serves a server that encodes its crops), and each point's intensity when `intensity` (a
+    /// model that reads it).
+    pub fn load_tiles(&self, id: &str, model_sha: &str, source_sha: &str, config: super::tiles::TileConfig, embeddings: bool, intensity: bool) -> Option<super::tiles::TiledMap> {
         let path = self.path(id, "emb");
         if !path.exists() {
             return None; // not written yet (`map build --store` leaves it to the first reader)
         }
         match super::tiles::TiledMap::open(&path, model_sha, source_sha) {
-            Ok(Some(t)) if t.config == config && (t.d > 0 || !embeddings) => Some(t),
+            Ok(Some(t)) if t.config == config && (t.d > 0 || !embeddings) && (t.has_intensity() || !intensity) => Some(t),
             Ok(_) => None,
             Err(e) => {
                 tracing::warn!("{id}.emb: {e:#}; recomputing");
@@ -581,7 +583,7 @@ mod tests {
         let (a, _) = MapStore::open(dir.path()).unwrap();
         let (b, _) = MapStore::open(dir.path()).unwrap();
         let cloud = |n: usize| PointCloud { xyz: (0..n).map(|i| [i as f32, 1.0, -1.0]).collect(), intensity: None };
-        let prepared = PreparedMap { points: vec![[0.0; 3]], features: vec![0.0; 64], pivot: nalgebra::Point3::origin(), source_points: 1 };
+        let prepared = PreparedMap { points: vec![[0.0; 3]], features: vec![0.0; 64], pivot: nalgebra::Point3::origin(), source_points: 1, intensity: None };
         assert!(matches!(b.get("yard"), Err(MapError::NotFound(_))));
 
         a.put("yard", &cloud(10), None, &prepared, "model").unwrap();
@@ -612,7 +614,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let (store, _) = MapStore::open(dir.path()).unwrap();
         let cloud = |n: usize| PointCloud { xyz: (0..n).map(|i| [i as f32, 1.0, -1.0]).collect(), intensity: None };
-        let prepared = PreparedMap { points: vec![[0.5; 3]], features: vec![0.25; 64], pivot: nalgebra::Point3::origin(), source_points: 1 };
+        let prepared = PreparedMap { points: vec![[0.5; 3]], features: vec![0.25; 64], pivot: nalgebra::Point3::origin(), source_points: 1, intensity: None };
         let emb = dir.path().join("yard.emb");
         let staged = store.stage("yard", &cloud(10), LocalFrame::default()).unwrap();
         let first = store.commit("yard", staged, None, None).unwrap();

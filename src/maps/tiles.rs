@@ -24,6 +24,11 @@
 //! u64 N, u64 D, u64 point count P, u64 cell count C, f64 tile_m, f64 context_m; C cells of
 //! (i32 ix, i32 iy, u64 first point, u64 count) sorted by (ix, iy); P × 3 f32 points (local frame,
 //! grouped by cell; within a cell in a seeded random order); P × D f16 embeddings, same order (D = 0: none).
+//!
+//! A model whose point encoder reads intensity (manifest `points.channels`) needs each cropped
+//! point's intensity too: its files (magic `CMRTIL02`) hold P f32 raw intensities (0 where the
+//! region has none), same order, between the points and the embeddings; everything else is as in
+//! `CMRTIL01`, which every other model's files still are, byte for byte.
 
 use std::collections::HashMap;
 use std::io::Write;
@@ -40,9 +45,11 @@ use rand_chacha::ChaCha8Rng;
 use super::embeddings::fixed_hex;
 use super::prepared::centroid;
 use super::PreparedMap;
-use crate::model::Backend;
+use crate::model::{Backend, Points};
 
 const MAGIC: &[u8; 8] = b"CMRTIL01";
+/// `MAGIC` with each point's intensity after the points.
+const MAGIC_INTENSITY: &[u8; 8] = b"CMRTIL02";
 const HEADER: usize = 8 + 64 + 64 + 8 * 4 + 8 * 2;
 const CELL_BYTES: usize = 24;
 
@@ -291,15 +298,20 @@ fn sample_indices(candidates: &[u32], n: usize, seed: u64) -> Vec<u32> {
     out
 }
 
-/// Groups a region (`points` in its local frame) into tiles and writes the `CMRTIL01` file to
-/// `out`; with `embeddings`, each tile's points are encoded too (D = the model's feature size),
-/// else the file holds the cell table and the points only (D = 0: what a server that encodes
-/// every crop itself, `CropEmbeddings::Encode`, reads, without a point-encoder pass over the
-/// whole region). Memory: the points twice (as given and grouped by cell), a cell's context
-/// indices and one encoder pass. Errors: the encoder's, or the writer's.
-pub fn build(backend: &mut dyn Backend, points: &[[f32; 3]], config: TileConfig, embeddings: bool, model_sha: &str, source_sha: &str, out: &mut dyn Write) -> Result<BuildStats> {
+/// Groups a region (`cloud` in its local frame) into tiles and writes the `CMRTIL01` file to
+/// `out` (`CMRTIL02`, with each point's intensity, for a model that reads it); with
+/// `embeddings`, each tile's points are encoded too (D = the model's feature size), else the
+/// file holds the cell table and the points only (D = 0: what a server that encodes every crop
+/// itself, `CropEmbeddings::Encode`, reads, without a point-encoder pass over the whole region).
+/// Memory: the points twice (as given and grouped by cell), a cell's context indices and one
+/// encoder pass. Errors: an intensity that is not one value per point, the encoder's, or the
+/// writer's.
+pub fn build(backend: &mut dyn Backend, cloud: Points<'_>, config: TileConfig, embeddings: bool, model_sha: &str, source_sha: &str, out: &mut dyn Write) -> Result<BuildStats> {
+    cloud.check()?;
+    let points = cloud.xyz;
     let n = backend.manifest().points.num_points;
     let d = if embeddings { backend.manifest().features.dim } else { 0 };
+    let with_intensity = backend.manifest().reads_intensity();
     if points.is_empty() {
         bail!("the region has no points");
     }
@@ -312,6 +324,10 @@ pub fn build(backend: &mut dyn Backend, points: &[[f32; 3]], config: TileConfig,
     order.shuffle(&mut ChaCha8Rng::seed_from_u64(1));
     order.sort_by_key(|&i| cell_of(&points[i as usize], config.tile_m));
     let sorted: Vec<[f32; 3]> = order.iter().map(|&i| points[i as usize]).collect();
+    let sorted_intensity: Option<Vec<f32>> = with_intensity.then(|| match cloud.intensity {
+        Some(values) => order.iter().map(|&i| values[i as usize]).collect(),
+        None => vec![0.0; sorted.len()],
+    });
     drop(order);
     let mut cells: Vec<Cell> = Vec::new();
     for (i, p) in sorted.iter().enumerate() {
@@ -323,7 +339,7 @@ pub fn build(backend: &mut dyn Backend, points: &[[f32; 3]], config: TileConfig,
     }
     let lookup: HashMap<(i32, i32), Cell> = cells.iter().map(|c| ((c.ix, c.iy), *c)).collect();
 
-    out.write_all(MAGIC)?;
+    out.write_all(if with_intensity { MAGIC_INTENSITY } else { MAGIC })?;
     out.write_all(&fixed_hex(model_sha))?;
     out.write_all(&fixed_hex(source_sha))?;
     for v in [n as u64, d as u64, sorted.len() as u64, cells.len() as u64] {
@@ -342,6 +358,9 @@ pub fn build(backend: &mut dyn Backend, points: &[[f32; 3]], config: TileConfig,
             out.write_all(&v.to_le_bytes())?;
         }
     }
+    for v in sorted_intensity.iter().flatten() {
+        out.write_all(&v.to_le_bytes())?;
+    }
 
     let mut stats = BuildStats { points: sorted.len(), cells: cells.len(), passes: 0 };
     if !embeddings {
@@ -350,7 +369,9 @@ pub fn build(backend: &mut dyn Backend, points: &[[f32; 3]], config: TileConfig,
     }
     let core_max = (n / 2).max(1);
     let mut context = Vec::new();
+    let mut chosen: Vec<usize> = Vec::with_capacity(n);
     let mut input: Vec<[f32; 3]> = Vec::with_capacity(n);
+    let mut input_intensity: Vec<f32> = Vec::with_capacity(if with_intensity { n } else { 0 });
     let mut row = vec![0u8; core_max * d * 2];
     for (k, cell) in cells.iter().enumerate() {
         let centre = [(cell.ix as f64 + 0.5) * config.tile_m, (cell.iy as f64 + 0.5) * config.tile_m];
@@ -359,14 +380,21 @@ pub fn build(backend: &mut dyn Backend, points: &[[f32; 3]], config: TileConfig,
         while first < cell.start + cell.count {
             let last = (first + core_max).min(cell.start + cell.count);
             let others: Vec<u32> = context.iter().copied().filter(|&i| !(first..last).contains(&(i as usize))).collect();
-            input.clear();
-            input.extend_from_slice(&sorted[first..last]);
-            let fill = sample_indices(if others.is_empty() { &[] } else { &others }, n - input.len(), (k as u64) << 32 | first as u64);
-            input.extend(fill.iter().map(|&i| sorted[i as usize]));
-            while input.len() < n {
-                input.push(input[input.len() % (last - first)]);
+            chosen.clear();
+            chosen.extend(first..last);
+            let fill = sample_indices(if others.is_empty() { &[] } else { &others }, n - chosen.len(), (k as u64) << 32 | first as u64);
+            chosen.extend(fill.iter().map(|&i| i as usize));
+            while chosen.len() < n {
+                chosen.push(chosen[chosen.len() % (last - first)]);
             }
-            let features = backend.encode_points(&input).with_context(|| format!("point encoder on cell ({}, {})", cell.ix, cell.iy))?;
+            input.clear();
+            input.extend(chosen.iter().map(|&i| sorted[i]));
+            let intensity = sorted_intensity.as_ref().map(|values| {
+                input_intensity.clear();
+                input_intensity.extend(chosen.iter().map(|&i| values[i]));
+                &input_intensity[..]
+            });
+            let features = backend.encode_points(Points::new(&input, intensity)).with_context(|| format!("point encoder on cell ({}, {})", cell.ix, cell.iy))?;
             stats.passes += 1;
             let keep = (last - first) * d;
             for (o, v) in row.chunks_exact_mut(2).zip(&features[..keep]) {
@@ -391,6 +419,8 @@ pub struct TiledMap {
     pub points: usize,
     pub config: TileConfig,
     points_at: usize,
+    /// Where each point's f32 intensity starts (a `CMRTIL02` file), `None` without.
+    intensity_at: Option<usize>,
     features_at: usize,
 }
 
@@ -413,7 +443,7 @@ impl TiledMap {
         // SAFETY: the store replaces `<id>.emb` only by renaming a new file over it, never by
         // writing into it, so the mapped file does not change under us.
         let map = unsafe { memmap2::Mmap::map(&file) }.with_context(|| format!("mapping {}", path.display()))?;
-        if map.len() < HEADER || &map[..8] != MAGIC || map[8..72] != fixed_hex(model_sha) || map[72..136] != fixed_hex(source_sha) {
+        if map.len() < HEADER || !is_tiled(&map) || map[8..72] != fixed_hex(model_sha) || map[72..136] != fixed_hex(source_sha) {
             return Ok(None);
         }
         let u = |at: usize| u64::from_le_bytes(map[at..at + 8].try_into().unwrap()) as usize;
@@ -421,7 +451,10 @@ impl TiledMap {
         let (n, d, points, count) = (u(136), u(144), u(152), u(160));
         let config = TileConfig { tile_m: f(168), context_m: f(176) };
         let points_at = count.checked_mul(CELL_BYTES).and_then(|c| c.checked_add(HEADER)).context("cell table overflows")?;
-        let features_at = points.checked_mul(12).and_then(|p| p.checked_add(points_at)).context("points overflow")?;
+        let with_intensity = &map[..8] == MAGIC_INTENSITY;
+        let point_bytes = if with_intensity { 16 } else { 12 };
+        let features_at = points.checked_mul(point_bytes).and_then(|p| p.checked_add(points_at)).context("points overflow")?;
+        let intensity_at = with_intensity.then(|| points_at + points * 12);
         let end = points.checked_mul(d * 2).and_then(|f| f.checked_add(features_at)).context("features overflow")?;
         if end != map.len() || !(config.tile_m > 0.0) {
             bail!("{}: {} bytes, the header says {end}", path.display(), map.len());
@@ -444,13 +477,23 @@ impl TiledMap {
         }
         #[cfg(unix)]
         let _ = map.advise(memmap2::Advice::Random);
-        Ok(Some(TiledMap { map, cells, n, d, points, config, points_at, features_at }))
+        Ok(Some(TiledMap { map, cells, n, d, points, config, points_at, intensity_at, features_at }))
     }
 
     fn point(&self, i: usize) -> [f32; 3] {
         let at = self.points_at + i * 12;
         let f = |k: usize| f32::from_le_bytes(self.map[at + 4 * k..at + 4 * k + 4].try_into().unwrap());
         [f(0), f(1), f(2)]
+    }
+
+    fn intensity(&self, i: usize) -> Option<f32> {
+        let at = self.intensity_at? + i * 4;
+        Some(f32::from_le_bytes(self.map[at..at + 4].try_into().unwrap()))
+    }
+
+    /// Whether the file holds each point's intensity (`CMRTIL02`: a model that reads it).
+    pub fn has_intensity(&self) -> bool {
+        self.intensity_at.is_some()
     }
 
     pub fn cells(&self) -> usize {
@@ -497,14 +540,15 @@ impl TiledMap {
             let at = self.features_at + i as usize * self.d * 2;
             features.extend(self.map[at..at + self.d * 2].chunks_exact(2).map(|b| f16::from_le_bytes([b[0], b[1]]).to_f32()));
         }
+        let intensity: Option<Vec<f32>> = self.has_intensity().then(|| chosen.iter().filter_map(|&i| self.intensity(i as usize)).collect());
         let pivot: Point3<f64> = centroid(&points);
-        Ok(PreparedMap { points, features, pivot, source_points: candidates.len() })
+        Ok(PreparedMap { points, features, pivot, source_points: candidates.len(), intensity })
     }
 }
 
-/// Whether `bytes` (the start of an `<id>.emb`) is a tiled file.
+/// Whether `bytes` (the start of an `<id>.emb`) is a tiled file (with or without intensity).
 pub fn is_tiled(bytes: &[u8]) -> bool {
-    bytes.starts_with(MAGIC)
+    bytes.starts_with(MAGIC) || bytes.starts_with(MAGIC_INTENSITY)
 }
 
 /// The cell count in a tiled file's header, when `bytes` holds it.
@@ -612,7 +656,7 @@ mod tests {
         let path = dir.path().join("r.emb");
         let mut file = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
         let config = TileConfig { tile_m: 10.0, context_m: 12.0 };
-        let stats = build(&mut backend, &points, config, true, "aa", "bb", &mut file).unwrap();
+        let stats = build(&mut backend, Points::xyz(&points), config, true, "aa", "bb", &mut file).unwrap();
         drop(file);
         assert_eq!((stats.points, stats.cells), (900, 6));
         assert!(stats.passes >= 6);
@@ -628,7 +672,7 @@ mod tests {
         // The fake encoder's features depend on the point only: the stored f16 ones match.
         let crop = tiled.around([15.0, 10.0, 1.0], 6.0, 10, true).unwrap();
         assert_eq!(crop.points.len(), 64);
-        let direct = backend.encode_points(&crop.points).unwrap();
+        let direct = backend.encode_points(crop.input()).unwrap();
         let worst = direct.iter().zip(&crop.features).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
         assert!(worst < 2e-3, "f16 round trip {worst}");
         assert!(crop.points.iter().all(|p| (p[0] as f64 - 15.0).hypot(p[1] as f64 - 10.0) <= 6.0));
@@ -640,7 +684,7 @@ mod tests {
         // same crops to the bit.
         let bare = dir.path().join("bare.emb");
         let mut file = std::io::BufWriter::new(std::fs::File::create(&bare).unwrap());
-        let stats = build(&mut backend, &points, config, false, "aa", "bb", &mut file).unwrap();
+        let stats = build(&mut backend, Points::xyz(&points), config, false, "aa", "bb", &mut file).unwrap();
         drop(file);
         assert_eq!((stats.points, stats.cells, stats.passes), (900, 6, 0));
         let points_only = TiledMap::open(&bare, "aa", "bb").unwrap().unwrap();
@@ -651,5 +695,63 @@ mod tests {
             let (a, b) = (points_only.around(sensor, 9.0, 10, false).unwrap(), tiled.around(sensor, 9.0, 10, false).unwrap());
             assert_eq!((a.points, a.source_points), (b.points, b.source_points));
         }
+    }
+
+    /// A model that reads intensity: its file (`CMRTIL02`) holds each point's intensity, a crop
+    /// carries that of each of its points, and the encoder reads it (the fake's features move
+    /// with the rank); the cells, points and crops are those of a file without it. A region
+    /// without intensity stores zeros (a constant: rank 0.5).
+    #[test]
+    fn a_model_that_reads_intensity_keeps_it_in_the_tiles_and_its_crops() {
+        let mut manifest = Manifest::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model")).unwrap();
+        manifest.points.num_points = 64;
+        manifest.points.num_state_points = 8;
+        let plain_manifest = manifest.clone();
+        manifest.points.channels = Some(crate::model::POINT_CHANNELS_INTENSITY.map(String::from).to_vec());
+        let mut backend = FakeBackend::new(std::sync::Arc::new(manifest));
+        let points: Vec<[f32; 3]> = (0..900).map(|i| [(i % 30) as f32 + 0.5, ((i / 30) % 20) as f32 + 0.25, (i % 7) as f32 * 0.1]).collect();
+        let intensity: Vec<f32> = (0..900).map(|i| ((i * 37) % 101) as f32 / 100.0).collect();
+        let of: HashMap<[u32; 3], f32> = points.iter().zip(&intensity).map(|(p, &v)| (p.map(f32::to_bits), v)).collect();
+        assert_eq!(of.len(), 900, "distinct points");
+        let dir = tempfile::tempdir().unwrap();
+        let config = TileConfig { tile_m: 10.0, context_m: 12.0 };
+        let write = |backend: &mut FakeBackend, name: &str, cloud: Points<'_>, embeddings: bool| {
+            let path = dir.path().join(name);
+            let mut file = std::io::BufWriter::new(std::fs::File::create(&path).unwrap());
+            build(backend, cloud, config, embeddings, "aa", "bb", &mut file).unwrap();
+            drop(file);
+            path
+        };
+        let path = write(&mut backend, "i.emb", Points::new(&points, Some(&intensity)), true);
+        assert_eq!(&std::fs::read(&path).unwrap()[..8], MAGIC_INTENSITY);
+        let tiled = TiledMap::open(&path, "aa", "bb").unwrap().unwrap();
+        assert!(tiled.has_intensity());
+        assert_eq!(tiled.file_bytes(), HEADER + 6 * CELL_BYTES + 900 * 16 + 900 * tiled.d * 2);
+        let crop = tiled.around([15.0, 10.0, 1.0], 6.0, 10, true).unwrap();
+        let kept = crop.intensity.clone().expect("the crop's intensity");
+        assert_eq!(kept, crop.points.iter().map(|p| of[&p.map(f32::to_bits)]).collect::<Vec<_>>());
+        let with = backend.encode_points(crop.input()).unwrap();
+        let without = backend.encode_points(Points::xyz(&crop.points)).unwrap();
+        let moved = with.iter().zip(&without).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        assert!(moved > 0.1, "the features follow the intensity: {moved}");
+
+        // The same cells, points and crops as a three-column model's file (`CMRTIL01`).
+        let mut plain = FakeBackend::new(std::sync::Arc::new(plain_manifest));
+        let plain_path = write(&mut plain, "p.emb", Points::new(&points, Some(&intensity)), false);
+        let bytes = std::fs::read(&plain_path).unwrap();
+        assert_eq!(&bytes[..8], MAGIC);
+        let bare = write(&mut plain, "q.emb", Points::xyz(&points), false);
+        assert_eq!(bytes, std::fs::read(&bare).unwrap(), "a three-column file does not depend on the intensity");
+        let plain = TiledMap::open(&plain_path, "aa", "bb").unwrap().unwrap();
+        assert!(!plain.has_intensity());
+        let a = plain.around([15.0, 10.0, 1.0], 6.0, 10, false).unwrap();
+        assert_eq!((a.points, a.intensity), (crop.points.clone(), None));
+
+        // A region without intensity, for a model that reads it: zeros, read as a constant.
+        let zeros = write(&mut backend, "z.emb", Points::xyz(&points), false);
+        let zeros = TiledMap::open(&zeros, "aa", "bb").unwrap().unwrap();
+        let crop = zeros.around([15.0, 10.0, 1.0], 6.0, 10, false).unwrap();
+        assert!(crop.intensity.as_ref().unwrap().iter().all(|&v| v == 0.0));
+        assert_eq!(backend.encode_points(crop.input()).unwrap(), without);
     }
 }

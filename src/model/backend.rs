@@ -13,7 +13,7 @@ use ort::value::TensorRef;
 
 use super::manifest::{Manifest, dims_from_onnx, format_shape, shapes_compatible, GRAPH_NAMES};
 use super::runtime;
-use super::{AgentOutput, Backend};
+use super::{AgentOutput, Backend, Points, point_tensor};
 
 /// How sessions are created.
 #[derive(Debug, Clone)]
@@ -131,11 +131,11 @@ impl Backend for OrtBackend {
         &self.manifest
     }
 
-    fn encode_points(&mut self, points: &[[f32; 3]]) -> Result<Vec<f32>> {
+    fn encode_points(&mut self, points: Points<'_>) -> Result<Vec<f32>> {
         let n = points.len();
         let dim = self.manifest.features.dim;
-        let flat: &[f32] = bytemuck::cast_slice(points);
-        let input = TensorRef::from_array_view(([1usize, n, 3], flat))?;
+        let flat = point_tensor(&self.manifest, points)?;
+        let input = TensorRef::from_array_view(([1usize, n, self.manifest.point_channels()], &*flat))?;
         let outputs = self.point_encoder.run(ort::inputs!["points" => input])?;
         let features = extract(&outputs["point_features"], n * dim, "point_features")?;
         Ok(features)

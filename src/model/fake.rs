@@ -10,7 +10,7 @@ use std::sync::Arc;
 
 use anyhow::{Result, bail};
 
-use super::{AgentOutput, Backend, Manifest};
+use super::{AgentOutput, Backend, Manifest, Points, point_tensor};
 
 pub struct FakeBackend {
     manifest: Arc<Manifest>,
@@ -49,15 +49,24 @@ impl Backend for FakeBackend {
         &self.manifest
     }
 
-    fn encode_points(&mut self, points: &[[f32; 3]]) -> Result<Vec<f32>> {
+    /// A function of each point alone; for a set that reads intensity, of its rank too (the
+    /// 4th column of [`point_tensor`]).
+    fn encode_points(&mut self, points: Points<'_>) -> Result<Vec<f32>> {
         let d = self.manifest.features.dim;
+        let c = self.manifest.point_channels();
+        let input = point_tensor(&self.manifest, points)?;
         let mut out = Vec::with_capacity(points.len() * d);
-        for p in points {
+        for p in input.chunks_exact(c) {
             if !p.iter().all(|v| v.is_finite()) {
                 bail!("output \"point_features\" contains non-finite values");
             }
             let start = out.len();
-            out.extend((0..d).map(|k| (p[0] * 0.37 * (k + 1) as f32 + p[1] * 0.11 * k as f32 + p[2] * 0.05).sin() + 0.01));
+            let angle = |k: usize| p[0] * 0.37 * (k + 1) as f32 + p[1] * 0.11 * k as f32 + p[2] * 0.05;
+            if c == 4 {
+                out.extend((0..d).map(|k| (angle(k) + p[3] * 0.7 * (k % 5) as f32).sin() + 0.01));
+            } else {
+                out.extend((0..d).map(|k| angle(k).sin() + 0.01));
+            }
             normalise(&mut out[start..]);
         }
         Ok(out)

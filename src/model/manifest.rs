@@ -78,6 +78,39 @@ pub struct PointSpec {
     pub num_points: usize,
     pub num_state_points: usize,
     pub state_xyz_scale_m: f64,
+    /// The point encoder's input columns, named ([`POINT_CHANNELS_XYZ`] or
+    /// [`POINT_CHANNELS_INTENSITY`]); absent (every set before intensity encoders) means x, y, z.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub channels: Option<Vec<String>>,
+}
+
+/// The point encoder's input columns without intensity: map-frame metres.
+pub const POINT_CHANNELS_XYZ: [&str; 3] = ["x", "y", "z"];
+
+/// ... and with each point's intensity as its mid-rank among the N input points
+/// (`maps::intensity_rank`, the twin of `training/cmr/data.py::intensity_rank`).
+pub const POINT_CHANNELS_INTENSITY: [&str; 4] = ["x", "y", "z", "intensity_rank"];
+
+impl PointSpec {
+    fn validate_channels(&self) -> Result<(), String> {
+        match &self.channels {
+            None => Ok(()),
+            Some(c) if c.as_slice() == POINT_CHANNELS_XYZ || c.as_slice() == POINT_CHANNELS_INTENSITY => Ok(()),
+            Some(c) => Err(format!(
+                "points.channels must be {POINT_CHANNELS_XYZ:?} or {POINT_CHANNELS_INTENSITY:?} (or absent, meaning {POINT_CHANNELS_XYZ:?}), got {c:?}"
+            )),
+        }
+    }
+
+    /// Columns of one point of the point encoder's input: 3, or 4 with the intensity rank.
+    pub fn input_channels(&self) -> usize {
+        self.channels.as_ref().map_or(3, Vec::len)
+    }
+
+    /// Whether the point encoder reads each point's intensity (as its rank, a 4th column).
+    pub fn reads_intensity(&self) -> bool {
+        self.input_channels() == 4
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -274,6 +307,7 @@ impl Manifest {
         if !(p.state_xyz_scale_m > 0.0) {
             return Err("points.state_xyz_scale_m must be positive".into());
         }
+        p.validate_channels()?;
         if self.actions.dofs != ["yaw_deg", "tx_m", "tz_m"] {
             return Err(format!("actions.dofs must be [\"yaw_deg\", \"tx_m\", \"tz_m\"], got {:?}", self.actions.dofs));
         }
@@ -366,6 +400,18 @@ impl Manifest {
         ))
     }
 
+    /// Columns of one point of the point encoder's input (`points.channels`): 3, or 4 with the
+    /// intensity rank.
+    pub fn point_channels(&self) -> usize {
+        self.points.input_channels()
+    }
+
+    /// Whether the point encoder reads each point's intensity (`points.channels` names
+    /// `intensity_rank`).
+    pub fn reads_intensity(&self) -> bool {
+        self.points.reads_intensity()
+    }
+
     /// The sha256 of the point encoder: cached map embeddings are valid only for this value.
     pub fn point_encoder_sha256(&self) -> &str {
         &self.graphs["point_encoder"].sha256
@@ -381,7 +427,7 @@ impl Manifest {
         let a = self.num_actions() as i64;
         match graph {
             "point_encoder" => GraphContract {
-                inputs: vec![("points", vec![Fixed(1), Any, Fixed(3)])],
+                inputs: vec![("points", vec![Fixed(1), Any, Fixed(self.point_channels() as i64)])],
                 outputs: vec![("point_features", vec![Fixed(1), Any, Fixed(d)])],
             },
             "image_encoder" => GraphContract {
@@ -576,6 +622,63 @@ mod tests {
         m.state_2d = State2dSpec { form: "correlation".into(), row_shifts: vec![-1, 0, 1], column_shifts: vec![2] };
         assert_eq!((m.state_2d.input_name(), m.state_2d_len()), ("correlation", 5 * 40 * 128));
         assert_eq!(m.contract("agent").inputs[0], ("correlation", vec![Dim::Any, Dim::Fixed(5), Dim::Fixed(40), Dim::Fixed(128)]));
+    }
+
+    fn intensity_fixture_dir() -> PathBuf {
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/tiny-model-intensity")
+    }
+
+    /// `points.channels`: absent and ["x", "y", "z"] read 3 columns, ["x", "y", "z",
+    /// "intensity_rank"] 4 (the point encoder's declared input must say so); anything else, or
+    /// a declared input that disagrees, stops the load with a message naming it.
+    #[test]
+    fn point_channels_are_three_or_four_with_the_intensity_rank() {
+        let m = Manifest::load(&fixture_dir()).unwrap();
+        assert!(m.points.channels.is_none());
+        assert_eq!((m.point_channels(), m.reads_intensity()), (3, false));
+        assert_eq!(m.contract("point_encoder").inputs[0].1, vec![Dim::Fixed(1), Dim::Any, Dim::Fixed(3)]);
+        assert!(serde_json::to_value(&m).unwrap()["points"].get("channels").is_none(), "absent stays absent");
+
+        let m = Manifest::load(&intensity_fixture_dir()).unwrap();
+        assert_eq!(m.points.channels.as_deref(), Some(&POINT_CHANNELS_INTENSITY.map(String::from)[..]));
+        assert_eq!((m.point_channels(), m.reads_intensity()), (4, true));
+        assert_eq!(m.contract("point_encoder").inputs[0].1, vec![Dim::Fixed(1), Dim::Any, Dim::Fixed(4)]);
+        assert_eq!(serde_json::to_value(&m).unwrap()["points"]["channels"], serde_json::json!(["x", "y", "z", "intensity_rank"]));
+
+        // Naming the three columns is the same as not naming them.
+        let dir = tempfile::tempdir().unwrap();
+        copy_fixture(dir.path());
+        edit_manifest(dir.path(), |v| v["points"]["channels"] = serde_json::json!(["x", "y", "z"]));
+        assert_eq!(Manifest::load(dir.path()).unwrap().point_channels(), 3);
+
+        let copy_intensity = |to: &Path| {
+            for entry in std::fs::read_dir(intensity_fixture_dir()).unwrap() {
+                let entry = entry.unwrap();
+                std::fs::copy(entry.path(), to.join(entry.file_name())).unwrap();
+            }
+        };
+        type Edit = Box<dyn FnOnce(&mut serde_json::Value)>;
+        let cases: Vec<(bool, Edit, &str)> = vec![
+            // A three-column set that says it reads intensity: its graph declares 3 columns.
+            (false, Box::new(|v| v["points"]["channels"] = serde_json::json!(["x", "y", "z", "intensity_rank"])), "is declared [1, ?, 3] but the contract needs [1, ?, 4]"),
+            // A four-column graph in a set without `channels`, or with three.
+            (true, Box::new(|v| { v["points"].as_object_mut().unwrap().remove("channels"); }), "is declared [1, ?, 4] but the contract needs [1, ?, 3]"),
+            (true, Box::new(|v| v["points"]["channels"] = serde_json::json!(["x", "y", "z"])), "contract needs [1, ?, 3]"),
+            // Unknown names, orders and counts.
+            (true, Box::new(|v| v["points"]["channels"] = serde_json::json!(["x", "y", "z", "reflectance"])), "points.channels must be"),
+            (true, Box::new(|v| v["points"]["channels"] = serde_json::json!(["x", "y", "z", "intensity"])), "got [\"x\", \"y\", \"z\", \"intensity\"]"),
+            (true, Box::new(|v| v["points"]["channels"] = serde_json::json!(["intensity_rank", "x", "y", "z"])), "points.channels must be"),
+            (false, Box::new(|v| v["points"]["channels"] = serde_json::json!(["x", "y"])), "points.channels must be"),
+            (false, Box::new(|v| v["points"]["channels"] = serde_json::json!([])), "points.channels must be"),
+            (false, Box::new(|v| v["points"]["channels"] = serde_json::json!(4)), "malformed"),
+        ];
+        for (four, edit, needle) in cases {
+            let dir = tempfile::tempdir().unwrap();
+            if four { copy_intensity(dir.path()) } else { copy_fixture(dir.path()) }
+            edit_manifest(dir.path(), edit);
+            let err = Manifest::load(dir.path()).unwrap_err().to_string();
+            assert!(err.contains(needle), "{err} should mention {needle}");
+        }
     }
 
     #[test]

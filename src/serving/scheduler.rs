@@ -416,7 +416,7 @@ mod tests {
 
     fn map(manifest: &Arc<Manifest>) -> Arc<PreparedMap> {
         let cloud: Vec<[f32; 3]> = (0..5000).map(|i| [(i % 100) as f32 * 0.3 - 15.0, (i / 100) as f32 * 0.4 - 10.0, ((i * 7) % 13) as f32 * 0.2 - 1.7]).collect();
-        Arc::new(prepare_map(&mut FakeBackend::new(manifest.clone()), &cloud).unwrap())
+        Arc::new(prepare_map(&mut FakeBackend::new(manifest.clone()), crate::model::Points::xyz(&cloud)).unwrap())
     }
 
     fn start(manifest: &Arc<Manifest>, map: &Arc<PreparedMap>, i: usize, poisoned: bool) -> Start {

@@ -7,6 +7,12 @@ the default model (`cmr.export.export_models`); only the networks are tiny. Thei
 meaningless but deterministic.
 
     cd training && ../.venv/bin/python -m cmr.fixture_models ../tests/fixtures/tiny-model
+
+`--intensity` writes the variant whose point encoder reads a fourth column, each point's
+intensity rank (`data.intensity_rank`; manifest `points.channels`), and whose features depend on
+it, for the Rust tests of intensity sets:
+
+    cd training && ../.venv/bin/python -m cmr.fixture_models --intensity ../tests/fixtures/tiny-model-intensity
 """
 
 from __future__ import annotations
@@ -22,12 +28,19 @@ from .models import FEATURE_DIM, NUM_DOFS, NUM_STEPS, STRIDE, l2_normalise
 
 
 class TinyPointEncoder(nn.Module):
-    def __init__(self):
+    """[1, N, 3] x, y, z, or with `in_channels` = 4 [1, N, 4] with the intensity rank, whose
+    features then move with the rank as much as with a few metres of position."""
+
+    def __init__(self, in_channels: int = 3):
         super().__init__()
-        self.mlp = nn.Sequential(nn.Linear(3, 32), nn.ReLU(), nn.Linear(32, FEATURE_DIM))
+        self.in_channels = in_channels
+        self.mlp = nn.Sequential(nn.Linear(in_channels, 32), nn.ReLU(), nn.Linear(32, FEATURE_DIM))
 
     def forward(self, points):
-        return l2_normalise(self.mlp(points - points.mean(dim=1, keepdim=True)), -1)
+        if self.in_channels == 3:
+            return l2_normalise(self.mlp(points - points.mean(dim=1, keepdim=True)), -1)
+        xyz, rank = points[..., :3], points[..., 3:]
+        return l2_normalise(self.mlp(torch.cat([xyz - xyz.mean(dim=1, keepdim=True), (rank - 0.5) * 8.0], -1)), -1)
 
 
 class TinyImageEncoder(nn.Module):
@@ -62,9 +75,9 @@ class TinyAgent(nn.Module):
         return self.policy(h).reshape(-1, NUM_DOFS, NUM_STEPS), self.value(h)
 
 
-def main(out_dir: str) -> None:
+def main(out_dir: str, intensity: bool = False) -> None:
     torch.manual_seed(0)
-    models = {"point_encoder": TinyPointEncoder(), "image_encoder": TinyImageEncoder(),
+    models = {"point_encoder": TinyPointEncoder(4 if intensity else 3), "image_encoder": TinyImageEncoder(),
               "frustum_head": TinyFrustumHead(), "agent": TinyAgent()}
     provenance = dict(data="none: random weights, test fixture only", seeds=dict(torch=0),
                       git_commit="n/a", created="python -m cmr.fixture_models")
@@ -73,4 +86,8 @@ def main(out_dir: str) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else str(Path(__file__).resolve().parents[2] / "tests" / "fixtures" / "tiny-model"))
+    args = sys.argv[1:]
+    intensity = "--intensity" in args
+    args = [a for a in args if a != "--intensity"]
+    default = "tiny-model-intensity" if intensity else "tiny-model"
+    main(args[0] if args else str(Path(__file__).resolve().parents[2] / "tests" / "fixtures" / default), intensity)

@@ -143,6 +143,29 @@ def test_virtual_scan_matches_the_server():
 
 
 # ---------------------------------------------------------------------------------------------
+# The intensity rank an intensity point encoder reads (Rust: maps::intensity_rank).
+
+@pytest.mark.parametrize("case", FIXTURE["intensity_rank"], ids=lambda c: c["name"])
+def test_intensity_rank_matches_the_server(case):
+    """The same float32 ranks to the bit: ties share their mid-rank, 0 and -0 tie, a constant
+    reads 0.5 everywhere, an empty cloud gives nothing."""
+    from cmr.data import intensity_rank
+
+    ours = intensity_rank(np.array(case["values"], dtype=np.float32))
+    assert ours.dtype == np.float32 and ours.shape == (len(case["values"]),)
+    assert ours.tolist() == np.array(case["ranks"], dtype=np.float32).tolist()
+    if case["name"] == "constant":
+        assert set(ours.tolist()) == {0.5}
+
+
+def test_the_intensity_rank_fixture_has_ties():
+    names = {c["name"]: c for c in FIXTURE["intensity_rank"]}
+    assert set(names) >= {"mixed", "constant", "empty"}
+    mixed = names["mixed"]["values"]
+    assert len(mixed) >= 30 and len(set(mixed)) < len(mixed) - 10
+
+
+# ---------------------------------------------------------------------------------------------
 # The rotation check every reader of poses and calibration applies (Rust: geometry::check_rotation).
 
 def test_rotation_tolerance_is_the_same():

@@ -181,3 +181,20 @@ def test_pooled_points_is_the_pointnet_max(exported):
         want = agent.pointnet(state_3d).amax(dim=1)
         got = agent.pooled_points(state_3d)
     assert torch.allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_the_tiny_intensity_fixture_reads_the_rank(tmp_path):
+    """`python -m cmr.fixture_models --intensity`: the manifest names the four columns, and the
+    point encoder's features move with the fourth (what the Rust tests of intensity sets need)."""
+    from cmr.fixture_models import main
+
+    main(str(tmp_path), intensity=True)
+    doc = json.loads((tmp_path / "manifest.json").read_text())
+    assert doc["points"]["channels"] == ["x", "y", "z", "intensity_rank"]
+    assert doc["graphs"]["point_encoder"]["inputs"] == {"points": [1, "N", 4]}
+    session = ort.InferenceSession(str(tmp_path / "point_encoder.onnx"), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(1, 256, 3)).astype(np.float32) * 10
+    rank = rng.random((1, 256, 1)).astype(np.float32)
+    run = lambda r: session.run(None, {"points": np.concatenate([xyz, r], -1)})[0]
+    assert np.abs(run(rank) - run(np.full_like(rank, 0.5))).max() > 0.05

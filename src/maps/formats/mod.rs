@@ -134,6 +134,10 @@ impl PointCloud {
     pub fn is_empty(&self) -> bool {
         self.xyz.is_empty()
     }
+    /// The points with their intensity, as the point encoder takes them.
+    pub fn points(&self) -> crate::model::Points<'_> {
+        crate::model::Points::new(&self.xyz, self.intensity.as_deref())
+    }
 }
 
 /// A parsed cloud and what was left out of it. Coordinates are read as float64 and stored as
