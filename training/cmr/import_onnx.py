@@ -189,7 +189,7 @@ def import_models(model_dir: Path) -> tuple[dict[str, torch.nn.Module], dict]:
     graphs = {name: dequantized(onnx.load(str(model_dir / spec["file"]))) for name, spec in doc["graphs"].items()}
     archs = [dict(norm=norm, image_edges=edges, image_backbone="scratch") for norm in NORMS for edges in (False, True)]
     archs += [dict(norm=norm, image_edges=False, image_backbone=b) for norm in NORMS for b in IMAGE_BACKBONES if b != "scratch"]
-    archs += [dict(arch, point_encoder="pillars_fine") for arch in archs]
+    archs += [dict(arch, point_encoder=p) for arch in archs for p in ("pillars_fine", "pillars_intensity")]
     for arch in archs:
         models = build_all(**arch)
         tables = _tables_if_matching(models, graphs, correlation)

@@ -13,9 +13,9 @@ from cmr.import_onnx import import_models
 from cmr.models import build_all
 
 
-def randomised(norm: str, image_backbone: str = "scratch") -> dict:
+def randomised(norm: str, image_backbone: str = "scratch", point_encoder: str = "pillars") -> dict:
     torch.manual_seed(1)
-    models = build_all(norm=norm, image_backbone=image_backbone)
+    models = build_all(norm=norm, image_backbone=image_backbone, point_encoder=point_encoder)
     with torch.no_grad():
         for m in models.values():
             for mod in m.modules():
@@ -85,3 +85,16 @@ def test_the_shipped_model_fine_tunes_on_a_drive(tmp_path, tiny_dataset):
         assert torch.equal(v, state["models"]["image_encoder"][k]), k
     moved = [k for k, v in tuned["agent"].state_dict().items() if not torch.equal(v, state["models"]["agent"][k])]
     assert moved
+
+
+def test_an_intensity_point_encoder_comes_back_as_one(tmp_path):
+    original = randomised("group", "efficientnet_lite0", "pillars_intensity")
+    with torch.no_grad():
+        original["point_encoder"].local[0][0].weight[:, -1].normal_(0, 0.5)  # the intensity column in use
+    export_models(original, tmp_path, dict(data="test", seeds={}), action_frame="map_z")
+    imported, meta = import_models(tmp_path)
+    assert meta["config"]["point_encoder"] == "pillars_intensity" and imported["point_encoder"].in_channels == 4
+    (pts,) = example_inputs("point_encoder", seed=3, point_channels=4)
+    with torch.no_grad():
+        want, got = original["point_encoder"].eval()(pts), imported["point_encoder"].eval()(pts)
+    assert float((want - got).abs().max()) < 1e-4
