@@ -61,7 +61,7 @@ def _original(image_path: Path, scale: float = data.NOMINAL_SCALE) -> tuple[np.n
 def _decoded_like_the_server(image_path: Path, scan_path: Path, scale: float):
     """`data._decoded` with the server's resize in place of PIL's."""
     rgb, size = _original(image_path, scale)
-    return server_resize(rgb, *size), data.read_scan(scan_path), (rgb.shape[1], rgb.shape[0])
+    return server_resize(rgb, *size), data.read_scan(scan_path, intensity=True), (rgb.shape[1], rgb.shape[0])
 
 
 def main(argv: list[str]) -> None:
