@@ -213,7 +213,8 @@ impl Maps {
     }
 
     fn load_or_compute(&self, id: &str) -> Result<Prepared, MapError> {
-        let (cloud, source_sha, _) = self.store.read_cloud(id)?;
+        let (mut cloud, source_sha, _) = self.store.read_cloud(id)?;
+        self.drop_unread_intensity(&mut cloud);
         self.prepared_from.lock().expect("prepared_from").insert(id.to_string(), source_sha.clone());
         if self.is_tiled(cloud.len()) {
             if let Some(tiled) = self.store.load_tiles(id, &self.model_sha, &source_sha, self.config.tiles, self.needs_tile_embeddings(), self.reads_intensity) {
@@ -274,6 +275,14 @@ impl Maps {
         Ok(PreparedMap { features, ..crop.clone() })
     }
 
+    /// Frees a cloud's intensity unless the point encoder reads it, before an encode that holds
+    /// the whole region (a tiled one: tens of millions of points).
+    fn drop_unread_intensity(&self, cloud: &mut formats::PointCloud) {
+        if !self.reads_intensity {
+            cloud.intensity = None;
+        }
+    }
+
     fn encode(&self, cloud: Points<'_>) -> Result<PreparedMap, MapError> {
         let mut encoder = self.encoder.lock().map_err(|_| MapError::Inference("encoder poisoned".into()))?;
         prepare_map(encoder.as_mut(), cloud).map_err(|e| MapError::Inference(format!("{e:#}")))
@@ -305,10 +314,8 @@ impl Maps {
         let t = Instant::now();
         // A tiled region's embeddings are streamed to their file as the tiles are encoded and
         // committed with the cloud; a whole region's are written after the answer.
+        self.drop_unread_intensity(&mut cloud);
         let (whole, tiles) = if self.is_tiled(cloud.len()) {
-            if !self.reads_intensity {
-                cloud.intensity = None;
-            }
             let mut emb = self.store.stage_embeddings(id)?;
             self.encode_tiles(cloud.points(), staged.sha256(), &mut emb)?;
             (None, Some(emb))
