@@ -10,6 +10,7 @@ import torch
 
 from . import geometry as g
 from .data import Sample, point_input
+from .models import point_channels_of
 from .state import NUM_STATE_POINTS, alignment, build_state
 
 REWARD_POINTS = 1024  # true-frustum points used for the point-to-point distance
@@ -93,7 +94,7 @@ def embed(models: dict, samples: list[Sample], device: torch.device, action_fram
     points = torch.as_tensor(np.stack([s.points for s in samples]), device=device)
     images = torch.as_tensor(np.stack([s.image for s in samples]), device=device)
     encoder = models["point_encoder"]
-    pf = encoder(torch.as_tensor(point_input(samples, getattr(encoder, "in_channels", 3)), device=device))
+    pf = encoder(torch.as_tensor(point_input(samples, point_channels_of(encoder)), device=device))
     imf = models["image_encoder"](images)
     prob = torch.sigmoid(models["frustum_head"](pf, imf))[:, :NUM_STATE_POINTS]
     reward_points = []

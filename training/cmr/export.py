@@ -35,7 +35,8 @@ from .data import FOCAL_RANGE_PX
 from .files import atomic_write_bytes, git_commit  # noqa: F401 (re-exported: quantize, model_card, evaluate)
 from .flops import count as count_flops
 from .models import (COLUMN_SHIFTS, FEATURE_DIM, GRID_HEIGHT, GRID_WIDTH, IMAGE_HEIGHT, IMAGE_WIDTH, NUM_DOFS,
-                     NUM_STEPS, ROW_SHIFTS, STRIDE, Agent, arch_of, build_all, parameter_counts)
+                     NUM_STEPS, ROW_SHIFTS, STRIDE, Agent, arch_of, build_all, parameter_counts,
+                     point_channels_of)
 
 MANIFEST_FORMAT = "cmr-agent-manifest/1"
 OPSET = 18
@@ -96,11 +97,6 @@ def is_correlation_agent(module: torch.nn.Module) -> bool:
 POINT_CHANNELS = {3: ["x", "y", "z"], 4: ["x", "y", "z", "intensity_rank"]}
 
 
-def point_channels(module: torch.nn.Module) -> int:
-    """How many columns a point encoder reads (3 for every encoder without intensity)."""
-    return int(getattr(module, "in_channels", 3))
-
-
 def example_inputs(name: str, num_points: int = 4096, batch: int = 1, seed: int = 0,
                    point_channels: int = 3) -> tuple[torch.Tensor, ...]:
     """Random inputs with the contract's shapes (the points look like a street-sized cloud; with
@@ -129,7 +125,7 @@ def example_inputs(name: str, num_points: int = 4096, batch: int = 1, seed: int 
 def graph_inputs(name: str, module: torch.nn.Module, correlation: bool, batch: int = 1, seed: int = 0) -> tuple[torch.Tensor, ...]:
     """`example_inputs` as graph `name`'s ONNX export takes them: for an agent exported in the
     correlation form, `Agent.correlate` of the random state in place of the state."""
-    inputs = example_inputs(name, batch=batch, seed=seed, point_channels=point_channels(module))
+    inputs = example_inputs(name, batch=batch, seed=seed, point_channels=point_channels_of(module))
     if name == "agent" and correlation and is_correlation_agent(module):
         with torch.no_grad():
             inputs = (module.eval().correlate(inputs[0]), inputs[1])
@@ -140,7 +136,7 @@ def onnx_bytes(name: str, module: torch.nn.Module, correlation: bool = True) -> 
     """One graph as ONNX bytes; `correlation`: export an agent that has `correlate` in the
     correlation form (else the features form)."""
     inputs, outputs, dynamic = GRAPH_IO[name]
-    example = example_inputs(name, point_channels=point_channels(module))
+    example = example_inputs(name, point_channels=point_channels_of(module))
     if name == "agent":
         if correlation and is_correlation_agent(module):
             with torch.no_grad():
@@ -270,7 +266,7 @@ def export_models(models: dict[str, torch.nn.Module], out_dir: Path, provenance:
     provenance.setdefault("created", _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"))
     doc = manifest(files, parameter_counts(models), provenance, validation or {}, action_frame, flops,
                    correlation=correlation,
-                   point_channels=point_channels(models["point_encoder"]) if "point_encoder" in models else 3)
+                   point_channels=point_channels_of(models["point_encoder"]) if "point_encoder" in models else 3)
     atomic_write_bytes(out_dir / "manifest.json", (json.dumps(doc, indent=2) + "\n").encode())
     return doc
 

@@ -582,6 +582,12 @@ def build_all(norm: str = "batch", image_edges: bool = False, image_backbone: st
                 frustum_head=FrustumHead(), agent=Agent())
 
 
+def point_channels_of(encoder: nn.Module) -> int:
+    """How many columns a point encoder reads: its `in_channels` (4 with the intensity rank), 3
+    for encoders without the attribute (every one before intensity, the test fixtures')."""
+    return int(getattr(encoder, "in_channels", 3))
+
+
 def arch_of(config: dict) -> dict:
     """`build_all`'s arguments from a checkpoint's config (older checkpoints: the v3 architecture)."""
     return dict(norm=config.get("norm", "batch"), image_edges=bool(config.get("image_edges", False)),
