@@ -56,6 +56,9 @@
 #   RUN=~/.cache/cmr-agent/runs/v34 scripts/train-v7.sh start-v34
 #                                # run v34 (issue 29): v11 whose point encoder also reads each
 #                                # point's intensity rank, stage 1 only (v11's agent kept)
+#   RUN=~/.cache/cmr-agent/runs/v35 scripts/train-v7.sh start-v35
+#                                # run v35 (issue 29): v34's recipe without intensity on every
+#                                # real-train frame (the split's held-out drives too)
 #   RUN=~/.cache/cmr-agent/runs/v26 scripts/train-v7.sh start-v26
 #                                # run v26: v11's encoders on with near hard negatives in the
 #                                # ranking term (4,000 steps), then 1,000 agent iterations
@@ -485,6 +488,18 @@ start_v34() {
     rank_hard_pool=32 rank_hard=2 agent_iters=0 "$@"
 }
 
+# Run v35: v34's recipe without the intensity input (v13's stage-1 settings, 3,000 steps from the
+# shipped v11, its agent kept) on every real frame of ../shared/real-train: the held-out drives of
+# the split (real-split/val, five more drives of five rigs) join the training ones, both three times
+# in the draw. The final fit once a recipe is settled; real-dev and synthetic frames judge it.
+start_v35() {
+  local r=$DATA/real-split/train v=$DATA/real-split/val
+  launch "$(ls -d "$DATA"/v7/train/b* | paste -sd, -),$r,$r,$r,$v,$v,$v" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" \
+    image_backbone=efficientnet_lite0 backbone_lr_scale=0.1 init_from="$(v11_shipped)" \
+    embed_lr=3e-4 embed_warmup=100 embed_lr_min=1e-5 embed_steps=3000 keep_embed_every=500 embed_eval_every=1000 \
+    rank_hard_pool=32 rank_hard=2 agent_iters=0 "$@"
+}
+
 save() {
   mkdir -p "$(dirname "$SAVED")"
   cp "$RUN/last.pt" "$SAVED.tmp" && mv "$SAVED.tmp" "$SAVED"
@@ -557,6 +572,13 @@ judge() {
       fresh2-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4305-perturbations.json; draw="--cases-per-frame 1 --seed 4305" ;;
       fresh2-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4306-perturbations.json; draw="--cases-per-frame 4 --seed 4306" ;;
       fresh2-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4307-perturbations.json; draw="--cases-per-frame 4 --seed 4307" ;;
+      # drawn for run v35 after its candidate existed (training/README.md, "Run `v35`"); v35 trains on
+      # the held-out drives, so only real-dev and synthetic files judge it
+      fresh3-dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4403-perturbations.json; draw="--cases-per-frame 16 --seed 4403" ;;
+      fresh3-dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4404-perturbations.json; draw="--cases-per-frame 16 --seed 4404 --priors fleet" ;;
+      fresh3-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4405-perturbations.json; draw="--cases-per-frame 1 --seed 4405" ;;
+      fresh3-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4406-perturbations.json; draw="--cases-per-frame 4 --seed 4406" ;;
+      fresh3-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4407-perturbations.json; draw="--cases-per-frame 4 --seed 4407" ;;
       synth-test) data=$DATA/synth-test; cases=docs/eval/perturbations.json ;;
       v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-perturbations.json ;;
       own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-perturbations.json ;;
@@ -613,6 +635,7 @@ case "${1:-}" in
   start-v30) start_v30 ;;
   start-v32) start_v32 ;;
   start-v34) start_v34 ;;
+  start-v35) start_v35 ;;
   judge) shift; judge "$@" ;;
   *) awk 'NR > 1 && /^#/ { print; next } NR > 1 { exit }' "$0"; exit 2 ;;
 esac
