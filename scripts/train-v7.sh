@@ -540,6 +540,19 @@ judge() {
       nice -n "$NICE" "$PY" -m cmr.quantize --models "$out/float" --calibration "$DATA/v7/train/b0" "$DATA/real-split/train" \
         ${QUANTIZE_GRAPHS:+--graphs "$QUANTIZE_GRAPHS"} --out "$out/models") > "$out/export.log" 2>&1
   fi
+  # CALIBRATOR_FROM=DIR: a candidate without a calibrator of its own gets DIR's (e.g. models/, when
+  # no real frame it has not trained on is left to fit one; run v35), so its cases carry a verdict
+  if [ -n "${CALIBRATOR_FROM:-}" ] && [ ! -L "$out/models" ]; then
+    local from; from=$(readlink -f "$CALIBRATOR_FROM")
+    (cd "$ROOT/training" && "$PY" -c "import json, sys; from pathlib import Path; from cmr.files import atomic_write_bytes
+src, dst = (Path(a) / 'manifest.json' for a in sys.argv[1:])
+doc = json.loads(dst.read_text())
+if 'calibrator' not in doc:
+    cal = json.loads(src.read_text())['calibrator']
+    cal['provenance'] = dict(cal['provenance'], carried_from=str(src.resolve()))
+    doc['calibrator'] = cal
+    atomic_write_bytes(dst, (json.dumps(doc, indent=2) + '\\n').encode())" "$from" "$out/models")
+  fi
   local set data cases draw
   for set in "${sets[@]}"; do
     draw=""  # how a set's case file is drawn on its first use (fresh2-*); an existing file is read
