@@ -101,16 +101,6 @@ impl PointSpec {
             )),
         }
     }
-
-    /// Columns of one point of the point encoder's input: 3, or 4 with the intensity rank.
-    pub fn input_channels(&self) -> usize {
-        self.channels.as_ref().map_or(3, Vec::len)
-    }
-
-    /// Whether the point encoder reads each point's intensity (as its rank, a 4th column).
-    pub fn reads_intensity(&self) -> bool {
-        self.input_channels() == 4
-    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -403,13 +393,13 @@ impl Manifest {
     /// Columns of one point of the point encoder's input (`points.channels`): 3, or 4 with the
     /// intensity rank.
     pub fn point_channels(&self) -> usize {
-        self.points.input_channels()
+        self.points.channels.as_ref().map_or(POINT_CHANNELS_XYZ.len(), Vec::len)
     }
 
     /// Whether the point encoder reads each point's intensity (`points.channels` names
     /// `intensity_rank`).
     pub fn reads_intensity(&self) -> bool {
-        self.points.reads_intensity()
+        self.point_channels() == POINT_CHANNELS_INTENSITY.len()
     }
 
     /// The sha256 of the point encoder: cached map embeddings are valid only for this value.
