@@ -481,11 +481,11 @@ start_v32() {
 # the N input points (`data.intensity_rank`; "pillars_intensity", the new column's weights starting
 # at zero, so step 0 computes exactly v11), 3,000 stage-1 steps at v13's settings with a tenth of the
 # samples given no intensity (rank 0.5), v11's agent kept. A copy of every 500th step in $RUN/snap/.
+V34_STAGE1=(image_backbone=efficientnet_lite0 backbone_lr_scale=0.1 embed_lr=3e-4 embed_warmup=100 embed_lr_min=1e-5
+  embed_steps=3000 keep_embed_every=500 embed_eval_every=1000 rank_hard_pool=32 rank_hard=2 agent_iters=0)
 start_v34() {
-  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" image_backbone=efficientnet_lite0 \
-    point_encoder=pillars_intensity intensity_drop_p=0.1 backbone_lr_scale=0.1 init_from="$(v11_shipped)" \
-    embed_lr=3e-4 embed_warmup=100 embed_lr_min=1e-5 embed_steps=3000 keep_embed_every=500 embed_eval_every=1000 \
-    rank_hard_pool=32 rank_hard=2 agent_iters=0 "$@"
+  launch "$(train_roots)" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" "${V34_STAGE1[@]}" point_encoder=pillars_intensity \
+    intensity_drop_p=0.1 init_from="$(v11_shipped)" "$@"
 }
 
 # Run v35: v34's recipe without the intensity input (v13's stage-1 settings, 3,000 steps from the
@@ -495,9 +495,7 @@ start_v34() {
 start_v35() {
   local r=$DATA/real-split/train v=$DATA/real-split/val
   launch "$(ls -d "$DATA"/v7/train/b* | paste -sd, -),$r,$r,$r,$v,$v,$v" "${V7_STAGE1[@]}" "${V7_STAGE2[@]}" \
-    image_backbone=efficientnet_lite0 backbone_lr_scale=0.1 init_from="$(v11_shipped)" \
-    embed_lr=3e-4 embed_warmup=100 embed_lr_min=1e-5 embed_steps=3000 keep_embed_every=500 embed_eval_every=1000 \
-    rank_hard_pool=32 rank_hard=2 agent_iters=0 "$@"
+    "${V34_STAGE1[@]}" init_from="$(v11_shipped)" "$@"
 }
 
 save() {
