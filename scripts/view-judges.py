@@ -5,8 +5,8 @@ Test-time augmentation for the search's choice, replayed from a recording: for e
 `cmr-agent eval --record-hypotheses` cases.json, the candidates are the served answer with the
 hypotheses' final poses (`finals`), or those with every pose the hypotheses visited (`visited`),
 and each rule answers with the candidate whose score is highest:
-- `served view`: the learned alignment score (`cmr.state.frustum_cells`: the mean over the map's
-  points in view of dot(point feature, image cell feature)) with the image as the server prepares
+- `served view`: the learned alignment score (`cmr.state.alignment`, the server's twin: the mean
+  over the map's points in view of dot(point feature, image cell feature)) with the image as the server prepares
   it (resize to the model's focal length, centre crop 512 x 160);
 - `served + views`: the mean of that score and the same score in each extra view, a zoomed crop of
   the same image (resized `zoom` times more, then cropped at the left edge, centre or right edge)
@@ -39,7 +39,7 @@ from cmr import geometry as g  # noqa: E402
 from cmr.data import (FOCAL_RANGE_PX, IMAGE_MEAN, IMAGE_STD, NOMINAL_SCALE, OUT_H, OUT_W, _MIRROR_CAMERA,  # noqa: E402
                       _MIRROR_MAP, _decoded, find_sequences, list_frames, make_sample, mirror_sample)
 from cmr.episodes import embed  # noqa: E402
-from cmr.state import frustum_cells, to_camera  # noqa: E402
+from cmr.state import alignment  # noqa: E402
 
 
 def parse_views(spec: str) -> list[tuple[float, str]]:
@@ -71,16 +71,12 @@ def zoomed_views(frame, views) -> list[tuple[np.ndarray, np.ndarray]]:
 
 
 @torch.no_grad()
-def alignment(point_features, points, image_features, k, poses) -> np.ndarray:
-    """The alignment score [P] at each camera_from_map of `poses` for one image's features."""
-    p = torch.as_tensor(np.stack(poses), dtype=torch.float32)
-    cam = to_camera(p, points.expand(len(poses), -1, -1))
-    cell, inside = frustum_cells(torch.as_tensor(k, dtype=torch.float32)[None].expand(len(poses), -1), cam)
-    cells = image_features.flatten(2).transpose(1, 2)[0].float()
-    cells = torch.cat([cells, torch.zeros(1, cells.shape[1])])
-    dots = (point_features[None] * cells[cell]).sum(-1)
-    w = inside.float()
-    return ((dots * w).sum(1) / w.sum(1).clamp(min=1)).numpy()
+def scores(point_features, points, image_features, k, poses) -> np.ndarray:
+    """`cmr.state.alignment` [P] at each camera_from_map of `poses`, one image's features for all."""
+    p = len(poses)
+    return alignment(torch.as_tensor(np.stack(poses), dtype=torch.float32), points.expand(p, -1, -1),
+                     torch.as_tensor(k, dtype=torch.float32)[None].expand(p, -1),
+                     point_features[None].expand(p, -1, -1), image_features.expand(p, -1, -1, -1)).numpy()
 
 
 def main():
@@ -127,8 +123,8 @@ def main():
         outcome = {"served answer": g.registered(answer, truth)}
         for name, cand in (("finals", finals), ("visited", visited)):
             reg = [bool(g.registered(p, truth)) for p in cand]
-            served = alignment(pf, points, eps.image_features, sample.intrinsics, cand)
-            extra = [alignment(pf, points, imf, k, cand) for imf, k in view_features[key]]
+            served = scores(pf, points, eps.image_features, sample.intrinsics, cand)
+            extra = [scores(pf, points, imf, k, cand) for imf, k in view_features[key]]
             outcome[f"{name}: oracle"] = any(reg)
             outcome[f"{name}: served view"] = reg[int(np.argmax(served))]
             if extra:
@@ -136,7 +132,7 @@ def main():
                 outcome[f"{name}: views only"] = reg[int(np.argmax(np.mean(extra, axis=0)))]
             if args.mirror:
                 conj = [_MIRROR_CAMERA @ p @ _MIRROR_MAP for p in cand]
-                mir = alignment(meps.point_features[0].float(), meps.points.float(), meps.image_features,
+                mir = scores(meps.point_features[0].float(), meps.points.float(), meps.image_features,
                                 mirrored.intrinsics, conj)
                 outcome[f"{name}: served + mirror"] = reg[int(np.argmax(served + mir))]
         for group in ("all", rig_of.get(q["sequence"])):
