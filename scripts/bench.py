@@ -23,7 +23,7 @@ the phases:
      admitted (200) requests/s against its capacity measured in the same run at 4 clients.
 
     python3 scripts/bench.py [--binary PATH] [--models DIR] [--serve-args "..."] [--seconds 30] [--storm] [--out FILE]
-    python3 scripts/bench.py --baseline OLD_BINARY [--baseline-models DIR] [--rounds 2] ...   # A/B, ratios
+    python3 scripts/bench.py --baseline OLD_BINARY [--baseline-models DIR] [--baseline-serve-args "..."] [--rounds 2] ...   # A/B, ratios
 
 On a machine whose speed drifts (this one's did by a third within an hour), compare builds with
 `--baseline`: the two servers run alternately and the ratios of each figure are reported.
@@ -207,15 +207,17 @@ def measure_request(server, name, map_id, request, flops, manifest, args):
     return record
 
 
-def measure(binary, models, args):
-    """One run of every phase against `binary` serving `models`: prints the figures, returns the record."""
-    record = {"binary": binary, "serve_args": args.serve_args, "request": args.request,
+def measure(binary, models, args, serve_args=None):
+    """One run of every phase against `binary` serving `models` with `serve_args` (default
+    `--serve-args`): prints the figures, returns the record."""
+    serve_args = args.serve_args if serve_args is None else serve_args
+    record = {"binary": binary, "serve_args": serve_args, "request": args.request,
               "when": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "load_average_before": os.getloadavg()}
     manifest = json.load(open(os.path.join(models, "manifest.json")))
     record["models"] = models
     flops = {k: v.get("flops") for k, v in manifest["graphs"].items()}
 
-    server = Server(binary, args.serve_args.split() + ["--models", models])
+    server = Server(binary, serve_args.split() + ["--models", models])
     workdir = tempfile.mkdtemp(prefix="cmr-bench-real-size-")
     try:
         record["demo"] = measure_request(server, "demo", "demo", args.request, flops, manifest, args)
@@ -246,7 +248,7 @@ def measure(binary, models, args):
         shutil.rmtree(workdir, ignore_errors=True)
 
     if args.storm:
-        storm_server = Server(binary, args.serve_args.split() + ["--models", models, "--queue-capacity", "4"])
+        storm_server = Server(binary, serve_args.split() + ["--models", models, "--queue-capacity", "4"])
         try:
             capacity = load_phase(storm_server, args.request, 4, 20)
             storm = load_phase(storm_server, args.request, 48, 20)
@@ -275,6 +277,7 @@ def main():
     ap.add_argument("--storm", action="store_true", help="also measure admitted throughput under overload")
     ap.add_argument("--baseline", metavar="BINARY", help="also run this binary, alternating with --binary, and print ratios")
     ap.add_argument("--baseline-models", metavar="DIR", help="the baseline's model directory (default: --models)")
+    ap.add_argument("--baseline-serve-args", metavar="ARGS", help="the baseline server's extra flags (default: --serve-args)")
     ap.add_argument("--rounds", type=int, default=2, help="alternating rounds with --baseline")
     ap.add_argument("--real-size-sequence", default=os.path.join("..", "shared", "real-dev", "sequences", "01"),
                     help="KITTI-layout sequence whose frame 0 makes the real-size request (synthetic when missing)")
@@ -290,10 +293,12 @@ def main():
         # median over rounds of each figure's ratio (candidate / baseline).
         runs = {"baseline": [], "candidate": []}
         for r in range(args.rounds):
-            for name, binary, models in (("baseline", args.baseline, args.baseline_models or args.models),
-                                         ("candidate", args.binary, args.models)):
-                print(f"== round {r + 1}/{args.rounds}: {name} ({binary}, {models})")
-                runs[name].append(measure(binary, models, args))
+            baseline_serve_args = args.serve_args if args.baseline_serve_args is None else args.baseline_serve_args
+            for name, binary, models, serve_args in (
+                    ("baseline", args.baseline, args.baseline_models or args.models, baseline_serve_args),
+                    ("candidate", args.binary, args.models, args.serve_args)):
+                print(f"== round {r + 1}/{args.rounds}: {name} ({binary}, {models}, {serve_args!r})")
+                runs[name].append(measure(binary, models, args, serve_args))
         figures = {
             "c16 requests/s": lambda x: x["c16"]["ok_per_s"],
             "c16 CPU ms per request": lambda x: x["c16"]["cpu_ms_per_request"],

@@ -9,7 +9,7 @@ use cmr_agent::agent::{self, AxisStarts, SearchConfig};
 use cmr_agent::maps::{PreparedMap, prepare_map};
 use cmr_agent::geometry::actions::{apply_action, apply_motion};
 use cmr_agent::geometry::{ActionFrame, Intrinsics, Pose};
-use cmr_agent::model::{BackendOptions, ModelSet, Points};
+use cmr_agent::model::{Backend, BackendOptions, ModelSet, Points};
 use nalgebra::{Matrix3, Vector3};
 
 fn models() -> ModelSet {
@@ -79,7 +79,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 
     // Four starts: the first is the single trajectory above (same rows, batched with three more),
     // the others start from the prior turned about the pivot, and the answer is the best score.
-    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE };
+    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0 };
     let multi = agent::localize(&mut backend, &map, &tensor, crop_k, prior, four).unwrap();
     assert_eq!(multi.hypotheses.len(), 4);
     let first = &multi.hypotheses[0];
@@ -235,7 +235,7 @@ fn batched_workers_match_the_synchronous_loop() {
             // Searches of 1 to 3 starts (one narrowed): the 8-row batch holds some, the rest wait.
             let narrow_after = (i == 4).then_some(1);
             let merge_duplicates = i == 5;
-            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None, refine: i % 3 == 1, polish: i % 2 == 1, prior_margin: if i % 4 == 0 { 0.03 } else { 0.0 }, axis: if i == 3 { AxisStarts { each_way: 1, step_m: 1.25, margin: 0.005 } } else { AxisStarts::NONE } })
+            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None, refine: i % 3 == 1, polish: i % 2 == 1, prior_margin: if i % 4 == 0 { 0.03 } else { 0.0 }, axis: if i == 3 { AxisStarts { each_way: 1, step_m: 1.25, margin: 0.005 } } else { AxisStarts::NONE }, judge_zoom: 0.0 })
         })
         .collect();
     let expected: Vec<_> = cases
@@ -247,7 +247,7 @@ fn batched_workers_match_the_synchronous_loop() {
     let mut answers = Vec::new();
     for (tensor, crop_k, prior, search) in cases {
         let (reply, answer) = tokio::sync::oneshot::channel();
-        let start = agent::Start { maps: vec![map.clone()], image_tensor: tensor, intrinsics: crop_k, prior, search };
+        let start = agent::Start { maps: vec![map.clone()], image_tensor: tensor, intrinsics: crop_k, prior, search, views: Vec::new() };
         let job = Job { start, deadline: Instant::now() + Duration::from_secs(30), span: tracing::Span::none(), reply };
         let slot = scheduler.reserve().ok().expect("room");
         scheduler.submit(job, slot).ok().expect("queued");
@@ -338,4 +338,69 @@ fn serve_refuses_a_missing_runtime_or_an_unknown_manifest() {
     std::fs::write(dir.path().join("manifest.json"), manifest).unwrap();
     let err = run(dir.path(), &[]);
     assert!(err.contains("unknown format") && err.contains("cmr-agent-manifest/9"), "{err}");
+}
+
+/// The judge's views: the answer is the visited pose whose alignment score, averaged over the
+/// served crop and the three zoomed ones, is highest (recomputed here from the views' own image
+/// features), and the polish climbs that average.
+#[test]
+fn the_judges_views_choose_among_every_visited_pose() {
+    let set = models();
+    let mut backend = set.backend().unwrap();
+    let map: Arc<PreparedMap> = Arc::new(prepare_map(&mut backend, Points::xyz(&cloud())).unwrap());
+    let image = image::RgbImage::from_fn(1241, 376, |x, y| image::Rgb([(x % 251) as u8, (y % 253) as u8, ((x * y) % 13) as u8]));
+    let k = Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 };
+    let (tensor, crop_k) = agent::prepare_image(&image, &k, &set.manifest).unwrap();
+    // At zoom 1 the centre view is the served crop; at 0 there are none; below 1 is refused.
+    let same = agent::prepare_views(&image, &k, &set.manifest, 1.0).unwrap();
+    assert_eq!((same[1].tensor == tensor, same[1].intrinsics), (true, crop_k));
+    assert!(agent::prepare_views(&image, &k, &set.manifest, 0.0).unwrap().is_empty());
+    assert!(agent::prepare_views(&image, &k, &set.manifest, 0.5).is_err());
+    let views = agent::prepare_views(&image, &k, &set.manifest, 1.5).unwrap();
+    assert_eq!(views.len(), 3);
+    // The left crop sees the principal point further right, the right crop further left.
+    assert!((views[1].intrinsics.fx / crop_k.fx - 1.5).abs() < 0.01);
+    assert!(views[0].intrinsics.cx > views[1].intrinsics.cx + 100.0 && views[2].intrinsics.cx < views[1].intrinsics.cx - 100.0);
+
+    let prior = rig().compose(&Pose::ground_motion(0.5, 2.0, -1.0));
+    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: true, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 1.5 };
+    let start = |search: SearchConfig, views: Vec<agent::ViewInput>| agent::Start { maps: vec![map.clone()], image_tensor: tensor.clone(), intrinsics: crop_k, prior, search, views };
+    let judged = agent::localize_start(&mut backend, start(four, views.clone())).unwrap();
+    assert!(judged.timings.judge_ms > 0.0);
+
+    let layout = agent::StateLayout::from_manifest(&set.manifest);
+    let grids: Vec<(agent::ImageGrid, Intrinsics)> = views.iter().map(|v| (agent::ImageGrid::new(&layout, backend.encode_image(&v.tensor).unwrap()), v.intrinsics)).collect();
+    let mut scratch = agent::ScatterScratch::default();
+    let mut average = |pose: &Pose, served: f32| {
+        let sum: f64 = grids.iter().map(|(g, vk)| agent::state::alignment(&layout, &map.points, &map.features, g, vk, pose, &mut scratch) as f64).sum();
+        ((served as f64 + sum) / 4.0) as f32
+    };
+    let (answer, served) = judged.best().pose_after(judged.answer_steps);
+    assert_eq!(answer, judged.camera_from_map(), "unpolished");
+    let best = average(&answer, served);
+    let mut visited = 0;
+    for h in &judged.hypotheses {
+        for k in 0..=h.steps.len() {
+            let (pose, s) = h.pose_after(k);
+            visited += 1;
+            assert!(average(&pose, s) <= best, "a visited pose outscores the answer in the views");
+        }
+    }
+    assert!(visited > 4);
+
+    // Polished: the climb starts from the judge's answer, at its averaged score, and never
+    // descends.
+    let polished = agent::localize_start(&mut backend, start(SearchConfig { polish: true, ..four }, views.clone())).unwrap();
+    let p = polished.polish.expect("a multi-start search polishes");
+    assert!(p.alignment >= p.from_alignment);
+    if p.from == answer {
+        assert_eq!(p.from_alignment, best);
+    }
+    // A search that judges needs its views.
+    assert!(agent::localize_start(&mut backend, start(four, Vec::new())).is_err());
+    // Without a judge zoom the views are not read: the served search's answer.
+    let plain = SearchConfig { judge_zoom: 0.0, ..four };
+    let a = agent::localize_start(&mut backend, start(plain, views)).unwrap();
+    let b = agent::localize(&mut backend, &map, &tensor, crop_k, prior, plain).unwrap();
+    assert_eq!((a.camera_from_map(), a.timings.judge_ms), (b.camera_from_map(), 0.0));
 }

@@ -16,7 +16,8 @@ use crate::geometry::{ActionSet, Intrinsics, Pose};
 use crate::maps::PreparedMap;
 use crate::model::{Backend, Manifest};
 
-use super::episode::ImageEvidence;
+use super::episode::{ImageEvidence, ViewEvidence};
+use super::input::{JUDGE_ANCHORS, ViewInput};
 use super::search::Search;
 use super::state::{self, ScratchPool, StateLayout};
 use super::{Localization, SearchConfig, Timings, ms};
@@ -41,6 +42,9 @@ pub struct Start {
     pub image_tensor: Vec<f32>,
     /// The crop's intrinsics, from `prepare_image`.
     pub intrinsics: Intrinsics,
+    /// The judge's views, from `prepare_views` with `search.judge_zoom` (read when
+    /// `search.judges()`; may be empty otherwise).
+    pub views: Vec<ViewInput>,
     /// camera_from_map to start from.
     pub prior: Pose,
     pub search: SearchConfig,
@@ -261,7 +265,21 @@ fn begin(backend: &mut dyn Backend, start: Start, layout: &StateLayout) -> Resul
         return Err(StepError::NonFinite("the prior is not finite or beyond the coordinate bound".into()));
     }
     let t = Instant::now();
-    let image_features = backend.encode_image(&start.image_tensor).map_err(|e| StepError::Inference(format!("image encoder: {e:#}")))?;
+    let encode = |backend: &mut dyn Backend, tensor: &[f32]| backend.encode_image(tensor).map_err(|e| StepError::Inference(format!("image encoder: {e:#}")));
+    let image_features = encode(backend, &start.image_tensor)?;
+    let views: Vec<ViewEvidence> = if start.search.judges() {
+        if start.views.len() != JUDGE_ANCHORS.len() {
+            return Err(StepError::Inference(format!("the search judges with {} views, the request brought {}", JUDGE_ANCHORS.len(), start.views.len())));
+        }
+        let mut views = Vec::with_capacity(start.views.len());
+        for v in &start.views {
+            views.push(ViewEvidence { image_features: state::ImageGrid::new(layout, encode(backend, &v.tensor)?), intrinsics: v.intrinsics });
+        }
+        views
+    } else {
+        Vec::new()
+    };
+    let views: Arc<[ViewEvidence]> = views.into();
     let image_encoder_ms = ms(t);
     // The frustum head's answers are read for the state points only (the 3D state and the
     // confidence), so it runs on those: M of the N points, a twentieth of the work.
@@ -274,7 +292,7 @@ fn begin(backend: &mut dyn Backend, start: Start, layout: &StateLayout) -> Resul
     }
     let frustum_head_ms = ms(t);
     let image_features = Arc::new(state::ImageGrid::new(layout, image_features));
-    let evidence = frustum_probs.into_iter().map(|frustum_probs| ImageEvidence { image_features: image_features.clone(), frustum_probs, intrinsics: start.intrinsics }).collect();
+    let evidence = frustum_probs.into_iter().map(|frustum_probs| ImageEvidence { image_features: image_features.clone(), frustum_probs, intrinsics: start.intrinsics, views: views.clone() }).collect();
     let search = Search::new(evidence, start.maps, start.prior, start.search, manifest.action_frame());
     Ok((search, Timings { image_encoder_ms, frustum_head_ms, ..Default::default() }))
 }

@@ -19,8 +19,8 @@ use crate::maps::PreparedMap;
 use crate::model::{Backend, Signals, Verdict};
 
 pub use batch::{Batch, Start, StepError};
-pub use episode::{Confidence, Episode, ImageEvidence, Step};
-pub use input::prepare_image;
+pub use episode::{Confidence, Episode, ImageEvidence, Step, ViewEvidence};
+pub use input::{ViewInput, prepare_image, prepare_views};
 pub use search::{AnswerRules, AxisStarts, DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, outscores, start_yaw_offsets};
 pub use state::{Form2d, ImageGrid, ScatterScratch, ScratchPool, Shifts, StateLayout};
 
@@ -35,6 +35,9 @@ pub struct Timings {
     pub state_build_ms: f64,
     /// The part of `agent_steps_ms` spent on the continuous polish (`polish`).
     pub polish_ms: f64,
+    /// The part of `agent_steps_ms` spent scoring the visited poses in the judge's views
+    /// (`SearchConfig::judge_zoom`; 0 without them).
+    pub judge_ms: f64,
 }
 
 /// The result of one localization: every hypothesis of the search, and which one answers.
@@ -202,8 +205,12 @@ pub fn localize(
     prior: Pose,
     config: SearchConfig,
 ) -> Result<Localization> {
+    localize_start(backend, Start { maps: vec![map.clone()], image_tensor: image_tensor.to_vec(), intrinsics, prior, search: config, views: Vec::new() })
+}
+
+/// [`localize`] of a whole [`Start`] (the judge's views with it).
+pub fn localize_start(backend: &mut dyn Backend, start: Start) -> Result<Localization> {
     let mut batch = Batch::new(backend.manifest());
-    let start = Start { maps: vec![map.clone()], image_tensor: image_tensor.to_vec(), intrinsics, prior, search: config };
     batch.admit(backend, start, ()).map_err(|(_, e)| anyhow::Error::new(e))?;
     loop {
         batch.step(backend);

@@ -156,6 +156,10 @@ pub struct SearchConfig {
     pub prior_margin: f32,
     /// Starts along the prior's optical axis ([`AxisStarts`]; `each_way` 0 = none).
     pub axis: AxisStarts,
+    /// The zoom of the judge's views (`input::prepare_views`; 0 = the served view alone): the
+    /// answer is chosen among every pose the search visited by the alignment score averaged over
+    /// the served view and those views, and polished on that average ([`SearchConfig::judges`]).
+    pub judge_zoom: f64,
 }
 
 /// Starts along the prior's optical axis: besides the prior, the prior with the camera moved
@@ -234,9 +238,15 @@ impl SearchConfig {
         self.polish && (self.hypotheses > 1 || self.prior_bound.is_some())
     }
 
+    /// Whether the answer is chosen by the judge's views (`judge_zoom` > 0), for a multi-start or
+    /// bounded search, as the polish: a single trajectory answers with its last pose.
+    pub fn judges(&self) -> bool {
+        self.judge_zoom > 0.0 && (self.hypotheses > 1 || self.prior_bound.is_some())
+    }
+
     /// The paper's procedure: one trajectory from the prior, answered with its last pose.
     pub fn single(max_iterations: usize) -> Self {
-        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE }
+        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0 }
     }
 
     /// How its poses compete for the answer: the prior competes with `keep_prior` or a bound; the
@@ -316,6 +326,19 @@ pub struct SearchTuning {
     /// than this (alignment-score units, 0..=1).
     #[arg(long, env = "CMR_AXIS_MARGIN", default_value_t = DEFAULT_AXIS_MARGIN, value_parser = parse_margin)]
     pub axis_margin: f32,
+    /// The judge's views: besides the served crop, the image encoder also reads three crops of
+    /// the image resized this many times more (at its left edge, centre and right edge), and a
+    /// multi-start or bounded search answers with the pose it visited whose alignment score,
+    /// averaged over the four views, is highest, polished on that average. 0 = the served view
+    /// alone; otherwise 1..=3.
+    #[arg(long, env = "CMR_JUDGE_ZOOM", default_value_t = 0.0, value_parser = parse_judge_zoom)]
+    pub judge_zoom: f64,
+}
+
+/// `--judge-zoom`: 0, or within `input::JUDGE_ZOOM_RANGE`.
+fn parse_judge_zoom(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{e}"))?;
+    if v == 0.0 || super::input::JUDGE_ZOOM_RANGE.contains(&v) { Ok(v) } else { Err(format!("{v} is neither 0 nor within {:?}", super::input::JUDGE_ZOOM_RANGE)) }
 }
 
 /// Most shifted priors each way along the optical axis ([`AxisStarts::each_way`]).
@@ -378,6 +401,7 @@ impl SearchTuning {
             polish: self.polish,
             prior_margin: self.prior_margin,
             axis: AxisStarts { each_way: self.axis_starts as usize, step_m: self.axis_step_m, margin: self.axis_margin },
+            judge_zoom: self.judge_zoom,
         }
     }
 }
@@ -863,9 +887,10 @@ impl Search {
     /// Scores every final pose, chooses the answer ([`search_answer`] after the last step: the
     /// best first-round hypothesis, or the prior with `keep_prior` when it scores higher still;
     /// within a bound, the best pose visited inside it; then the refinement round's groups when
-    /// one scores higher); with the polish, the polished choice between that answer and the
-    /// final poses apart from it ([`polish_candidates`], `polish::choose`); and turns the search
-    /// into its result.
+    /// one scores higher; with the judge's views, [`Search::judged_answer`] instead); with the
+    /// polish, the polished choice between that answer and the final poses apart from it
+    /// ([`polish_candidates`], `polish::choose`, climbing the judge's score); and turns the
+    /// search into its result.
     /// The polished choice's candidates climb on several threads (scatter buffers from `pool`);
     /// every pose and score is the same whatever the threads.
     pub fn finish(mut self, layout: &StateLayout, pool: &ScratchPool, mut timings: Timings) -> Localization {
@@ -876,29 +901,53 @@ impl Search {
                 self.hypothesis(h, h >= self.first_round, steps)
             })
             .collect();
-        let answer = search_answer(&hypotheses, &self.prior, self.rules, self.axis_margin, self.max_iterations, true);
+        let judging = self.evidence.iter().any(|e| !e.views.is_empty());
+        let answer = if judging {
+            let started = std::time::Instant::now();
+            let answer = self.judged_answer(&hypotheses, layout, pool);
+            timings.judge_ms = super::ms(started);
+            timings.agent_steps_ms += timings.judge_ms;
+            answer
+        } else {
+            search_answer(&hypotheses, &self.prior, self.rules, self.axis_margin, self.max_iterations, true)
+        };
         let (mut chosen, mut answer_steps, mut kept_prior) = (answer.hypothesis, answer.steps, answer.kept);
         let polish = self.polish.then(|| {
             let started = std::time::Instant::now();
             let bound = self.rules.bound.map(|b| (&self.prior, b));
-            let picked = polish_candidates(&hypotheses, &self.prior, self.rules, (chosen, answer_steps));
-            let poses: Vec<(Pose, f32)> = picked.iter().map(|&(h, k)| hypotheses[h].pose_after(k)).collect();
+            let mut picked = polish_candidates(&hypotheses, &self.prior, self.rules, (chosen, answer_steps));
+            if judging && std::env::var_os("CMR_JUDGE_ONE").is_some() {
+                picked.truncate(1);
+            }
+            let poses: Vec<Pose> = picked.iter().map(|&(h, k)| hypotheses[h].pose_after(k).0).collect();
             // Each candidate climbs in its own hypothesis's map. Every pose a candidate's polish
-            // scores lies within its reach: only the points seen from there are projected (the
-            // same scores).
+            // scores lies within its reach: only the points seen from there are projected, in
+            // each view (the same scores).
             let scenes: Vec<usize> = picked.iter().map(|&(h, _)| self.scenes[h]).collect();
             let reach = polish::REACH;
-            let views: Vec<state::NearView> = poses
+            let near: Vec<Vec<state::NearView>> = poses
                 .par_iter()
                 .zip(&scenes)
-                .map(|((p, _), &m)| state::NearView::new(layout, &self.evidence[m].intrinsics, &self.maps[m].points, p, reach.rotation_deg, reach.translation_m))
+                .map(|(p, &m)| {
+                    let e = &self.evidence[m];
+                    let crops = std::iter::once(&e.intrinsics).chain(e.views.iter().map(|v| &v.intrinsics));
+                    crops.map(|k| state::NearView::new(layout, k, &self.maps[m].points, p, reach.rotation_deg, reach.translation_m)).collect()
+                })
                 .collect();
-            let judge = |pose: &Pose, alignment: f32| self.rules.score(&self.prior, pose, alignment);
-            let (c, p) = polish::choose(self.frame, &poses, bound, judge, |c, p| {
+            let score = |c: usize, p: &Pose| {
                 let (map, e) = (&self.maps[scenes[c]], &self.evidence[scenes[c]]);
-                pool.with(|scratch| state::alignment_near(layout, &views[c], &map.features, &e.image_features, &e.intrinsics, p, scratch))
-            })
-            .expect("the search's answer is a candidate");
+                pool.with(|scratch| {
+                    let served = state::alignment_near(layout, &near[c][0], &map.features, &e.image_features, &e.intrinsics, p, scratch);
+                    e.judged(map, layout, p, served, Some(&near[c][1..]), scratch)
+                })
+            };
+            let candidates: Vec<(Pose, f32)> = if judging {
+                poses.iter().enumerate().map(|(c, p)| (*p, score(c, p))).collect()
+            } else {
+                picked.iter().map(|&(h, k)| hypotheses[h].pose_after(k)).collect()
+            };
+            let judge = |pose: &Pose, alignment: f32| self.rules.score(&self.prior, pose, alignment);
+            let (c, p) = polish::choose(self.frame, &candidates, bound, judge, score).expect("the search's answer is a candidate");
             if c > 0 {
                 (chosen, answer_steps, kept_prior) = (picked[c].0, picked[c].1, false);
             }
@@ -926,6 +975,54 @@ impl Search {
             verdict: Default::default(),
             polish,
         }
+    }
+
+    /// The answer chosen by the judge's views: among every pose the search visited (each
+    /// hypothesis's start and the pose after each of its steps, a step that stayed or repeated
+    /// a cycle adding none; with a bound, those inside it; the prior only when it competes), the
+    /// one whose score ([`ImageEvidence::judged`], judged by [`AnswerRules::score`] against the
+    /// prior) is highest, the earliest on a draw, NaN never. A start of the first round (yaw
+    /// offset 0) that wins is kept unmoved ([`Answer::kept`]).
+    ///
+    /// Why: averaged over zoomed crops the learned score tells the right pose from a wrong one
+    /// better than the served crop alone, and the right pose is more often one the search passed
+    /// than one it stopped at (docs/evaluation.md, "Zoomed views as the choice's judge").
+    fn judged_answer(&self, hypotheses: &[Hypothesis], layout: &StateLayout, pool: &ScratchPool) -> Answer {
+        let mut visited: Vec<(usize, usize, Pose, f32)> = Vec::new();
+        for (h, hypothesis) in hypotheses.iter().enumerate() {
+            for k in 0..=hypothesis.steps.len() {
+                if k > 0 && (hypothesis.steps[k - 1].repeated || hypothesis.steps[k - 1].action.is_zero()) {
+                    continue;
+                }
+                if (h, k) == (0, 0) && !self.rules.prior_competes {
+                    continue;
+                }
+                let (pose, served) = hypothesis.pose_after(k);
+                if self.rules.bound.is_none_or(|b| b.contains(&self.prior, &pose)) {
+                    visited.push((h, k, pose, served));
+                }
+            }
+        }
+        let judged: Vec<f32> = visited
+            .par_iter()
+            .map(|&(h, _, pose, served)| {
+                let m = self.scenes[h];
+                let score = pool.with(|scratch| self.evidence[m].judged(&self.maps[m], layout, &pose, served, None, scratch));
+                self.rules.score(&self.prior, &pose, score)
+            })
+            .collect();
+        let mut best: Option<(usize, f32)> = None;
+        for (i, &s) in judged.iter().enumerate() {
+            if !s.is_nan() && best.is_none_or(|(_, b)| s > b) {
+                best = Some((i, s));
+            }
+        }
+        let Some((i, _)) = best else {
+            return search_answer(hypotheses, &self.prior, self.rules, self.axis_margin, self.max_iterations, true);
+        };
+        let (h, k, _, _) = visited[i];
+        let hypothesis = &hypotheses[h];
+        if k == 0 && !hypothesis.refinement && hypothesis.start_yaw_offset_deg == 0.0 { Answer::kept(h) } else { Answer::at(h, k) }
     }
 }
 
@@ -964,8 +1061,8 @@ mod tests {
         use crate::geometry::Intrinsics;
         use nalgebra::Vector3;
         let map = PreparedMap { points: vec![[0.0, 0.0, 5.0]], features: vec![0.0; 64], pivot: Point3::new(0.0, 0.0, 5.0), source_points: 1, intensity: None };
-        let evidence = ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 } };
-        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE };
+        let evidence = ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 }, views: Arc::new([]) };
+        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0 };
         let mut search = Search::new(vec![evidence], vec![Arc::new(map.clone())], Pose::identity(), config, ActionFrame::CameraY);
         let shifted = |dx: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(dx * DUPLICATE_RTE_M, 0.0, 0.0));
         // 0 and 1 meet (half the radius apart); 2 is within the radius of 1 but 1.2 radii from 0;

@@ -62,9 +62,11 @@ impl Learned {
         let start = Instant::now();
         let manifest = self.backend.manifest().clone();
         let (tensor, crop_intrinsics) = agent::prepare_image(&case.image, &case.intrinsics, &manifest)?;
+        let views = if search.judges() { agent::prepare_views(&case.image, &case.intrinsics, &manifest, search.judge_zoom)? } else { Vec::new() };
         let image_ms = ms(start);
         let k = search.max_iterations;
-        let mut loc = agent::localize(self.backend.as_mut(), map, &tensor, crop_intrinsics, case.initial, search)?;
+        let start = agent::Start { maps: vec![map.clone()], image_tensor: tensor.clone(), intrinsics: crop_intrinsics, prior: case.initial, search, views };
+        let mut loc = agent::localize_start(self.backend.as_mut(), start)?;
         // The server's verdict (`serving::Localizer` does the same after its search).
         let signals = loc.signals();
         loc.verdict = self.calibration.judge(&signals);

@@ -90,6 +90,15 @@ pub fn max_input_scale(nominal_scale: f64, focal_range_px: Option<[f64; 2]>) -> 
     if focal_range_px.is_some() { MAX_FOCAL_SCALE.max(nominal_scale) } else { nominal_scale }
 }
 
+/// Where a zoomed view's crop lies across its resized image ([`PreprocessPlan::zoomed`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CropAnchor {
+    Left,
+    Centre,
+    Right,
+}
+
 /// How an input image of any size becomes the model's `out_width` × `out_height` input:
 /// resize by the model's scale for it ([`input_scale`], raised to at least enough to cover the
 /// output), then crop the window at (`crop_x`, `crop_y`). The intrinsics follow the same steps.
@@ -118,11 +127,34 @@ impl PreprocessPlan {
         }
     }
 
+    /// A zoomed view of the same image: resized `zoom` (≥ 1) times more than
+    /// [`PreprocessPlan::centered`] would, then cropped at `anchor` across the width and centred
+    /// down the height. The search's judge reads these views besides the served one
+    /// (`agent::input::prepare_views`). Twin: `training/cmr/geometry.py::preprocess_plan` with
+    /// `zoom` and the crop's corner (fixtures/conventions.json).
+    pub fn zoomed(in_width: u32, in_height: u32, scale: f64, out_width: u32, out_height: u32, zoom: f64, anchor: CropAnchor) -> Self {
+        let (rw, rh) = Self::resized_size_zoomed(in_width, in_height, scale, out_width, out_height, zoom);
+        let crop_x = match anchor {
+            CropAnchor::Left => 0,
+            CropAnchor::Centre => (rw - out_width) / 2,
+            CropAnchor::Right => rw - out_width,
+        };
+        Self { resized_width: rw, resized_height: rh, crop_x, crop_y: (rh - out_height) / 2, out_width, out_height }
+    }
+
     /// The resized size: s = max(scale, out_h / in_h, out_w / in_w), rounded to pixels.
     pub fn resized_size(in_width: u32, in_height: u32, scale: f64, out_width: u32, out_height: u32) -> (u32, u32) {
-        let s = scale
+        Self::resized_size_zoomed(in_width, in_height, scale, out_width, out_height, 1.0)
+    }
+
+    /// [`PreprocessPlan::resized_size`] with s multiplied by `zoom` (1: the same size).
+    pub fn resized_size_zoomed(in_width: u32, in_height: u32, scale: f64, out_width: u32, out_height: u32, zoom: f64) -> (u32, u32) {
+        let mut s = scale
             .max(out_height as f64 / in_height as f64)
             .max(out_width as f64 / in_width as f64);
+        if zoom != 1.0 {
+            s *= zoom;
+        }
         let rw = ((in_width as f64 * s).round() as u32).max(out_width);
         let rh = ((in_height as f64 * s).round() as u32).max(out_height);
         (rw, rh)

@@ -19,7 +19,7 @@ pub mod pose;
 pub mod voxel;
 
 pub use actions::{ActionFrame, ActionSet, AgentAction, Dof};
-pub use camera::{Intrinsics, MIN_DEPTH_M, PreprocessPlan, input_scale, max_input_scale};
+pub use camera::{CropAnchor, Intrinsics, MIN_DEPTH_M, PreprocessPlan, input_scale, max_input_scale};
 pub use frame::LocalFrame;
 pub use metrics::{PoseError, p2p_distance, step_reward};
 pub use pose::{MAX_COORDINATE_M, Pose, ROTATION_TOLERANCE, check_rotation};

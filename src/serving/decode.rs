@@ -8,7 +8,8 @@ use std::io::Cursor;
 use base64::Engine;
 use image::{ImageFormat, ImageReader, RgbImage};
 
-use crate::geometry::{Intrinsics, PreprocessPlan, max_input_scale};
+use crate::agent::ViewInput;
+use crate::geometry::{Intrinsics, PreprocessPlan, input_scale, max_input_scale};
 use crate::model::Manifest;
 
 use super::error::LocalizeError;
@@ -28,19 +29,48 @@ pub enum ImagePayload {
     Raw(bytes::Bytes),
 }
 
-/// Decodes, resizes and crops one request image to the manifest's input; returns the tensor,
-/// the crop's intrinsics and the decoded image (for pictures; callers that do not draw drop it). Errors: 400 `bad_request` (base64), 400 `corrupt_image` (cut or broken
-/// bytes), 413 (over the budget), 415 (not JPEG/PNG), 422 (zero size, extreme aspect ratio, bad
-/// intrinsics).
+/// One request image as the search reads it.
+pub struct PreparedRequestImage {
+    /// The image encoder's [3, H, W] input (`agent::prepare_image`).
+    pub tensor: Vec<f32>,
+    /// The crop's intrinsics.
+    pub intrinsics: Intrinsics,
+    /// The judge's views (`agent::prepare_views`; empty when the judge zoom is 0).
+    pub views: Vec<ViewInput>,
+    /// The decoded image (for pictures; callers that do not draw drop it).
+    pub image: RgbImage,
+}
+
+/// Decodes, resizes and crops one request image to the manifest's input, with the judge's
+/// views at `judge_zoom` (0: none). Errors: 400 `bad_request` (base64), 400 `corrupt_image` (cut
+/// or broken bytes), 413 (over the budget), 415 (not JPEG/PNG), 422 (zero size, extreme aspect
+/// ratio, bad intrinsics, a judge view's resize over the pixel budget).
 pub fn prepare_request_image(
     payload: ImagePayload,
     intrinsics: &Intrinsics,
     manifest: &Manifest,
     limits: ImageLimits,
-) -> Result<(Vec<f32>, Intrinsics, RgbImage), LocalizeError> {
+    judge_zoom: f64,
+) -> Result<PreparedRequestImage, LocalizeError> {
     let image = decode_payload(payload, manifest, limits)?;
-    let (tensor, crop_k) = crate::agent::prepare_image(&image, intrinsics, manifest).map_err(|e| LocalizeError::Invalid(format!("{e:#}")))?;
-    Ok((tensor, crop_k, image))
+    let invalid = |e: anyhow::Error| LocalizeError::Invalid(format!("{e:#}"));
+    let (tensor, crop_k) = crate::agent::prepare_image(&image, intrinsics, manifest).map_err(invalid)?;
+    if judge_zoom > 0.0 {
+        let (w, h) = image.dimensions();
+        let spec = &manifest.image;
+        let scale = input_scale(spec.nominal_scale, spec.focal_range_px, intrinsics.fx);
+        let (rw, rh) = PreprocessPlan::resized_size_zoomed(w, h, scale, spec.width, spec.height, judge_zoom);
+        if rw as u64 * rh as u64 > limits.max_pixels {
+            return Err(LocalizeError::Invalid(format!(
+                "image is {w}x{h}: the judge's views (zoom {judge_zoom}) would resize it to {rw}x{rh}, over the budget of {} pixels; \
+                 send an image with an aspect ratio nearer {:.2}",
+                limits.max_pixels,
+                spec.width as f64 / spec.height as f64
+            )));
+        }
+    }
+    let views = crate::agent::prepare_views(&image, intrinsics, manifest, judge_zoom).map_err(invalid)?;
+    Ok(PreparedRequestImage { tensor, intrinsics: crop_k, views, image })
 }
 
 /// Decodes one request image (base64 or raw bytes) within `limits`, without preparing it for the
@@ -181,7 +211,7 @@ mod tests {
             let k = Intrinsics { fx, fy: fx, cx: 1000.0, cy: 300.0 };
             let plan = m.image.plan(2000, 600, fx);
             assert!(plan.resized_width as u64 * plan.resized_height as u64 <= limits.max_pixels, "fx {fx}: {plan:?}");
-            let (tensor, crop_k, _) = prepare_request_image(ImagePayload::Raw(bytes.clone().into()), &k, &m, limits).unwrap();
+            let PreparedRequestImage { tensor, intrinsics: crop_k, .. } = prepare_request_image(ImagePayload::Raw(bytes.clone().into()), &k, &m, limits, 0.0).unwrap();
             assert_eq!(tensor.len(), 3 * (m.image.width * m.image.height) as usize);
             assert!(crop_k.fx > 0.0 && crop_k.fx <= fx.max(m.image.width as f64), "fx {fx}: {crop_k:?}");
         }

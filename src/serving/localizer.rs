@@ -160,11 +160,13 @@ impl Localizer {
         let permit = self.decodes.clone().acquire_owned().await.map_err(|_| LocalizeError::Draining)?;
         let t = Instant::now();
         let (manifest, limits, intrinsics) = (self.manifest.clone(), self.config.image, valid.intrinsics);
-        let (tensor, crop_k, decoded) = blocking(move || {
+        let judge_zoom = if valid.search.judges() { valid.search.judge_zoom } else { 0.0 };
+        let prepared = blocking(move || {
             let _permit = permit;
-            prepare_request_image(image, &intrinsics, &manifest, limits)
+            prepare_request_image(image, &intrinsics, &manifest, limits, judge_zoom)
         })
         .await?;
+        let (tensor, crop_k, views, decoded) = (prepared.tensor, prepared.intrinsics, prepared.views, prepared.image);
         // Held through the agent's run only when a picture will be drawn.
         let decoded = keep_image.then_some(decoded);
         let decode_ms = ms(t);
@@ -173,7 +175,7 @@ impl Localizer {
         let maps = self.prepared(&valid, true).await?;
         let (reply, answer) = oneshot::channel();
         let picture = decoded.map(|image| PictureInput { image, intrinsics, map: maps[0].clone(), frame: valid.frame });
-        let start = Start { maps, image_tensor: tensor, intrinsics: crop_k, prior: valid.prior, search: valid.search };
+        let start = Start { maps, image_tensor: tensor, intrinsics: crop_k, prior: valid.prior, search: valid.search, views };
         self.scheduler.submit(Job { start, deadline, span, reply }, admission.slot)?;
         let wait = deadline.saturating_duration_since(Instant::now()) + Duration::from_millis(500);
         let finished = match tokio::time::timeout(wait, answer).await {

@@ -428,7 +428,7 @@ mod tests {
         let intrinsics = Intrinsics { fx: 250.0, fy: 250.0, cx: 255.5, cy: 79.5 };
         let rig = Pose::from_rt(nalgebra::Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0), nalgebra::Vector3::zeros());
         let prior = rig.compose(&Pose::ground_motion(0.2 * i as f64, i as f64 * 0.5, -1.0));
-        Start { maps: vec![map.clone()], image_tensor, intrinsics, prior, search: SearchConfig { hypotheses: 1 + i % 3, max_iterations: 6, narrow_after: None, merge_duplicates: i % 2 == 0, keep_prior: i % 3 == 0, prior_bound: (i % 4 == 3).then_some(crate::agent::PriorBound { rotation_deg: 30.0, translation_m: 5.0 }), refine: i % 4 == 1, polish: i % 3 == 2, prior_margin: if i % 5 == 0 { 0.03 } else { 0.0 }, axis: if i % 6 == 4 { crate::agent::search::AxisStarts { each_way: 1, step_m: 1.25, margin: 0.005 } } else { crate::agent::search::AxisStarts::NONE } } }
+        Start { maps: vec![map.clone()], image_tensor, intrinsics, prior, views: Vec::new(), search: SearchConfig { hypotheses: 1 + i % 3, max_iterations: 6, narrow_after: None, merge_duplicates: i % 2 == 0, keep_prior: i % 3 == 0, prior_bound: (i % 4 == 3).then_some(crate::agent::PriorBound { rotation_deg: 30.0, translation_m: 5.0 }), refine: i % 4 == 1, polish: i % 3 == 2, prior_margin: if i % 5 == 0 { 0.03 } else { 0.0 }, axis: if i % 6 == 4 { crate::agent::search::AxisStarts { each_way: 1, step_m: 1.25, margin: 0.005 } } else { crate::agent::search::AxisStarts::NONE }, judge_zoom: 0.0 } }
     }
 
     fn submit(scheduler: &Scheduler, start: Start) -> oneshot::Receiver<Result<Finished, JobError>> {
