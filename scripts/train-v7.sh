@@ -590,6 +590,15 @@ if 'calibrator' not in doc:
       fresh3-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4405-perturbations.json; draw="--cases-per-frame 1 --seed 4405" ;;
       fresh3-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4406-perturbations.json; draw="--cases-per-frame 4 --seed 4406" ;;
       fresh3-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4407-perturbations.json; draw="--cases-per-frame 4 --seed 4407" ;;
+      # drawn 2026-12-08 for the judge's views (--judge-zoom; docs/evaluation.md, "The judge's
+      # views in the server") after the search change existed, before any search was judged on them
+      fresh4-rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-seed4501-perturbations.json; draw="--cases-per-frame 16 --seed 4501" ;;
+      fresh4-rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4502-perturbations.json; draw="--cases-per-frame 16 --seed 4502 --priors fleet" ;;
+      fresh4-dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4503-perturbations.json; draw="--cases-per-frame 16 --seed 4503" ;;
+      fresh4-dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4504-perturbations.json; draw="--cases-per-frame 16 --seed 4504 --priors fleet" ;;
+      fresh4-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4505-perturbations.json; draw="--cases-per-frame 1 --seed 4505" ;;
+      fresh4-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4506-perturbations.json; draw="--cases-per-frame 4 --seed 4506" ;;
+      fresh4-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4507-perturbations.json; draw="--cases-per-frame 4 --seed 4507" ;;
       synth-test) data=$DATA/synth-test; cases=docs/eval/perturbations.json ;;
       v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-perturbations.json ;;
       own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-perturbations.json ;;

@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use crate::geometry::{ActionSet, AgentAction, Intrinsics, Pose};
 
-use super::state::{ImageGrid, NearView, ScatterScratch, StateLayout, alignment, alignment_near, write_state};
+use super::state::{ImageGrid, ScatterScratch, StateLayout, alignment, write_state};
 use crate::maps::PreparedMap;
 
 /// One policy step: the action chosen at the pose before it, and the pose after it.
@@ -71,19 +71,14 @@ pub struct ViewEvidence {
 impl ImageEvidence {
     /// The judge's score of `camera_from_map` in `map` (whose served-view alignment score is
     /// `served`, `state::alignment`): the mean of `served` and the same score in each of the
-    /// judge's views; `served` itself without views. With `near` (one per view, made around a
-    /// pose within reach of this one), only the points seen from there are projected (the same
-    /// score to the bit, `state::alignment_near`).
-    pub fn judged(&self, map: &PreparedMap, layout: &StateLayout, camera_from_map: &Pose, served: f32, near: Option<&[NearView]>, scratch: &mut ScatterScratch) -> f32 {
+    /// judge's views; `served` itself without views.
+    pub fn judged(&self, map: &PreparedMap, layout: &StateLayout, camera_from_map: &Pose, served: f32, scratch: &mut ScatterScratch) -> f32 {
         if self.views.is_empty() {
             return served;
         }
         let mut sum = served as f64;
-        for (v, view) in self.views.iter().enumerate() {
-            sum += match near {
-                Some(near) => alignment_near(layout, &near[v], &map.features, &view.image_features, &view.intrinsics, camera_from_map, scratch),
-                None => alignment(layout, &map.points, &map.features, &view.image_features, &view.intrinsics, camera_from_map, scratch),
-            } as f64;
+        for view in self.views.iter() {
+            sum += alignment(layout, &map.points, &map.features, &view.image_features, &view.intrinsics, camera_from_map, scratch) as f64;
         }
         (sum / (1 + self.views.len()) as f64) as f32
     }

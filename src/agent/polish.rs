@@ -23,7 +23,8 @@
 //!
 //! The search polishes more than its answer: [`choose`] lets the answer and the final poses of
 //! other hypotheses apart from it (`search::polish_candidates`) each climb their nearest peak
-//! with the fine pass, and polishes on the one whose peak scores highest. The candidates climb in
+//! with the fine pass, and polishes on the one whose peak scores highest (with the judge's views,
+//! `SearchConfig::judge_zoom`, by the score averaged over the views). The candidates climb in
 //! parallel (rayon); each climb is sequential, so the poses scored and the answer do not depend on
 //! the threads.
 
@@ -82,13 +83,13 @@ pub struct Polish {
 /// is given. A NaN score never wins.
 /// [`choose`] with the one candidate.
 pub fn polish(frame: ActionFrame, from: Pose, from_alignment: f32, bound: Option<(&Pose, PriorBound)>, score: impl Fn(&Pose) -> f32 + Sync) -> Polish {
-    let (_, polished) = choose(frame, &[(from, from_alignment)], bound, |_, alignment| alignment, |_, p| score(p)).expect("one candidate");
+    let (_, polished) = choose(frame, &[(from, from_alignment)], bound, |_, _, alignment| alignment, |_, p| score(p)).expect("one candidate");
     polished
 }
 
 /// The polished choice: every candidate (camera_from_map and its alignment score; the search's
 /// own answer first) climbs its nearest peak (the fine pass, within its own [`REACH`] and
-/// `bound`); the one whose peak scores highest by `judge` (pose, alignment; the first on a draw,
+/// `bound`); the one whose peak scores highest by `judge` (candidate, pose, alignment; the first on a draw,
 /// never a NaN) goes on with the wide pass (and the fine pass again if that moved), as
 /// [`polish`] would. `score(c, pose)` scores a pose near candidate `c`, called from several
 /// threads at once (the candidates climb in parallel). Returns the candidate chosen and its
@@ -101,7 +102,7 @@ pub fn choose(
     frame: ActionFrame,
     candidates: &[(Pose, f32)],
     bound: Option<(&Pose, PriorBound)>,
-    judge: impl Fn(&Pose, f32) -> f32,
+    judge: impl Fn(usize, &Pose, f32) -> f32,
     score: impl Fn(usize, &Pose) -> f32 + Sync,
 ) -> Option<(usize, Polish)> {
     let climbs: Vec<Climb> = candidates
@@ -117,7 +118,7 @@ pub fn choose(
     let peaks: Vec<f32> = climbs.iter().map(|climb| climb.best).collect();
     let mut best: Option<(usize, Climb, f32)> = None;
     for (c, climb) in climbs.into_iter().enumerate() {
-        let judged = judge(&climb.pose, climb.best);
+        let judged = judge(c, &climb.pose, climb.best);
         if best.as_ref().is_none_or(|(_, _, b)| outscores(judged, *b)) {
             best = Some((c, climb, judged));
         }
@@ -300,7 +301,7 @@ mod tests {
         let scored: Vec<(Pose, f32)> = candidates.iter().map(|p| (*p, two()(p))).collect();
         assert!(scored[0].1 > scored[1].1);
         let fs = [two(), two()];
-        let (c, p) = choose(ActionFrame::MapZ, &scored, None, |_, a| a, |c, pose| fs[c](pose)).unwrap();
+        let (c, p) = choose(ActionFrame::MapZ, &scored, None, |_, _, a| a, |c, pose| fs[c](pose)).unwrap();
         assert_eq!((c, p.candidates, p.from), (1, 2, candidates[1]));
         assert!(PoseError::between(&p.camera_from_map, &high).rre_geodesic_deg < 0.2);
         // The scores of both candidates' climbs are counted.
@@ -311,7 +312,7 @@ mod tests {
         assert!(runner_up > scored[0].1 && (runner_up - 0.8).abs() < 0.01, "{runner_up}");
         assert_eq!(alone.runner_up_alignment, None);
         // The judge decides: a margin for the first candidate keeps it.
-        let (c, p) = choose(ActionFrame::MapZ, &scored, None, |pose, a| a + if PoseError::between(pose, &low).rre_geodesic_deg < 30.0 { 0.5 } else { 0.0 }, |c, pose| fs[c](pose)).unwrap();
+        let (c, p) = choose(ActionFrame::MapZ, &scored, None, |_, pose, a| a + if PoseError::between(pose, &low).rre_geodesic_deg < 30.0 { 0.5 } else { 0.0 }, |c, pose| fs[c](pose)).unwrap();
         assert_eq!((c, p.from), (0, candidates[0]));
         assert!(PoseError::between(&p.camera_from_map, &low).rre_geodesic_deg < 0.2);
     }
@@ -324,7 +325,7 @@ mod tests {
         let candidates: Vec<(Pose, f32)> = [1.5, 40.0, 92.0, 170.0, -57.0].iter().map(|&yaw| camera(0.3, -0.2, yaw)).map(|p| (p, f(&p))).collect();
         let on = |threads: usize| {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-            pool.install(|| choose(ActionFrame::MapZ, &candidates, None, |_, a| a, |_, p| f(p)))
+            pool.install(|| choose(ActionFrame::MapZ, &candidates, None, |_, _, a| a, |_, p| f(p)))
         };
         let one = on(1).unwrap();
         assert_eq!(one.0, 2, "the highest peak's candidate");
@@ -336,12 +337,12 @@ mod tests {
     #[test]
     fn the_choice_keeps_the_answer_on_a_draw_and_never_takes_a_nan() {
         let (a, b) = (camera(0.0, 0.0, 0.0), camera(0.0, 0.0, 120.0));
-        let (c, p) = choose(ActionFrame::MapZ, &[(a, 0.5), (b, 0.5)], None, |_, s| s, |_, _| 0.5).unwrap();
+        let (c, p) = choose(ActionFrame::MapZ, &[(a, 0.5), (b, 0.5)], None, |_, _, s| s, |_, _| 0.5).unwrap();
         assert_eq!((c, p.camera_from_map, p.candidates), (0, a, 2));
-        let (c, _) = choose(ActionFrame::MapZ, &[(a, 0.5), (b, f32::NAN)], None, |_, s| s, |c, _| if c == 0 { 0.5 } else { f32::NAN }).unwrap();
+        let (c, _) = choose(ActionFrame::MapZ, &[(a, 0.5), (b, f32::NAN)], None, |_, _, s| s, |c, _| if c == 0 { 0.5 } else { f32::NAN }).unwrap();
         assert_eq!(c, 0);
-        let (_, p) = choose(ActionFrame::MapZ, &[(a, 0.5), (b, 0.25), (a, f32::NAN)], None, |_, s| s, |c, _| [0.5, 0.25, f32::NAN][c]).unwrap();
+        let (_, p) = choose(ActionFrame::MapZ, &[(a, 0.5), (b, 0.25), (a, f32::NAN)], None, |_, _, s| s, |c, _| [0.5, 0.25, f32::NAN][c]).unwrap();
         assert_eq!(p.runner_up_alignment, Some(0.25), "a NaN peak is never the runner-up over a number");
-        assert!(choose(ActionFrame::MapZ, &[], None, |_, s| s, |_, _| 0.5).is_none());
+        assert!(choose(ActionFrame::MapZ, &[], None, |_, _, s| s, |_, _| 0.5).is_none());
     }
 }

@@ -504,6 +504,10 @@ pub struct Limits {
     /// What a pose within 40° / 10 m of a stated prior adds to its alignment score when an
     /// unbounded search chooses its answer (`--prior-margin`; 0 = off).
     pub prior_margin: f32,
+    /// The zoom of the judge's views (`--judge-zoom`; 0 = the served crop alone): multi-start and
+    /// bounded searches choose their answer by the alignment score averaged over the served crop
+    /// and three crops of the image resized this many times more.
+    pub judge_zoom: f64,
     pub queue_capacity: usize,
     pub max_batch: usize,
     pub request_timeout_ms: u64,

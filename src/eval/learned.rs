@@ -124,6 +124,8 @@ impl Learned {
                 ("frustum head".into(), t.frustum_head_ms),
                 ("agent steps".into(), t.agent_steps_ms),
                 ("agent steps: state building".into(), t.state_build_ms),
+                ("agent steps: polish".into(), t.polish_ms),
+                ("agent steps: judge's views".into(), t.judge_ms),
             ],
             notes,
         })
