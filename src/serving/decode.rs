@@ -185,6 +185,23 @@ mod tests {
 
     const LIMITS: ImageLimits = ImageLimits { max_side: 8192, max_pixels: 16_000_000 };
 
+    /// The judge's views resize the image 1.5 times more: a strip whose served resize fits the
+    /// pixel budget but whose views would not is refused with 422; without views it prepares.
+    #[test]
+    fn the_judges_views_stay_within_the_pixel_budget() {
+        let m = manifest();
+        let limits = ImageLimits { max_side: 8192, max_pixels: 3_000_000 };
+        let k = Intrinsics { fx: 300.0, fy: 300.0, cx: 2000.0, cy: 20.0 };
+        let strip = || ImagePayload::Raw(png(4000, 40).into());
+        // Covering 512 x 160: x4, 16,000 x 160 = 2.56 MP; the views: 24,000 x 240 = 5.76 MP.
+        let e = prepare_request_image(strip(), &k, &m, limits, 1.5).err().expect("over the budget");
+        assert!(matches!(&e, LocalizeError::Invalid(msg) if msg.contains("judge's views")), "{e:?}");
+        let served = prepare_request_image(strip(), &k, &m, limits, 0.0).unwrap();
+        assert!(served.views.is_empty());
+        let viewed = prepare_request_image(ImagePayload::Raw(png(1241, 376).into()), &k, &m, LIMITS, 1.5).unwrap();
+        assert_eq!(viewed.views.len(), 3);
+    }
+
     #[test]
     fn budgets_refuse_from_the_header() {
         let m = manifest();
