@@ -1019,25 +1019,15 @@ impl Search {
                 self.rules.score(&self.prior, &pose, score)
             })
             .collect();
-        let mut best: Option<(usize, f32)> = None;
-        for (i, &s) in judged.iter().enumerate() {
-            if !s.is_nan() && best.is_none_or(|(_, b)| s > b) {
-                best = Some((i, s));
-            }
-        }
-        let Some((i, _)) = best else {
+        let i = best_of(judged.iter().copied());
+        if judged.get(i).is_none_or(|s| s.is_nan()) {
             return search_answer(hypotheses, &self.prior, self.rules, self.axis_margin, self.max_iterations, true);
-        };
-        // Where the judge's pose lies, the served view's score places the answer.
-        let (_, _, judged_pose, _) = visited[i];
-        let mut local: Option<(usize, usize, f32)> = None;
-        for &(h, k, pose, served) in &visited {
-            let score = self.rules.score(&self.prior, &pose, served);
-            if JUDGE_LOCAL.contains(&judged_pose, &pose) && local.is_none_or(|(_, _, best)| outscores(score, best)) {
-                local = Some((h, k, score));
-            }
         }
-        let (h, k, _) = local.expect("the judge's pose is near itself");
+        // Where the judge's pose lies, the served view's score places the answer (poses beyond
+        // `JUDGE_LOCAL` of it do not compete).
+        let judged_pose = visited[i].2;
+        let near = visited.iter().map(|&(_, _, pose, served)| if JUDGE_LOCAL.contains(&judged_pose, &pose) { self.rules.score(&self.prior, &pose, served) } else { f32::NAN });
+        let (h, k, _, _) = visited[best_of(near)];
         let hypothesis = &hypotheses[h];
         if k == 0 && !hypothesis.refinement && hypothesis.start_yaw_offset_deg == 0.0 { Answer::kept(h) } else { Answer::at(h, k) }
     }

@@ -112,20 +112,6 @@ def test_map_z_expert_rollout(case):
     assert err["rre_geodesic_deg"] < 0.06 and err["rte_m"] < 0.1
 
 
-@pytest.mark.parametrize("case", FIXTURE["preprocess_zoomed"])
-def test_preprocess_zoomed(case):
-    """The judge's views (`PreprocessPlan::zoomed`): training's zoomed plan with the crop at the
-    left edge, centre or right edge, centred down the height."""
-    w, h = case["in_size"]
-    rw, rh = g.resized_size(w, h, case["scale"], 512, 160, case["zoom"])
-    x0 = {"left": 0, "centre": (rw - 512) // 2, "right": rw - 512}[case["anchor"]]
-    plan = g.preprocess_plan(w, h, case["scale"], 512, 160, (x0, (rh - 160) // 2), case["zoom"])
-    assert plan == case["plan"]
-    k = [case["intrinsics"][n] for n in ("fx", "fy", "cx", "cy")]
-    adjusted = g.adjust_intrinsics(plan, k, w, h)
-    assert np.allclose(adjusted, [case["adjusted"][n] for n in ("fx", "fy", "cx", "cy")], atol=1e-9)
-
-
 @pytest.mark.parametrize("case", FIXTURE["poses"])
 def test_map_z_equals_camera_y_for_a_near_level_camera(case):
     """For a level camera (the fixture's pose with its tilt removed) map_z is camera_y."""
