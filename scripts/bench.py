@@ -119,12 +119,15 @@ def oha(url, request, *args):
 def load_phase(server, request, connections, seconds, map_id="demo"):
     path = server.url + f"/v1/maps/{map_id}/localize"
     cpu0, rows0, calls0 = server.cpu_s(), server.metric("cmr_batch_size_sum"), server.metric("cmr_batch_size_count")
+    views0 = server.metric("cmr_judge_views_read_total")
     r = oha(path, request, "-c", str(connections), "-z", f"{seconds}s")
     ok = r["statuses"].get("200", 0)
     rows, calls = server.metric("cmr_batch_size_sum") - rows0, server.metric("cmr_batch_size_count") - calls0
     r["ok_per_s"] = ok / r["seconds"]
     r["cpu_ms_per_request"] = (server.cpu_s() - cpu0) * 1000 / max(ok, 1)
     r["policy_rows_per_request"] = rows / max(ok, 1)
+    # Requests whose judge read its three views (`--judge-gate`), per request answered.
+    r["views_read_per_request"] = (server.metric("cmr_judge_views_read_total") - views0) / max(ok, 1)
     r["mean_batch_rows"] = rows / max(calls, 1)
     return r
 
@@ -198,10 +201,9 @@ def measure_request(server, name, map_id, request, flops, manifest, args):
         # points, and its cost is per point (the image context MLP is ~0.3 MFLOP).
         points = manifest["points"]
         frustum = flops["frustum_head"] * points["num_state_points"] / points["num_points"]
-        # The judge's views (`--judge-zoom`, /v1/info `limits.judge_zoom`): three more image
-        # encoder passes for a multi-start request (the benchmark's requests are).
-        status, info = server.request("GET", "/v1/info")
-        views = 3 if status == 200 and json.loads(info)["limits"].get("judge_zoom", 0) > 0 else 0
+        # The judge's views (`--judge-zoom`): three more image encoder passes for each request
+        # whose judge read them (`--judge-gate`; the server's counter).
+        views = 3 * c16["views_read_per_request"]
         per_request = (1 + views) * flops["image_encoder"] + frustum + c16["policy_rows_per_request"] * (flops["agent"] + correlation_flops(manifest))
         ceiling = args.peak_gflops * 1e9 / per_request
         record["flops"] = {"per_request_gflop": per_request / 1e9, "ceiling_requests_per_s": ceiling,

@@ -599,6 +599,15 @@ if 'calibrator' not in doc:
       fresh4-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4505-perturbations.json; draw="--cases-per-frame 1 --seed 4505" ;;
       fresh4-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4506-perturbations.json; draw="--cases-per-frame 4 --seed 4506" ;;
       fresh4-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4507-perturbations.json; draw="--cases-per-frame 4 --seed 4507" ;;
+      # drawn 2026-12-08 for the judge's gate (--judge-gate; docs/evaluation.md, "Reading the
+      # judge's views only when the starts disagree") after the gate existed, before any search was judged on them
+      fresh5-rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-seed4601-perturbations.json; draw="--cases-per-frame 16 --seed 4601" ;;
+      fresh5-rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4602-perturbations.json; draw="--cases-per-frame 16 --seed 4602 --priors fleet" ;;
+      fresh5-dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4603-perturbations.json; draw="--cases-per-frame 16 --seed 4603" ;;
+      fresh5-dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4604-perturbations.json; draw="--cases-per-frame 16 --seed 4604 --priors fleet" ;;
+      fresh5-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4605-perturbations.json; draw="--cases-per-frame 1 --seed 4605" ;;
+      fresh5-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4606-perturbations.json; draw="--cases-per-frame 4 --seed 4606" ;;
+      fresh5-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4607-perturbations.json; draw="--cases-per-frame 4 --seed 4607" ;;
       synth-test) data=$DATA/synth-test; cases=docs/eval/perturbations.json ;;
       v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-perturbations.json ;;
       own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-perturbations.json ;;

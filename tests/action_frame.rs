@@ -61,7 +61,7 @@ fn a_map_z_model_steps_about_the_map_up_axis() {
     let prior = tilted_rig().compose(&Pose::ground_motion(0.4, 2.0, -1.0));
     let up_seen = |p: &Pose| p.rotation() * Vector3::z();
 
-    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0 };
+    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0, judge_gate: 1.0 };
     let result = agent::localize(&mut backend, &map, &tensor, crop_k, prior, four).unwrap();
     assert_eq!(result.hypotheses.len(), 4);
     let mut moved = false;

@@ -79,7 +79,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 
     // Four starts: the first is the single trajectory above (same rows, batched with three more),
     // the others start from the prior turned about the pivot, and the answer is the best score.
-    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0 };
+    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0, judge_gate: 1.0 };
     let multi = agent::localize(&mut backend, &map, &tensor, crop_k, prior, four).unwrap();
     assert_eq!(multi.hypotheses.len(), 4);
     let first = &multi.hypotheses[0];
@@ -118,7 +118,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 
     // A bounded prior: the starts turn about the prior's camera centre within the bound, and
     // the answer is the best-scoring pose visited inside the bound, with its steps up to there.
-    let bound = agent::PriorBound { rotation_deg: 30.0, translation_m: 5.0 };
+    let bound = agent::PriorBound { rotation_deg: 10.0, translation_m: 5.0 };
     let bounded = agent::localize(&mut backend, &map, &tensor, crop_k, prior, SearchConfig { prior_bound: Some(bound), ..four }).unwrap();
     let centre = nalgebra::Point3::from(prior.camera_position_in_map());
     for (h, offset) in bounded.hypotheses.iter().zip([0.0, 30.0, -30.0, 15.0]) {
@@ -235,7 +235,7 @@ fn batched_workers_match_the_synchronous_loop() {
             // Searches of 1 to 3 starts (one narrowed): the 8-row batch holds some, the rest wait.
             let narrow_after = (i == 4).then_some(1);
             let merge_duplicates = i == 5;
-            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None, refine: i % 3 == 1, polish: i % 2 == 1, prior_margin: if i % 4 == 0 { 0.03 } else { 0.0 }, axis: if i == 3 { AxisStarts { each_way: 1, step_m: 1.25, margin: 0.005 } } else { AxisStarts::NONE }, judge_zoom: 0.0 })
+            (tensor, crop_k, prior, SearchConfig { hypotheses: 1 + i as usize % 3, max_iterations: 3 + i as usize, narrow_after, merge_duplicates, keep_prior: i % 2 == 0, prior_bound: None, refine: i % 3 == 1, polish: i % 2 == 1, prior_margin: if i % 4 == 0 { 0.03 } else { 0.0 }, axis: if i == 3 { AxisStarts { each_way: 1, step_m: 1.25, margin: 0.005 } } else { AxisStarts::NONE }, judge_zoom: 0.0, judge_gate: 1.0 })
         })
         .collect();
     let expected: Vec<_> = cases
@@ -364,7 +364,7 @@ fn the_judges_views_choose_among_every_visited_pose() {
     assert!(views[0].intrinsics.cx > views[1].intrinsics.cx + 100.0 && views[2].intrinsics.cx < views[1].intrinsics.cx - 100.0);
 
     let prior = rig().compose(&Pose::ground_motion(0.5, 2.0, -1.0));
-    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: true, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 1.5 };
+    let four = SearchConfig { hypotheses: 4, max_iterations: 6, narrow_after: None, merge_duplicates: false, keep_prior: true, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 1.5, judge_gate: 1.0 };
     let start = |search: SearchConfig, views: Vec<agent::ViewInput>| agent::Start { maps: vec![map.clone()], image_tensor: tensor.clone(), intrinsics: crop_k, prior, search, views };
     let judged = agent::localize_start(&mut backend, start(four, views.clone())).unwrap();
     assert!(judged.timings.judge_ms > 0.0);
@@ -408,4 +408,49 @@ fn the_judges_views_choose_among_every_visited_pose() {
     let a = agent::localize_start(&mut backend, start(plain, views)).unwrap();
     let b = agent::localize(&mut backend, &map, &tensor, crop_k, prior, plain).unwrap();
     assert_eq!((a.camera_from_map(), a.timings.judge_ms), (b.camera_from_map(), 0.0));
+}
+
+/// The judge's gate: the views are encoded when the search finishes, and only when at most
+/// `judge_gate` of the other starts ended where the served search answers; unread, the served
+/// crop's best visited pose answers. Views whose tensors the encoder refuses show which: a search
+/// that reads them fails, one that does not answers.
+#[test]
+fn the_judges_views_are_read_only_when_the_starts_disagree() {
+    let set = models();
+    let mut backend = set.backend().unwrap();
+    let map: Arc<PreparedMap> = Arc::new(prepare_map(&mut backend, Points::xyz(&cloud())).unwrap());
+    let image = image::RgbImage::from_fn(1241, 376, |x, y| image::Rgb([(x % 251) as u8, (y % 253) as u8, ((x * y) % 13) as u8]));
+    let k = Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 };
+    let (tensor, crop_k) = agent::prepare_image(&image, &k, &set.manifest).unwrap();
+    let views = agent::prepare_views(&image, &k, &set.manifest, 1.5).unwrap();
+    let broken: Vec<agent::ViewInput> = views.iter().map(|v| agent::ViewInput { tensor: vec![0.0; 7], intrinsics: v.intrinsics }).collect();
+    // Within a bound of 10° the starts lie within 20° of each other: after two steps some still
+    // end together.
+    let prior = rig().compose(&Pose::ground_motion(0.0, 0.5, 0.0));
+    let bound = agent::PriorBound { rotation_deg: 10.0, translation_m: 5.0 };
+    let four = SearchConfig { hypotheses: 4, max_iterations: 2, narrow_after: None, merge_duplicates: true, keep_prior: true, prior_bound: Some(bound), refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 1.5, judge_gate: 1.0 };
+    let start = |search: SearchConfig, views: Vec<agent::ViewInput>| agent::Start { maps: vec![map.clone()], image_tensor: tensor.clone(), intrinsics: crop_k, prior, search, views };
+
+    let always = agent::localize_start(&mut backend, start(four, views.clone())).unwrap();
+    let record = always.judge.expect("a judging search records its judge");
+    assert!(record.read_views && always.timings.judge_ms > 0.0);
+    let served = agent::localize(&mut backend, &map, &tensor, crop_k, prior, SearchConfig { judge_zoom: 0.0, ..four }).unwrap();
+    assert!(served.judge.is_none());
+    let search_answer = served.search_answer();
+    let expected = agent::search::start_agreement(&served.hypotheses, served.chosen, served.kept_prior, &search_answer);
+    assert_eq!(record.agreement, expected);
+    assert!(record.agreement > 0.0, "this fixture's starts should agree in part ({})", record.agreement);
+    // Read (gate 1), broken views fail the request at its end.
+    assert!(agent::localize_start(&mut backend, start(four, broken.clone())).is_err());
+
+    // Gate below the agreement: never encoded, so broken views do no harm, and the served
+    // crop's best pose visited inside the bound answers.
+    let gated = agent::localize_start(&mut backend, start(SearchConfig { judge_gate: record.agreement / 2.0, ..four }, broken)).unwrap();
+    assert_eq!(gated.judge.map(|j| (j.agreement, j.read_views)), Some((record.agreement, false)));
+    let visited: Vec<(Pose, f32)> = gated.hypotheses.iter().flat_map(|h| (0..=h.steps.len()).map(move |k| h.pose_after(k))).filter(|(pose, _)| bound.contains(&prior, pose)).collect();
+    let top = visited.iter().map(|(_, s)| *s).fold(f32::NEG_INFINITY, f32::max);
+    assert_eq!(gated.best().pose_after(gated.answer_steps).1, top);
+    // At the agreement itself the views are read: the same answer as always.
+    let at = agent::localize_start(&mut backend, start(SearchConfig { judge_gate: record.agreement, ..four }, views)).unwrap();
+    assert_eq!((at.camera_from_map(), at.judge.map(|j| j.read_views)), (always.camera_from_map(), Some(true)));
 }

@@ -229,8 +229,9 @@ impl<T: Send> Batch<T> {
         out
     }
 
-    /// Removes and answers every request that is done or failed.
-    pub fn retire(&mut self) -> Vec<(T, Result<Localization, StepError>)> {
+    /// Removes and answers every request that is done or failed. A finishing search whose
+    /// judge needs its views has them encoded here (`Search::finish`).
+    pub fn retire(&mut self, backend: &mut dyn Backend) -> Vec<(T, Result<Localization, StepError>)> {
         let mut out = Vec::new();
         let mut i = 0;
         while i < self.running.len() {
@@ -244,7 +245,9 @@ impl<T: Send> Batch<T> {
                 Some(e) => Err(e),
                 None => {
                     r.timings.agent_steps_ms = ms(r.steps_started);
-                    Ok(r.search.finish(&self.layout, &self.scratch, r.timings))
+                    let layout = &self.layout;
+                    let mut read_views = |views: &[ViewInput]| encode_views(backend, layout, views);
+                    r.search.finish(layout, &self.scratch, r.timings, &mut read_views)
                 }
             };
             out.push((r.tag, result));
@@ -267,19 +270,10 @@ fn begin(backend: &mut dyn Backend, start: Start, layout: &StateLayout) -> Resul
     let t = Instant::now();
     let encode = |backend: &mut dyn Backend, tensor: &[f32]| backend.encode_image(tensor).map_err(|e| StepError::Inference(format!("image encoder: {e:#}")));
     let image_features = encode(backend, &start.image_tensor)?;
-    let views: Vec<ViewEvidence> = if start.search.judges() {
-        if start.views.len() != JUDGE_ANCHORS.len() {
-            return Err(StepError::Inference(format!("the search judges with {} views, the request brought {}", JUDGE_ANCHORS.len(), start.views.len())));
-        }
-        let mut views = Vec::with_capacity(start.views.len());
-        for v in &start.views {
-            views.push(ViewEvidence { image_features: state::ImageGrid::new(layout, encode(backend, &v.tensor)?), intrinsics: v.intrinsics });
-        }
-        views
-    } else {
-        Vec::new()
-    };
-    let views: Arc<[ViewEvidence]> = views.into();
+    // The judge's views are encoded when the search finishes, and only if it needs them.
+    if start.search.judges() && start.views.len() != JUDGE_ANCHORS.len() {
+        return Err(StepError::Inference(format!("the search judges with {} views, the request brought {}", JUDGE_ANCHORS.len(), start.views.len())));
+    }
     let image_encoder_ms = ms(t);
     // The frustum head's answers are read for the state points only (the 3D state and the
     // confidence), so it runs on those: M of the N points, a twentieth of the work.
@@ -292,7 +286,19 @@ fn begin(backend: &mut dyn Backend, start: Start, layout: &StateLayout) -> Resul
     }
     let frustum_head_ms = ms(t);
     let image_features = Arc::new(state::ImageGrid::new(layout, image_features));
-    let evidence = frustum_probs.into_iter().map(|frustum_probs| ImageEvidence { image_features: image_features.clone(), frustum_probs, intrinsics: start.intrinsics, views: views.clone() }).collect();
-    let search = Search::new(evidence, start.maps, start.prior, start.search, manifest.action_frame());
+    let evidence = frustum_probs.into_iter().map(|frustum_probs| ImageEvidence { image_features: image_features.clone(), frustum_probs, intrinsics: start.intrinsics }).collect();
+    let views = if start.search.judges() { start.views } else { Vec::new() };
+    let search = Search::new(evidence, start.maps, start.prior, start.search, manifest.action_frame()).with_views(views);
     Ok((search, Timings { image_encoder_ms, frustum_head_ms, ..Default::default() }))
+}
+
+/// The image encoder's reading of each of the judge's views.
+fn encode_views(backend: &mut dyn Backend, layout: &StateLayout, views: &[ViewInput]) -> Result<Vec<ViewEvidence>, StepError> {
+    views
+        .iter()
+        .map(|v| {
+            let features = backend.encode_image(&v.tensor).map_err(|e| StepError::Inference(format!("image encoder (a judge's view): {e:#}")))?;
+            Ok(ViewEvidence { image_features: state::ImageGrid::new(layout, features), intrinsics: v.intrinsics })
+        })
+        .collect()
 }

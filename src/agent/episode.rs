@@ -56,9 +56,6 @@ pub struct ImageEvidence {
     pub frustum_probs: Vec<f32>,
     /// The crop's intrinsics.
     pub intrinsics: Intrinsics,
-    /// The judge's views of the same image (`input::prepare_views`; empty without them), shared
-    /// by the maps of one request.
-    pub views: Arc<[ViewEvidence]>,
 }
 
 /// One of the judge's views of a request's image: its features and its crop's intrinsics.
@@ -68,20 +65,18 @@ pub struct ViewEvidence {
     pub intrinsics: Intrinsics,
 }
 
-impl ImageEvidence {
-    /// The judge's score of `camera_from_map` in `map` (whose served-view alignment score is
-    /// `served`, `state::alignment`): the mean of `served` and the same score in each of the
-    /// judge's views; `served` itself without views.
-    pub fn judged(&self, map: &PreparedMap, layout: &StateLayout, camera_from_map: &Pose, served: f32, scratch: &mut ScatterScratch) -> f32 {
-        if self.views.is_empty() {
-            return served;
-        }
-        let mut sum = served as f64;
-        for view in self.views.iter() {
-            sum += alignment(layout, &map.points, &map.features, &view.image_features, &view.intrinsics, camera_from_map, scratch) as f64;
-        }
-        (sum / (1 + self.views.len()) as f64) as f32
+/// The judge's score of `camera_from_map` in `map` (whose served-view alignment score is
+/// `served`, `state::alignment`): the mean of `served` and the same score in each of the judge's
+/// `views` (read from the same image, `input::prepare_views`); `served` itself without views.
+pub fn judged_alignment(views: &[ViewEvidence], map: &PreparedMap, layout: &StateLayout, camera_from_map: &Pose, served: f32, scratch: &mut ScatterScratch) -> f32 {
+    if views.is_empty() {
+        return served;
     }
+    let mut sum = served as f64;
+    for view in views {
+        sum += alignment(layout, &map.points, &map.features, &view.image_features, &view.intrinsics, camera_from_map, scratch) as f64;
+    }
+    (sum / (1 + views.len()) as f64) as f32
 }
 
 pub struct Episode {
@@ -370,7 +365,6 @@ mod tests {
             image_features: Arc::new(ImageGrid::new(&layout, image_features)),
             frustum_probs: logits.iter().map(|l| sigmoid(*l)).collect(),
             intrinsics: Intrinsics { fx: 250.0, fy: 250.0, cx: 255.5, cy: 79.5 },
-            views: Arc::new([]),
         });
         let rig = Pose::from_rt(nalgebra::Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0), nalgebra::Vector3::zeros());
         let start = rig.compose(&Pose::ground_motion(0.1, 1.0, 3.2));
@@ -418,7 +412,7 @@ mod tests {
         };
         let set = ActionSet::default();
         let k = Intrinsics { fx: 100.0, fy: 100.0, cx: 256.0, cy: 80.0 };
-        let evidence = Arc::new(ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.95], intrinsics: k, views: Arc::new([]) });
+        let evidence = Arc::new(ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.95], intrinsics: k });
         let mut ep = Episode::new(evidence, Pose::identity(), 5);
         let mut logits = vec![0f32; 33];
         logits[10] = 5.0; // yaw +62.5°

@@ -19,9 +19,9 @@ use crate::maps::PreparedMap;
 use crate::model::{Backend, Signals, Verdict};
 
 pub use batch::{Batch, Start, StepError};
-pub use episode::{Confidence, Episode, ImageEvidence, Step, ViewEvidence};
+pub use episode::{Confidence, Episode, ImageEvidence, Step, ViewEvidence, judged_alignment};
 pub use input::{ViewInput, prepare_image, prepare_views};
-pub use search::{AnswerRules, AxisStarts, DEFAULT_HYPOTHESES, Hypothesis, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, outscores, start_yaw_offsets};
+pub use search::{AnswerRules, AxisStarts, DEFAULT_HYPOTHESES, Hypothesis, JudgeRecord, MAX_HYPOTHESES, MAX_ITERATIONS, PriorBound, Search, SearchConfig, SearchTuning, best_of, outscores, start_yaw_offsets};
 pub use state::{Form2d, ImageGrid, ScatterScratch, ScratchPool, Shifts, StateLayout};
 
 /// Milliseconds spent per phase of one localization.
@@ -75,6 +75,9 @@ pub struct Localization {
     pub verdict: Verdict,
     /// The continuous polish of the answer (`polish`), when the search ran it.
     pub polish: Option<polish::Polish>,
+    /// What the judge's views did (`search::JudgeRecord`), when the search judges
+    /// (`SearchConfig::judges`).
+    pub judge: Option<search::JudgeRecord>,
 }
 
 impl Localization {
@@ -153,17 +156,10 @@ impl Localization {
         let shift = self.best().start_axis_shift_m;
         let context = search::axis_groups(first).into_iter().find(|g| first[g.start].start_axis_shift_m == shift).unwrap_or(0..first.len());
         let group = &first[context.clone()];
-        let others: Vec<&Hypothesis> = group.iter().enumerate().filter(|(h, _)| self.kept_prior || context.start + h != self.chosen).map(|(_, h)| h).collect();
-        let (margin, agreement) = if others.is_empty() {
-            (0.0, 0.0)
-        } else {
-            let runner_up = others.iter().map(|h| h.alignment()).fold(f32::NEG_INFINITY, f32::max);
-            let agreeing = others
-                .iter()
-                .filter(|h| search::within_duplicate_radius(&h.camera_from_map(), &answer))
-                .count();
-            ((alignment - runner_up) as f64, agreeing as f64 / others.len() as f64)
-        };
+        let others = group.iter().enumerate().filter(|(h, _)| self.kept_prior || context.start + h != self.chosen);
+        let runner_up = others.map(|(_, h)| h.alignment()).fold(f32::NEG_INFINITY, f32::max);
+        let margin = if runner_up == f32::NEG_INFINITY { 0.0 } else { (alignment - runner_up) as f64 };
+        let agreement = search::start_agreement(&self.hypotheses, self.chosen, self.kept_prior, &answer);
         let start_mean = group.iter().map(|h| h.start_alignment as f64).sum::<f64>() / group.len().max(1) as f64;
         let searched = group.iter().chain(&self.hypotheses[first.len()..]);
         let visited = searched.flat_map(|h| std::iter::once(h.start).chain(h.steps.iter().map(|s| s.camera_from_map)));
@@ -214,7 +210,7 @@ pub fn localize_start(backend: &mut dyn Backend, start: Start) -> Result<Localiz
     batch.admit(backend, start, ()).map_err(|(_, e)| anyhow::Error::new(e))?;
     loop {
         batch.step(backend);
-        if let Some(((), result)) = batch.retire().pop() {
+        if let Some(((), result)) = batch.retire(backend).pop() {
             return result.map_err(anyhow::Error::new);
         }
     }
@@ -258,6 +254,7 @@ mod tests {
             timings: Timings::default(),
             verdict: Verdict::default(),
             polish: None,
+            judge: None,
         }
     }
 

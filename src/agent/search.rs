@@ -58,7 +58,9 @@ use crate::geometry::actions::apply_motion;
 
 use crate::maps::PreparedMap;
 
-use super::episode::{Episode, ImageEvidence, Step};
+use super::batch::StepError;
+use super::episode::{Episode, ImageEvidence, Step, ViewEvidence, judged_alignment};
+use super::input::ViewInput;
 use super::polish;
 use super::state::{self, ScatterScratch, ScratchPool, StateLayout};
 use super::{Localization, Timings};
@@ -161,6 +163,11 @@ pub struct SearchConfig {
     /// the served view and those views (`Search::judged_answer`), and the polished choice
     /// compares its candidates' peaks by that average ([`SearchConfig::judges`]).
     pub judge_zoom: f64,
+    /// When the search reads the judge's views (`Search::finish`): only when at most this share
+    /// of the other starts ended where the served search answers ([`start_agreement`], in
+    /// [0, 1]); otherwise the views are never encoded and the served view's score judges alone.
+    /// 1: always.
+    pub judge_gate: f64,
 }
 
 /// Starts along the prior's optical axis: besides the prior, the prior with the camera moved
@@ -247,7 +254,7 @@ impl SearchConfig {
 
     /// The paper's procedure: one trajectory from the prior, answered with its last pose.
     pub fn single(max_iterations: usize) -> Self {
-        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0 }
+        Self { hypotheses: 1, max_iterations, narrow_after: None, merge_duplicates: false, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0, judge_gate: 1.0 }
     }
 
     /// How its poses compete for the answer: the prior competes with `keep_prior` or a bound; the
@@ -335,6 +342,18 @@ pub struct SearchTuning {
     /// answers. 0 = the served view alone; otherwise 1..=3.
     #[arg(long, env = "CMR_JUDGE_ZOOM", default_value_t = DEFAULT_JUDGE_ZOOM, value_parser = parse_judge_zoom)]
     pub judge_zoom: f64,
+    /// With `--judge-zoom`, read the views only when the starts disagree: when at most this
+    /// share of the other starts ended within 4 m / 20° of the served search's answer (0..=1);
+    /// otherwise the three views are never encoded and the served crop's score chooses among
+    /// the visited poses alone. 1 reads them for every multi-start or bounded request.
+    #[arg(long, env = "CMR_JUDGE_GATE", default_value_t = DEFAULT_JUDGE_GATE, value_parser = parse_share)]
+    pub judge_gate: f64,
+}
+
+/// A share: a finite number from 0 to 1.
+fn parse_share(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|e| format!("{e}"))?;
+    if v.is_finite() && (0.0..=1.0).contains(&v) { Ok(v) } else { Err(format!("{v} is not within 0..=1")) }
 }
 
 /// `--judge-zoom`: 0, or within `input::JUDGE_ZOOM_RANGE`.
@@ -370,6 +389,9 @@ pub const JUDGE_LOCAL: PriorBound = PriorBound { rotation_deg: 5.0, translation_
 /// `--judge-zoom`'s default: the judge's views at ×1.5 (docs/evaluation.md, "The judge's views in
 /// the server").
 pub const DEFAULT_JUDGE_ZOOM: f64 = 1.5;
+
+/// `--judge-gate`'s default.
+pub const DEFAULT_JUDGE_GATE: f64 = 1.0;
 
 /// A margin: a finite number from 0 to 1 (the alignment score is a mean cosine, within ±1).
 fn parse_margin(s: &str) -> Result<f32, String> {
@@ -414,6 +436,7 @@ impl SearchTuning {
             prior_margin: self.prior_margin,
             axis: AxisStarts { each_way: self.axis_starts as usize, step_m: self.axis_step_m, margin: self.axis_margin },
             judge_zoom: self.judge_zoom,
+            judge_gate: self.judge_gate,
         }
     }
 }
@@ -584,6 +607,32 @@ impl Answer {
     }
 }
 
+/// What the judge's views did for one search ([`Search::finish`]), kept with its answer.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct JudgeRecord {
+    /// [`start_agreement`] of the served search's own answer ([`search_answer`]), in [0, 1].
+    pub agreement: f64,
+    /// The views were encoded and judged ([`SearchConfig::judge_gate`]); without them the
+    /// served view's score judges alone.
+    pub read_views: bool,
+}
+
+/// Share of the other starts of the answer's group in the first round (its prior along the axis;
+/// the chosen one excluded unless the prior was kept) whose final pose lies within the duplicate
+/// radius ([`within_duplicate_radius`]) of `answer_pose`, in [0, 1] (0 with none): starts a
+/// quarter turn apart that end at the same place. `chosen`, `kept`: the answer's hypothesis and
+/// whether the prior was kept (`Localization::chosen`, `kept_prior`).
+pub fn start_agreement(hypotheses: &[Hypothesis], chosen: usize, kept: bool, answer_pose: &Pose) -> f64 {
+    let first = &hypotheses[..first_round_len(hypotheses)];
+    let shift = hypotheses[chosen].start_axis_shift_m;
+    let group = axis_groups(first).into_iter().find(|g| first[g.start].start_axis_shift_m == shift).unwrap_or(0..first.len());
+    let others: Vec<&Hypothesis> = group.clone().filter(|&h| kept || h != chosen).map(|h| &first[h]).collect();
+    if others.is_empty() {
+        return 0.0;
+    }
+    others.iter().filter(|h| within_duplicate_radius(&h.camera_from_map(), answer_pose)).count() as f64 / others.len() as f64
+}
+
 /// The groups of a first round: runs of consecutive hypotheses with the same
 /// `start_axis_shift_m`, one per prior along the optical axis ([`AxisStarts`]); the whole round
 /// without axis starts.
@@ -729,6 +778,11 @@ pub struct Search {
     rules: AnswerRules,
     axis_margin: f32,
     polish: bool,
+    /// The answer is chosen with the judge's views (`SearchConfig::judges`).
+    judges: bool,
+    judge_gate: f64,
+    /// The judge's views, prepared but not yet encoded ([`Search::with_views`]).
+    view_inputs: Vec<ViewInput>,
 }
 
 impl Search {
@@ -780,7 +834,17 @@ impl Search {
             rules: config.answer_rules(),
             axis_margin: config.axis.margin,
             polish: config.polishes(),
+            judges: config.judges(),
+            judge_gate: config.judge_gate,
+            view_inputs: Vec::new(),
         }
+    }
+
+    /// The judge's views of the request's image (`input::prepare_views`), kept until
+    /// [`Search::finish`] decides whether to encode them.
+    pub fn with_views(mut self, views: Vec<ViewInput>) -> Self {
+        self.view_inputs = views;
+        self
     }
 
     /// Every episode, in order, with the map it localizes in.
@@ -905,7 +969,10 @@ impl Search {
     /// search into its result.
     /// The polished choice's candidates climb on several threads (scatter buffers from `pool`);
     /// every pose and score is the same whatever the threads.
-    pub fn finish(mut self, layout: &StateLayout, pool: &ScratchPool, mut timings: Timings) -> Localization {
+    ///
+    /// With the judge's views (`SearchConfig::judges`), `read_views` encodes them when the served
+    /// view's choice is in doubt (`SearchConfig::judge_gate`); its error fails the request.
+    pub fn finish(mut self, layout: &StateLayout, pool: &ScratchPool, mut timings: Timings, read_views: &mut dyn FnMut(&[ViewInput]) -> Result<Vec<ViewEvidence>, StepError>) -> Result<Localization, StepError> {
         pool.with(|scratch| self.settle(self.episodes.len(), layout, scratch));
         let hypotheses: Vec<Hypothesis> = (0..self.episodes.len())
             .map(|h| {
@@ -913,15 +980,28 @@ impl Search {
                 self.hypothesis(h, h >= self.first_round, steps)
             })
             .collect();
-        let judging = self.evidence.iter().any(|e| !e.views.is_empty());
-        let answer = if judging {
+        let mut views: Vec<ViewEvidence> = Vec::new();
+        let mut judge = None;
+        let served_answer = |s: &Self| search_answer(&hypotheses, &s.prior, s.rules, s.axis_margin, s.max_iterations, true);
+        let answer = if self.judges {
+            // The served search's own answer: where most starts ended there, the views are not
+            // read and the served view judges alone.
+            let served = served_answer(&self);
+            let agreement = start_agreement(&hypotheses, served.hypothesis, served.kept, &served.pose(&hypotheses).0);
+            let read = agreement <= self.judge_gate;
+            judge = Some(JudgeRecord { agreement, read_views: read });
+            if read {
+                let started = std::time::Instant::now();
+                views = read_views(&self.view_inputs)?;
+                timings.image_encoder_ms += super::ms(started);
+            }
             let started = std::time::Instant::now();
-            let answer = self.judged_answer(&hypotheses, layout, pool);
+            let answer = self.judged_answer(&hypotheses, &self.visited(&hypotheses), &views, layout, pool);
             timings.judge_ms = super::ms(started);
             timings.agent_steps_ms += timings.judge_ms;
             answer
         } else {
-            search_answer(&hypotheses, &self.prior, self.rules, self.axis_margin, self.max_iterations, true)
+            served_answer(&self)
         };
         let (mut chosen, mut answer_steps, mut kept_prior) = (answer.hypothesis, answer.steps, answer.kept);
         let polish = self.polish.then(|| {
@@ -945,8 +1025,7 @@ impl Search {
             };
             // A peak competes with the judge's score there (the served one without views).
             let judge = |c: usize, pose: &Pose, alignment: f32| {
-                let (map, e) = (&self.maps[scenes[c]], &self.evidence[scenes[c]]);
-                let judged = pool.with(|scratch| e.judged(map, layout, pose, alignment, scratch));
+                let judged = pool.with(|scratch| judged_alignment(&views, &self.maps[scenes[c]], layout, pose, alignment, scratch));
                 self.rules.score(&self.prior, pose, judged)
             };
             let (c, p) = polish::choose(self.frame, &candidates, bound, judge, score).expect("the search's answer is a candidate");
@@ -963,7 +1042,7 @@ impl Search {
         let (pose, alignment) = best.pose_after(answer_steps);
         let certainty = best.steps.get(answer_steps).or(best.steps.last()).map_or(0.0, |s| s.confidence);
         let confidence = self.episodes[chosen].confidence_of(&self.maps[self.scenes[chosen]], layout, &pose, certainty, alignment);
-        Localization {
+        Ok(Localization {
             prior: self.prior,
             hypotheses,
             chosen,
@@ -976,27 +1055,16 @@ impl Search {
             timings,
             verdict: Default::default(),
             polish,
-        }
+            judge,
+        })
     }
 
-    /// The answer chosen by the judge's views: among every pose the search visited (each
-    /// hypothesis's start and the pose after each of its steps, a step that stayed or repeated
-    /// a cycle adding none; with a bound, those inside it; the prior only when it competes), the
-    /// one whose score ([`ImageEvidence::judged`], judged by [`AnswerRules::score`] against the
-    /// prior) is highest, the earliest on a draw, NaN never. A start of the first round (yaw
-    /// offset 0) that wins is kept unmoved ([`Answer::kept`]).
-    ///
-    /// Then, among the visited poses within [`JUDGE_LOCAL`] of that pose, the one the served
-    /// view's score ranks highest answers (the same rules).
-    ///
-    /// Why: averaged over zoomed crops the learned score tells the right pose from a wrong one
-    /// better than the served crop alone, and the right pose is more often one the search passed
-    /// than one it stopped at (docs/evaluation.md, "Zoomed views as the choice's judge"); but among
-    /// poses that differ by a step along the optical axis the average prefers the camera behind
-    /// the truth, by about a metre on real frames, where the served view's score does much less
-    /// (docs/evaluation.md, "The judge's views in the server").
-    fn judged_answer(&self, hypotheses: &[Hypothesis], layout: &StateLayout, pool: &ScratchPool) -> Answer {
-        let mut visited: Vec<(usize, usize, Pose, f32)> = Vec::new();
+    /// Every pose the search visited that may answer: each hypothesis's start and the pose after
+    /// each of its steps (a step that stayed or repeated a cycle adding none), with a bound those
+    /// inside it, the prior only when it competes; as (hypothesis, steps, pose, served view's
+    /// alignment score).
+    fn visited(&self, hypotheses: &[Hypothesis]) -> Vec<(usize, usize, Pose, f32)> {
+        let mut visited = Vec::new();
         for (h, hypothesis) in hypotheses.iter().enumerate() {
             for k in 0..=hypothesis.steps.len() {
                 if k > 0 && (hypothesis.steps[k - 1].repeated || hypothesis.steps[k - 1].action.is_zero()) {
@@ -1011,11 +1079,35 @@ impl Search {
                 }
             }
         }
+        visited
+    }
+
+    /// Hypothesis `h` after `k` steps as the answer: a start of the first round (yaw offset 0)
+    /// is kept unmoved ([`Answer::kept`]).
+    fn visited_answer(&self, hypotheses: &[Hypothesis], h: usize, k: usize) -> Answer {
+        let hypothesis = &hypotheses[h];
+        if k == 0 && !hypothesis.refinement && hypothesis.start_yaw_offset_deg == 0.0 { Answer::kept(h) } else { Answer::at(h, k) }
+    }
+
+    /// The answer chosen by the judge's views: among the `visited` poses ([`Search::visited`]) the
+    /// one whose score ([`judged_alignment`] over `views`, judged by [`AnswerRules::score`]
+    /// against the prior) is highest, the earliest on a draw, NaN never.
+    ///
+    /// Then, among the visited poses within [`JUDGE_LOCAL`] of that pose, the one the served
+    /// view's score ranks highest answers (the same rules).
+    ///
+    /// Why: averaged over zoomed crops the learned score tells the right pose from a wrong one
+    /// better than the served crop alone, and the right pose is more often one the search passed
+    /// than one it stopped at (docs/evaluation.md, "Zoomed views as the choice's judge"); but among
+    /// poses that differ by a step along the optical axis the average prefers the camera behind
+    /// the truth, by about a metre on real frames, where the served view's score does much less
+    /// (docs/evaluation.md, "The judge's views in the server").
+    fn judged_answer(&self, hypotheses: &[Hypothesis], visited: &[(usize, usize, Pose, f32)], views: &[ViewEvidence], layout: &StateLayout, pool: &ScratchPool) -> Answer {
         let judged: Vec<f32> = visited
             .par_iter()
             .map(|&(h, _, pose, served)| {
                 let m = self.scenes[h];
-                let score = pool.with(|scratch| self.evidence[m].judged(&self.maps[m], layout, &pose, served, scratch));
+                let score = pool.with(|scratch| judged_alignment(views, &self.maps[m], layout, &pose, served, scratch));
                 self.rules.score(&self.prior, &pose, score)
             })
             .collect();
@@ -1028,8 +1120,7 @@ impl Search {
         let judged_pose = visited[i].2;
         let near = visited.iter().map(|&(_, _, pose, served)| if JUDGE_LOCAL.contains(&judged_pose, &pose) { self.rules.score(&self.prior, &pose, served) } else { f32::NAN });
         let (h, k, _, _) = visited[best_of(near)];
-        let hypothesis = &hypotheses[h];
-        if k == 0 && !hypothesis.refinement && hypothesis.start_yaw_offset_deg == 0.0 { Answer::kept(h) } else { Answer::at(h, k) }
+        self.visited_answer(hypotheses, h, k)
     }
 }
 
@@ -1069,7 +1160,7 @@ mod tests {
         use nalgebra::Vector3;
         let map = PreparedMap { points: vec![[0.0, 0.0, 5.0]], features: vec![0.0; 64], pivot: Point3::new(0.0, 0.0, 5.0), source_points: 1, intensity: None };
         let evidence = ImageEvidence { image_features: Default::default(), frustum_probs: vec![0.5], intrinsics: Intrinsics { fx: 100.0, fy: 100.0, cx: 50.0, cy: 50.0 }, views: Arc::new([]) };
-        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0 };
+        let config = SearchConfig { hypotheses: 4, max_iterations: 10, narrow_after: None, merge_duplicates: true, keep_prior: false, prior_bound: None, refine: false, polish: false, prior_margin: 0.0, axis: AxisStarts::NONE, judge_zoom: 0.0, judge_gate: 1.0 };
         let mut search = Search::new(vec![evidence], vec![Arc::new(map.clone())], Pose::identity(), config, ActionFrame::CameraY);
         let shifted = |dx: f64| Pose::from_rt(nalgebra::Matrix3::identity(), Vector3::new(dx * DUPLICATE_RTE_M, 0.0, 0.0));
         // 0 and 1 meet (half the radius apart); 2 is within the radius of 1 but 1.2 radii from 0;

@@ -81,6 +81,7 @@ pub async fn info(State(st): Shared) -> Json<Info> {
             polish: c.search.polish,
             prior_margin: c.search.prior_margin,
             judge_zoom: c.search.judge_zoom,
+            judge_gate: c.search.judge_gate,
             queue_capacity: serve.queue_capacity,
             max_batch: c.max_batch,
             request_timeout_ms: c.request_timeout_ms,

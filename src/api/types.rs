@@ -216,7 +216,21 @@ pub struct LocalizeResponse {
     /// How the search's answer was polished into `pose` (the server's `--polish`, on by
     /// default); null when the polish did not run.
     pub polish: Option<PolishBody>,
+    /// Whether the judge's views chose the answer (docs/server.md, "The judge's views"); null
+    /// when the search does not judge (`--judge-zoom 0`, or one start without a `prior_bound`).
+    pub judge: Option<JudgeBody>,
     pub timings_ms: TimingsMs,
+}
+
+/// The judge's views of one request (the server's `--judge-zoom`, `--judge-gate`).
+#[derive(Debug, Serialize, Deserialize, ToSchema)]
+pub struct JudgeBody {
+    /// Share of the other starts whose final pose lies within 4 m / 20° of the served search's
+    /// own answer, in [0, 1].
+    pub agreement: f64,
+    /// The views were encoded and judged (`agreement` at most the server's `--judge-gate`); when
+    /// false the served crop's score chose among the visited poses alone.
+    pub read_views: bool,
 }
 
 /// The continuous polish of an answer (docs/server.md, "The continuous polish"): from the
@@ -289,6 +303,7 @@ impl LocalizeResponse {
                 let (rotation_deg, translation_m) = crate::agent::search::offset_between(&p.from, &p.camera_from_map);
                 PolishBody { from_camera_from_map: p.from.to_rows(), from_alignment: p.from_alignment, alignment: p.alignment, rotation_deg, translation_m, scores: p.scores, candidates: p.candidates, runner_up_alignment: p.runner_up_alignment }
             }),
+            judge: loc.judge.map(|j| JudgeBody { agreement: j.agreement, read_views: j.read_views }),
             timings_ms,
         }
     }
@@ -508,6 +523,9 @@ pub struct Limits {
     /// bounded searches choose their answer by the alignment score averaged over the served crop
     /// and three crops of the image resized this many times more.
     pub judge_zoom: f64,
+    /// When those views are read (`--judge-gate`): only when at most this share of the other
+    /// starts ended where the served search answers (1 = always).
+    pub judge_gate: f64,
     pub queue_capacity: usize,
     pub max_batch: usize,
     pub request_timeout_ms: u64,

@@ -102,6 +102,9 @@ impl Learned {
             "p_registered": loc.verdict.p_registered,
             "localized": loc.verdict.localized,
             "signals": signals,
+            // The judge's views (null when the search does not judge): the starts' agreement with
+            // the served search's answer, and whether the views were read (`--judge-gate`).
+            "judge": loc.judge.map(|j| json!({"agreement": j.agreement, "read_views": j.read_views})),
         });
         if self.record_hypotheses && method == AGENT {
             // The frustum head again (the search keeps its answers to itself), for the IoU of

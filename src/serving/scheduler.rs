@@ -371,7 +371,9 @@ impl Worker {
 
     /// Answers and removes every request that is done, failed, expired or abandoned.
     fn retire(&mut self) {
-        for (tag, result) in self.batch.retire() {
+        // Finishing may encode a search's judge's views (`Search::finish`).
+        let retired = self.with_backend(|batch, backend| batch.retire(backend));
+        for (tag, result) in retired {
             self.queue.active.fetch_sub(1, Ordering::SeqCst);
             let _entered = tag.span.enter();
             let result = result.map(|localization| {
@@ -379,6 +381,10 @@ impl Worker {
                 metrics::histogram!("cmr_phase_seconds", "phase" => "image_encoder").record(t.image_encoder_ms / 1000.0);
                 metrics::histogram!("cmr_phase_seconds", "phase" => "frustum_head").record(t.frustum_head_ms / 1000.0);
                 metrics::histogram!("cmr_phase_seconds", "phase" => "agent_steps").record(t.agent_steps_ms / 1000.0);
+                if let Some(judge) = localization.judge {
+                    metrics::counter!("cmr_judged_requests_total").increment(1);
+                    metrics::counter!("cmr_judge_views_read_total").increment(judge.read_views as u64);
+                }
                 tracing::debug!(agent_steps_ms = t.agent_steps_ms, "localization finished");
                 Finished { localization, queue_ms: tag.queue_ms }
             });
@@ -428,7 +434,7 @@ mod tests {
         let intrinsics = Intrinsics { fx: 250.0, fy: 250.0, cx: 255.5, cy: 79.5 };
         let rig = Pose::from_rt(nalgebra::Matrix3::new(0.0, -1.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0), nalgebra::Vector3::zeros());
         let prior = rig.compose(&Pose::ground_motion(0.2 * i as f64, i as f64 * 0.5, -1.0));
-        Start { maps: vec![map.clone()], image_tensor, intrinsics, prior, views: Vec::new(), search: SearchConfig { hypotheses: 1 + i % 3, max_iterations: 6, narrow_after: None, merge_duplicates: i % 2 == 0, keep_prior: i % 3 == 0, prior_bound: (i % 4 == 3).then_some(crate::agent::PriorBound { rotation_deg: 30.0, translation_m: 5.0 }), refine: i % 4 == 1, polish: i % 3 == 2, prior_margin: if i % 5 == 0 { 0.03 } else { 0.0 }, axis: if i % 6 == 4 { crate::agent::search::AxisStarts { each_way: 1, step_m: 1.25, margin: 0.005 } } else { crate::agent::search::AxisStarts::NONE }, judge_zoom: 0.0 } }
+        Start { maps: vec![map.clone()], image_tensor, intrinsics, prior, views: Vec::new(), search: SearchConfig { hypotheses: 1 + i % 3, max_iterations: 6, narrow_after: None, merge_duplicates: i % 2 == 0, keep_prior: i % 3 == 0, prior_bound: (i % 4 == 3).then_some(crate::agent::PriorBound { rotation_deg: 30.0, translation_m: 5.0 }), refine: i % 4 == 1, polish: i % 3 == 2, prior_margin: if i % 5 == 0 { 0.03 } else { 0.0 }, axis: if i % 6 == 4 { crate::agent::search::AxisStarts { each_way: 1, step_m: 1.25, margin: 0.005 } } else { crate::agent::search::AxisStarts::NONE }, judge_zoom: 0.0, judge_gate: 1.0 } }
     }
 
     fn submit(scheduler: &Scheduler, start: Start) -> oneshot::Receiver<Result<Finished, JobError>> {
