@@ -1091,7 +1091,9 @@ impl Search {
 
     /// The answer chosen by the judge's views: among the `visited` poses ([`Search::visited`]) the
     /// one whose score ([`judged_alignment`] over `views`, judged by [`AnswerRules::score`]
-    /// against the prior) is highest, the earliest on a draw, NaN never.
+    /// against the prior) is highest, the earliest on a draw, NaN never; a start of the first
+    /// round (yaw offset 0) that wins is kept unmoved. Without views (the gate shut them out)
+    /// that is the served view's best visited pose.
     ///
     /// Then, among the visited poses within [`JUDGE_LOCAL`] of that pose, the one the served
     /// view's score ranks highest answers (the same rules).
