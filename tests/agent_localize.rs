@@ -118,7 +118,7 @@ fn localize_follows_the_disentangled_update_and_is_deterministic() {
 
     // A bounded prior: the starts turn about the prior's camera centre within the bound, and
     // the answer is the best-scoring pose visited inside the bound, with its steps up to there.
-    let bound = agent::PriorBound { rotation_deg: 10.0, translation_m: 5.0 };
+    let bound = agent::PriorBound { rotation_deg: 30.0, translation_m: 5.0 };
     let bounded = agent::localize(&mut backend, &map, &tensor, crop_k, prior, SearchConfig { prior_bound: Some(bound), ..four }).unwrap();
     let centre = nalgebra::Point3::from(prior.camera_position_in_map());
     for (h, offset) in bounded.hypotheses.iter().zip([0.0, 30.0, -30.0, 15.0]) {
