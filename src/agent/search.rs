@@ -607,6 +607,10 @@ impl Answer {
     }
 }
 
+/// How [`Search::finish`] has the judge's views encoded when it reads them (`Batch::retire`
+/// passes the backend's image encoder); an error fails the request.
+pub type ReadViews<'a> = dyn FnMut(&[ViewInput]) -> Result<Vec<ViewEvidence>, StepError> + 'a;
+
 /// What the judge's views did for one search ([`Search::finish`]), kept with its answer.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct JudgeRecord {
@@ -972,7 +976,7 @@ impl Search {
     ///
     /// With the judge's views (`SearchConfig::judges`), `read_views` encodes them when the served
     /// view's choice is in doubt (`SearchConfig::judge_gate`); its error fails the request.
-    pub fn finish(mut self, layout: &StateLayout, pool: &ScratchPool, mut timings: Timings, read_views: &mut dyn FnMut(&[ViewInput]) -> Result<Vec<ViewEvidence>, StepError>) -> Result<Localization, StepError> {
+    pub fn finish(mut self, layout: &StateLayout, pool: &ScratchPool, mut timings: Timings, read_views: &mut ReadViews<'_>) -> Result<Localization, StepError> {
         pool.with(|scratch| self.settle(self.episodes.len(), layout, scratch));
         let hypotheses: Vec<Hypothesis> = (0..self.episodes.len())
             .map(|h| {
