@@ -526,6 +526,32 @@ for src in sorted(pathlib.Path(sys.argv[1]).glob('*.bin')):
 }
 
 # export + quantise a checkpoint like the shipped set, then `cmr-agent eval` on the named sets
+# fresh_set NAME: a set of the files drawn for one judgement each, after its candidate existed and
+# before anything was judged on them: fresh2-* for run v34, fresh3-* for run v35 (training/README.md),
+# fresh4-* for the judge's views and fresh5-* for the judge's gate (docs/evaluation.md, "The judge's
+# views in the server", "Reading the judge's views only when the starts disagree"). Set K of
+# rtv-protocol, rtv-fleet, dev-protocol, dev-fleet, synth-test, own-synth, v2-val is seeded
+# 4100 + 100 N + K (fresh3 has no rtv sets: run v35 trained on the held-out drives). Sets data, cases
+# and draw (how the file is drawn on its first use); fails on a name it does not know.
+fresh_set() {
+  local n=${1%%-*} set=${1#*-} k per prefix priors=""
+  n=${n#fresh}
+  case $set in
+    rtv-protocol) k=1 per=16 data=$DATA/real-split/val prefix=real-train-val ;;
+    rtv-fleet) k=2 per=16 data=$DATA/real-split/val prefix=real-train-val-fleet priors="--priors fleet" ;;
+    dev-protocol) k=3 per=16 data=$REAL/../real-dev prefix=real-dev ;;
+    dev-fleet) k=4 per=16 data=$REAL/../real-dev prefix=real-dev-fleet priors="--priors fleet" ;;
+    synth-test) k=5 per=1 data=$DATA/synth-test prefix=synth-test ;;
+    own-synth) k=6 per=4 data=$DATA/own-synth prefix=own-synth ;;
+    v2-val) k=7 per=4 data=$DATA/v2-val-flat prefix=v2-val ;;
+    *) return 1 ;;
+  esac
+  if [ "$n" = 3 ] && [ "$k" -le 2 ]; then return 1; fi
+  local seed=$((4100 + 100 * n + k))
+  cases=docs/eval/$prefix-seed$seed-perturbations.json
+  draw="--cases-per-frame $per --seed $seed${priors:+ $priors}"
+}
+
 judge() {
   local ckpt=$(readlink -f "$1") name=$2; shift 2
   local out=$RUN/judge/$name sets=("$@") tag=${TAG:-}
@@ -573,41 +599,9 @@ if 'calibrator' not in doc:
       fresh-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4205-perturbations.json ;;
       fresh-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4206-perturbations.json ;;
       fresh-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4207-perturbations.json ;;
-      # drawn for run v34 after its candidate existed (training/README.md, "Run `v34`"); the
-      # -noint set reads the held-out frames with every intensity 0 (`intensity_free`)
-      fresh2-rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-seed4301-perturbations.json; draw="--cases-per-frame 16 --seed 4301" ;;
+      # the -noint set reads run v34's held-out frames with every intensity 0 (`intensity_free`)
       fresh2-rtv-protocol-noint) data=$(intensity_free "$DATA/real-split/val"); cases=docs/eval/real-train-val-seed4301-perturbations.json ;;
-      fresh2-rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4302-perturbations.json; draw="--cases-per-frame 16 --seed 4302 --priors fleet" ;;
-      fresh2-dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4303-perturbations.json; draw="--cases-per-frame 16 --seed 4303" ;;
-      fresh2-dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4304-perturbations.json; draw="--cases-per-frame 16 --seed 4304 --priors fleet" ;;
-      fresh2-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4305-perturbations.json; draw="--cases-per-frame 1 --seed 4305" ;;
-      fresh2-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4306-perturbations.json; draw="--cases-per-frame 4 --seed 4306" ;;
-      fresh2-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4307-perturbations.json; draw="--cases-per-frame 4 --seed 4307" ;;
-      # drawn for run v35 after its candidate existed (training/README.md, "Run `v35`"); v35 trains on
-      # the held-out drives, so only real-dev and synthetic files judge it
-      fresh3-dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4403-perturbations.json; draw="--cases-per-frame 16 --seed 4403" ;;
-      fresh3-dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4404-perturbations.json; draw="--cases-per-frame 16 --seed 4404 --priors fleet" ;;
-      fresh3-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4405-perturbations.json; draw="--cases-per-frame 1 --seed 4405" ;;
-      fresh3-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4406-perturbations.json; draw="--cases-per-frame 4 --seed 4406" ;;
-      fresh3-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4407-perturbations.json; draw="--cases-per-frame 4 --seed 4407" ;;
-      # drawn 2026-12-08 for the judge's views (--judge-zoom; docs/evaluation.md, "The judge's
-      # views in the server") after the search change existed, before any search was judged on them
-      fresh4-rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-seed4501-perturbations.json; draw="--cases-per-frame 16 --seed 4501" ;;
-      fresh4-rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4502-perturbations.json; draw="--cases-per-frame 16 --seed 4502 --priors fleet" ;;
-      fresh4-dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4503-perturbations.json; draw="--cases-per-frame 16 --seed 4503" ;;
-      fresh4-dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4504-perturbations.json; draw="--cases-per-frame 16 --seed 4504 --priors fleet" ;;
-      fresh4-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4505-perturbations.json; draw="--cases-per-frame 1 --seed 4505" ;;
-      fresh4-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4506-perturbations.json; draw="--cases-per-frame 4 --seed 4506" ;;
-      fresh4-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4507-perturbations.json; draw="--cases-per-frame 4 --seed 4507" ;;
-      # drawn 2026-12-08 for the judge's gate (--judge-gate; docs/evaluation.md, "Reading the
-      # judge's views only when the starts disagree") after the gate existed, before any search was judged on them
-      fresh5-rtv-protocol) data=$DATA/real-split/val; cases=docs/eval/real-train-val-seed4601-perturbations.json; draw="--cases-per-frame 16 --seed 4601" ;;
-      fresh5-rtv-fleet) data=$DATA/real-split/val; cases=docs/eval/real-train-val-fleet-seed4602-perturbations.json; draw="--cases-per-frame 16 --seed 4602 --priors fleet" ;;
-      fresh5-dev-protocol) data=$REAL/../real-dev; cases=docs/eval/real-dev-seed4603-perturbations.json; draw="--cases-per-frame 16 --seed 4603" ;;
-      fresh5-dev-fleet) data=$REAL/../real-dev; cases=docs/eval/real-dev-fleet-seed4604-perturbations.json; draw="--cases-per-frame 16 --seed 4604 --priors fleet" ;;
-      fresh5-synth-test) data=$DATA/synth-test; cases=docs/eval/synth-test-seed4605-perturbations.json; draw="--cases-per-frame 1 --seed 4605" ;;
-      fresh5-own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-seed4606-perturbations.json; draw="--cases-per-frame 4 --seed 4606" ;;
-      fresh5-v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-seed4607-perturbations.json; draw="--cases-per-frame 4 --seed 4607" ;;
+      fresh[2-5]-*) fresh_set "$set" || { echo "unknown set $set" >&2; return 2; } ;;
       synth-test) data=$DATA/synth-test; cases=docs/eval/perturbations.json ;;
       v2-val) data=$DATA/v2-val-flat; cases=docs/eval/v2-val-perturbations.json ;;
       own-synth) data=$DATA/own-synth; cases=docs/eval/own-synth-perturbations.json ;;
