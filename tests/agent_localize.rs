@@ -340,6 +340,12 @@ fn serve_refuses_a_missing_runtime_or_an_unknown_manifest() {
     assert!(err.contains("unknown format") && err.contains("cmr-agent-manifest/9"), "{err}");
 }
 
+/// The image the judge's tests search with: KITTI-sized, patterned, with KITTI's intrinsics.
+fn judged_image() -> (image::RgbImage, Intrinsics) {
+    let image = image::RgbImage::from_fn(1241, 376, |x, y| image::Rgb([(x % 251) as u8, (y % 253) as u8, ((x * y) % 13) as u8]));
+    (image, Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 })
+}
+
 /// The judge's views: the visited pose whose alignment score, averaged over the served crop and
 /// the three zoomed ones, is highest (recomputed here from the views' own image features) places
 /// the answer: the visited pose near it that the served crop scores highest; the polish climbs
@@ -349,8 +355,7 @@ fn the_judges_views_choose_among_every_visited_pose() {
     let set = models();
     let mut backend = set.backend().unwrap();
     let map: Arc<PreparedMap> = Arc::new(prepare_map(&mut backend, Points::xyz(&cloud())).unwrap());
-    let image = image::RgbImage::from_fn(1241, 376, |x, y| image::Rgb([(x % 251) as u8, (y % 253) as u8, ((x * y) % 13) as u8]));
-    let k = Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 };
+    let (image, k) = judged_image();
     let (tensor, crop_k) = agent::prepare_image(&image, &k, &set.manifest).unwrap();
     // At zoom 1 the centre view is the served crop; at 0 there are none; below 1 is refused.
     let same = agent::prepare_views(&image, &k, &set.manifest, 1.0).unwrap();
@@ -419,8 +424,7 @@ fn the_judges_views_are_read_only_when_the_starts_disagree() {
     let set = models();
     let mut backend = set.backend().unwrap();
     let map: Arc<PreparedMap> = Arc::new(prepare_map(&mut backend, Points::xyz(&cloud())).unwrap());
-    let image = image::RgbImage::from_fn(1241, 376, |x, y| image::Rgb([(x % 251) as u8, (y % 253) as u8, ((x * y) % 13) as u8]));
-    let k = Intrinsics { fx: 718.856, fy: 718.856, cx: 607.1928, cy: 185.2157 };
+    let (image, k) = judged_image();
     let (tensor, crop_k) = agent::prepare_image(&image, &k, &set.manifest).unwrap();
     let views = agent::prepare_views(&image, &k, &set.manifest, 1.5).unwrap();
     let broken: Vec<agent::ViewInput> = views.iter().map(|v| agent::ViewInput { tensor: vec![0.0; 7], intrinsics: v.intrinsics }).collect();
