@@ -986,11 +986,10 @@ impl Search {
             .collect();
         let mut views: Vec<ViewEvidence> = Vec::new();
         let mut judge = None;
-        let served_answer = |s: &Self| search_answer(&hypotheses, &s.prior, s.rules, s.axis_margin, s.max_iterations, true);
+        // The served search's own answer: with the judge's views, where most starts ended there
+        // the views are not read and the served view judges alone.
+        let served = search_answer(&hypotheses, &self.prior, self.rules, self.axis_margin, self.max_iterations, true);
         let answer = if self.judges {
-            // The served search's own answer: where most starts ended there, the views are not
-            // read and the served view judges alone.
-            let served = served_answer(&self);
             let agreement = start_agreement(&hypotheses, served.hypothesis, served.kept, &served.pose(&hypotheses).0);
             let read = agreement <= self.judge_gate;
             judge = Some(JudgeRecord { agreement, read_views: read });
@@ -1000,12 +999,12 @@ impl Search {
                 timings.image_encoder_ms += super::ms(started);
             }
             let started = std::time::Instant::now();
-            let answer = self.judged_answer(&hypotheses, &self.visited(&hypotheses), &views, layout, pool);
+            let answer = self.judged_answer(&hypotheses, &self.visited(&hypotheses), &views, layout, pool).unwrap_or(served);
             timings.judge_ms = super::ms(started);
             timings.agent_steps_ms += timings.judge_ms;
             answer
         } else {
-            served_answer(&self)
+            served
         };
         let (mut chosen, mut answer_steps, mut kept_prior) = (answer.hypothesis, answer.steps, answer.kept);
         let polish = self.polish.then(|| {
@@ -1095,9 +1094,9 @@ impl Search {
 
     /// The answer chosen by the judge's views: among the `visited` poses ([`Search::visited`]) the
     /// one whose score ([`judged_alignment`] over `views`, judged by [`AnswerRules::score`]
-    /// against the prior) is highest, the earliest on a draw, NaN never; a start of the first
-    /// round (yaw offset 0) that wins is kept unmoved. Without views (the gate shut them out)
-    /// that is the served view's best visited pose.
+    /// against the prior) is highest, the earliest on a draw, NaN never (`None` when every score
+    /// is NaN); a start of the first round (yaw offset 0) that wins is kept unmoved. Without views
+    /// (the gate shut them out) that is the served view's best visited pose.
     ///
     /// Then, among the visited poses within [`JUDGE_LOCAL`] of that pose, the one the served
     /// view's score ranks highest answers (the same rules).
@@ -1108,7 +1107,7 @@ impl Search {
     /// poses that differ by a step along the optical axis the average prefers the camera behind
     /// the truth, by about a metre on real frames, where the served view's score does much less
     /// (docs/evaluation.md, "The judge's views in the server").
-    fn judged_answer(&self, hypotheses: &[Hypothesis], visited: &[(usize, usize, Pose, f32)], views: &[ViewEvidence], layout: &StateLayout, pool: &ScratchPool) -> Answer {
+    fn judged_answer(&self, hypotheses: &[Hypothesis], visited: &[(usize, usize, Pose, f32)], views: &[ViewEvidence], layout: &StateLayout, pool: &ScratchPool) -> Option<Answer> {
         let judged: Vec<f32> = visited
             .par_iter()
             .map(|&(h, _, pose, served)| {
@@ -1119,14 +1118,14 @@ impl Search {
             .collect();
         let i = best_of(judged.iter().copied());
         if judged.get(i).is_none_or(|s| s.is_nan()) {
-            return search_answer(hypotheses, &self.prior, self.rules, self.axis_margin, self.max_iterations, true);
+            return None;
         }
         // Where the judge's pose lies, the served view's score places the answer (poses beyond
         // `JUDGE_LOCAL` of it do not compete).
         let judged_pose = visited[i].2;
         let near = visited.iter().map(|&(_, _, pose, served)| if JUDGE_LOCAL.contains(&judged_pose, &pose) { self.rules.score(&self.prior, &pose, served) } else { f32::NAN });
         let (h, k, _, _) = visited[best_of(near)];
-        self.visited_answer(hypotheses, h, k)
+        Some(self.visited_answer(hypotheses, h, k))
     }
 }
 
